@@ -1,0 +1,4 @@
+//! guardian-daemon: the library behind `guardiand`, the long-running go/no-go screen. It
+//! receives candidate trajectories from planners over iceoryx2, embeds them with the shipped
+//! model, compares them with the persisted class bank and answers go or no-go with reasons.
+#![forbid(unsafe_code)]

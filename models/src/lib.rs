@@ -1,0 +1,8 @@
+//! guardian-models: the learned and the physical models behind guardian.
+//!
+//! It holds the triplet-loss 1D-CNN that embeds a resampled joint trajectory (candle), its
+//! losses, the inference fast path used by the daemon, the class-bank math (prototypes,
+//! thresholds, nearest-class search) and the Franka Emika Panda kinematics (URDF, forward
+//! kinematics, Jacobian, inverse kinematics). Shipped artifacts (weights, default class bank,
+//! `panda.urdf`, model card) live in this crate's folder.
+#![forbid(unsafe_code)]
