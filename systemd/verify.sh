@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# Checks the shipped systemd files with systemd's own tools (no running systemd needed):
+# `systemd-analyze verify` on the unit (ExecStart pointed at a built guardiand, since verify
+# requires the binary to exist), the exposure score of `systemd-analyze security` (fails above
+# 2.0), and the sysusers.d snippet through systemd-sysusers into a scratch root.
+# Usage: systemd/verify.sh [path/to/guardiand]   (default: target/debug/guardiand)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bin=$(realpath "${1:-target/debug/guardiand}")
+test -x "$bin" || { echo "verify.sh: $bin is not an executable; build guardiand first" >&2; exit 1; }
+tmp=$(mktemp -d); trap 'rm -rf "$tmp"' EXIT
+sed "s#^ExecStart=/usr/local/bin/guardiand#ExecStart=$bin#" systemd/guardiand.service > "$tmp/guardiand.service"
+systemd-analyze verify "$tmp/guardiand.service"
+echo "systemd-analyze verify: ok"
+score=$(systemd-analyze security --offline=yes "$tmp/guardiand.service" 2>&1 | sed -n 's/.*Overall exposure level for guardiand.service: \([0-9.]*\).*/\1/p')
+echo "systemd-analyze security exposure: $score"
+awk -v s="$score" 'BEGIN { exit !(s != "" && s <= 2.0) }' || { echo "exposure above 2.0" >&2; exit 1; }
+mkdir -p "$tmp/root/etc"
+systemd-sysusers --root="$tmp/root" - < systemd/sysusers.d/guardian.conf
+grep -q '^guardian:' "$tmp/root/etc/passwd" || { echo "sysusers did not create guardian" >&2; exit 1; }
+echo "systemd-sysusers: ok ($(grep '^guardian:' "$tmp/root/etc/passwd"))"
