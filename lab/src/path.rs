@@ -274,20 +274,23 @@ impl PathSolver {
     /// f32 inside the limits.
     pub fn solve(&self, path: &[PathPoint]) -> Result<DensePath, SolvePathError> {
         let first = path.first().ok_or(SolvePathError::Empty)?;
-        let mut q = self.approach(&self.home, first.position)?;
+        let mut state = self
+            .panda
+            .ik_state(&self.approach(&self.home, first.position)?);
         let mut waypoints = Vec::with_capacity(path.len());
         let mut max_fk_error = 0.0f64;
         let mut min_limit_margin = f64::INFINITY;
         for (index, point) in path.iter().enumerate() {
-            q = self
+            state = self
                 .panda
-                .ik(&self.target(point.position), &q, &self.options)
+                .ik_from(&self.target(point.position), &state, &self.options)
                 .map_err(|source| SolvePathError::Ik {
                     index,
                     len: path.len(),
                     position: point.position.into(),
                     source,
                 })?;
+            let q = &state.q;
             let mut w = [0.0f32; guardian_shared::trajectory::CHANNELS];
             let mut stored = [0.0f64; JOINTS];
             for j in 0..JOINTS {
