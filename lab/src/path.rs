@@ -311,14 +311,20 @@ impl PathSolver {
     }
 
     /// Strokes -> dense Cartesian path (at the geometry's spacing, widened if needed so the
-    /// path fits in [`MAX_WAYPOINTS`]) -> dense joint path.
+    /// path fits in [`MAX_WAYPOINTS`]) -> dense joint path. A drawing with more raw points
+    /// than that keeps them all (the shared validation then rejects it).
     pub fn solve_strokes(
         &self,
         strokes: &[Stroke],
     ) -> Result<(Vec<PathPoint>, DensePath), SolvePathError> {
         let mut spacing = self.geometry.spacing;
         let mut path = cartesian_path(strokes, &self.geometry, spacing);
-        while path.len() > MAX_WAYPOINTS {
+        // The strokes' own points are always kept, so widening cannot shrink every path;
+        // give up after a few rounds and let validation report the count.
+        for _ in 0..8 {
+            if path.len() <= MAX_WAYPOINTS {
+                break;
+            }
             spacing *= path.len() as f64 / (MAX_WAYPOINTS as f64 * 0.95);
             path = cartesian_path(strokes, &self.geometry, spacing);
         }
