@@ -7,5 +7,6 @@
 //! `panda.urdf`, model card) live in this crate's folder.
 #![forbid(unsafe_code)]
 
+pub mod bank;
 pub mod kinematics;
 pub mod preprocess;
