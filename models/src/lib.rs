@@ -6,3 +6,8 @@
 //! kinematics, Jacobian, inverse kinematics). Shipped artifacts (weights, default class bank,
 //! `panda.urdf`, model card) live in this crate's folder.
 #![forbid(unsafe_code)]
+
+pub mod embedder;
+pub mod features;
+pub mod loss;
+pub mod net;
