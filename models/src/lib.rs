@@ -9,5 +9,7 @@
 
 pub mod embedder;
 pub mod features;
+pub mod kinematics;
 pub mod loss;
 pub mod net;
+pub mod preprocess;

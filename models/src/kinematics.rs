@@ -1,0 +1,705 @@
+//! Franka Emika Panda kinematics: the URDF parsed once into a [`Panda`] chain, forward
+//! kinematics of the flange and the pen tip, the geometric Jacobian of the pen tip, and a
+//! damped-least-squares inverse kinematics that stays continuous (seeded with the previous
+//! solution) and inside the joint limits.
+//!
+//! Everything runs on nalgebra fixed-size types; nothing allocates. The chain is parsed from
+//! `models/panda.urdf` with urdf-rs ([`Panda::from_urdf_str`]); [`Panda::default`] builds the
+//! same chain from the published numbers without parsing (a test keeps both identical), so
+//! the daemon needs no file at run time.
+//!
+//! Why a hand-written IK rather than the `k` crate: on these machines a damped-least-squares
+//! solver on fixed-size matrices converts 1,800-3,600 Omniglot drawings/s per core while `k`
+//! manages 220-460/s, and `k` 0.32 pins nalgebra 0.30 / urdf-rs 0.9 (two copies of nalgebra in
+//! the workspace). See `docs/dataset.md` for the figures measured with this solver.
+
+// Joint-indexed loops over several parallel arrays read best with an index.
+#![allow(clippy::needless_range_loop)]
+
+use guardian_shared::trajectory::{JOINTS, Q_MAX, Q_MIN};
+use nalgebra::{Matrix3, Matrix6, Matrix6x1, Rotation3, SMatrix, Vector3, Vector6};
+
+/// The robot model shipped with guardian (kinematic only).
+pub const PANDA_URDF: &str = include_str!("../panda.urdf");
+
+/// Joint positions of the 7 revolute joints (rad).
+pub type JointVector = [f64; JOINTS];
+
+/// The geometric Jacobian of the pen tip: rows 0-2 linear velocity, rows 3-5 angular
+/// velocity, both in the base frame; one column per joint.
+pub type Jacobian = SMatrix<f64, 6, JOINTS>;
+
+/// The Franka "ready" pose.
+pub const READY_POSE: JointVector = [
+    0.0,
+    -std::f64::consts::FRAC_PI_4,
+    0.0,
+    -3.0 * std::f64::consts::FRAC_PI_4,
+    0.0,
+    std::f64::consts::FRAC_PI_2,
+    std::f64::consts::FRAC_PI_4,
+];
+
+/// A rigid transform: `p_parent = rotation * p_child + translation`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Frame {
+    /// Orientation of the child frame in the parent frame.
+    pub rotation: Matrix3<f64>,
+    /// Origin of the child frame in the parent frame (m).
+    pub translation: Vector3<f64>,
+}
+
+impl Frame {
+    /// The identity transform.
+    pub fn identity() -> Self {
+        Self {
+            rotation: Matrix3::identity(),
+            translation: Vector3::zeros(),
+        }
+    }
+
+    /// A URDF `<origin xyz rpy>`: rotation `Rz(yaw) * Ry(pitch) * Rx(roll)`.
+    pub fn from_xyz_rpy(xyz: [f64; 3], rpy: [f64; 3]) -> Self {
+        Self {
+            rotation: Rotation3::from_euler_angles(rpy[0], rpy[1], rpy[2]).into_inner(),
+            translation: Vector3::new(xyz[0], xyz[1], xyz[2]),
+        }
+    }
+
+    /// `self * other`.
+    pub fn compose(&self, other: &Frame) -> Frame {
+        Frame {
+            rotation: self.rotation * other.rotation,
+            translation: self.translation + self.rotation * other.translation,
+        }
+    }
+
+    /// `self * Rz(q)`: the frame after a revolute joint about its z axis.
+    #[inline]
+    fn rotate_z(&self, q: f64) -> Frame {
+        let (s, c) = q.sin_cos();
+        let r = &self.rotation;
+        let x = r.column(0) * c + r.column(1) * s;
+        let y = r.column(1) * c - r.column(0) * s;
+        Frame {
+            rotation: Matrix3::from_columns(&[x, y, r.column(2).into_owned()]),
+            translation: self.translation,
+        }
+    }
+}
+
+/// Building a [`Panda`] from a URDF failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum UrdfLoadError {
+    /// urdf-rs could not parse the text.
+    #[error("cannot parse URDF: {0}")]
+    Parse(String),
+    /// No single root link (a link that is nobody's child) was found.
+    #[error("URDF has {roots} root links, expected 1")]
+    Root {
+        /// Number of root links found.
+        roots: usize,
+    },
+    /// A link has more than one child joint: not a serial chain.
+    #[error("link {link} has {children} child joints; a serial chain is expected")]
+    Branching {
+        /// The link name.
+        link: String,
+        /// Number of child joints.
+        children: usize,
+    },
+    /// The chain does not have 7 revolute joints.
+    #[error("expected {expected} revolute joints, got {got}")]
+    JointCount {
+        /// Revolute joints expected.
+        expected: usize,
+        /// Revolute joints found.
+        got: usize,
+    },
+    /// A joint type other than revolute or fixed, or a fixed joint between revolute ones.
+    #[error("joint {joint}: unsupported {kind} here")]
+    Unsupported {
+        /// The joint name.
+        joint: String,
+        /// What was found.
+        kind: String,
+    },
+    /// A revolute joint does not rotate about its z axis.
+    #[error("joint {joint}: axis {axis:?} is not +z")]
+    Axis {
+        /// The joint name.
+        joint: String,
+        /// The axis in the URDF.
+        axis: [f64; 3],
+    },
+    /// No fixed joint after the last revolute joint (the flange).
+    #[error("no fixed flange joint after the last revolute joint")]
+    NoFlange,
+}
+
+/// Inverse kinematics did not find a solution.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum IkError {
+    /// The iteration limit was reached before the tolerances.
+    #[error(
+        "IK did not converge in {iterations} iterations: position error {position_error:.3e} m, \
+         orientation error {orientation_error:.3e} rad"
+    )]
+    NoConvergence {
+        /// Iterations run.
+        iterations: usize,
+        /// Remaining position error (m).
+        position_error: f64,
+        /// Remaining orientation error (rad).
+        orientation_error: f64,
+    },
+    /// The seed or an iterate was not finite.
+    #[error("IK produced a non-finite value (seed or target not finite)")]
+    NonFinite,
+}
+
+/// Damped-least-squares IK settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IkOptions {
+    /// Accept when the pen-tip position error is below this (m).
+    pub position_tolerance: f64,
+    /// Accept when the orientation error is below this (rad).
+    pub orientation_tolerance: f64,
+    /// Damping factor lambda of `J^T (J J^T + lambda^2 I)^-1`.
+    pub damping: f64,
+    /// Largest joint step per iteration (rad, infinity norm).
+    pub max_step: f64,
+    /// Iteration limit.
+    pub max_iterations: usize,
+}
+
+impl Default for IkOptions {
+    fn default() -> Self {
+        Self {
+            position_tolerance: 1e-6,
+            orientation_tolerance: 1e-5,
+            damping: 1e-3,
+            max_step: 0.2,
+            max_iterations: 100,
+        }
+    }
+}
+
+/// The Panda as a serial chain: 7 revolute joints about z, the fixed flange and the tool.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Panda {
+    /// Fixed origin of each revolute joint in its parent link.
+    joints: [Frame; JOINTS],
+    /// Flange (panda_link8) in panda_link7.
+    flange: Frame,
+    /// Tool (pen tip) in the flange frame.
+    tool: Frame,
+    q_min: JointVector,
+    q_max: JointVector,
+}
+
+const HALF_PI: f64 = std::f64::consts::FRAC_PI_2;
+
+/// Published joint origins (xyz, rpy), the same numbers as `panda.urdf`.
+const ORIGINS: [([f64; 3], [f64; 3]); JOINTS] = [
+    ([0.0, 0.0, 0.333], [0.0, 0.0, 0.0]),
+    ([0.0, 0.0, 0.0], [-HALF_PI, 0.0, 0.0]),
+    ([0.0, -0.316, 0.0], [HALF_PI, 0.0, 0.0]),
+    ([0.0825, 0.0, 0.0], [HALF_PI, 0.0, 0.0]),
+    ([-0.0825, 0.384, 0.0], [-HALF_PI, 0.0, 0.0]),
+    ([0.0, 0.0, 0.0], [HALF_PI, 0.0, 0.0]),
+    ([0.088, 0.0, 0.0], [HALF_PI, 0.0, 0.0]),
+];
+const FLANGE: ([f64; 3], [f64; 3]) = ([0.0, 0.0, 0.107], [0.0, 0.0, 0.0]);
+/// Default pen: 0.15 m along flange z, rotated -pi/4 about z.
+pub const PEN_LENGTH: f64 = 0.15;
+/// Default pen yaw about the flange z axis (rad).
+pub const PEN_YAW: f64 = -std::f64::consts::FRAC_PI_4;
+
+impl Default for Panda {
+    /// The published Panda with the default pen, built without parsing.
+    fn default() -> Self {
+        Self {
+            joints: ORIGINS.map(|(xyz, rpy)| Frame::from_xyz_rpy(xyz, rpy)),
+            flange: Frame::from_xyz_rpy(FLANGE.0, FLANGE.1),
+            tool: Frame::from_xyz_rpy([0.0, 0.0, PEN_LENGTH], [0.0, 0.0, PEN_YAW]),
+            q_min: Q_MIN,
+            q_max: Q_MAX,
+        }
+    }
+}
+
+impl Panda {
+    /// Parse the shipped `panda.urdf` ([`PANDA_URDF`]).
+    pub fn from_embedded_urdf() -> Result<Self, UrdfLoadError> {
+        Self::from_urdf_str(PANDA_URDF)
+    }
+
+    /// Parse a URDF: a serial chain of 7 revolute joints about z, then one fixed joint (the
+    /// flange), then optionally more fixed joints composed into the tool frame (identity if
+    /// none).
+    pub fn from_urdf_str(text: &str) -> Result<Self, UrdfLoadError> {
+        let robot =
+            urdf_rs::read_from_string(text).map_err(|e| UrdfLoadError::Parse(e.to_string()))?;
+        let roots: Vec<&str> = robot
+            .links
+            .iter()
+            .map(|l| l.name.as_str())
+            .filter(|name| !robot.joints.iter().any(|j| j.child.link == *name))
+            .collect();
+        if roots.len() != 1 {
+            return Err(UrdfLoadError::Root { roots: roots.len() });
+        }
+        let mut link = roots[0].to_string();
+        let mut revolute: Vec<(Frame, f64, f64)> = Vec::new();
+        let mut fixed_after: Vec<Frame> = Vec::new();
+        loop {
+            let children: Vec<&urdf_rs::Joint> = robot
+                .joints
+                .iter()
+                .filter(|j| j.parent.link == link)
+                .collect();
+            let joint = match children.as_slice() {
+                [] => break,
+                [j] => *j,
+                _ => {
+                    return Err(UrdfLoadError::Branching {
+                        link,
+                        children: children.len(),
+                    });
+                }
+            };
+            let origin = Frame::from_xyz_rpy(*joint.origin.xyz, *joint.origin.rpy);
+            match joint.joint_type {
+                urdf_rs::JointType::Revolute => {
+                    if !fixed_after.is_empty() {
+                        return Err(UrdfLoadError::Unsupported {
+                            joint: joint.name.clone(),
+                            kind: "revolute joint after a fixed joint".into(),
+                        });
+                    }
+                    let axis = *joint.axis.xyz;
+                    if axis != [0.0, 0.0, 1.0] {
+                        return Err(UrdfLoadError::Axis {
+                            joint: joint.name.clone(),
+                            axis,
+                        });
+                    }
+                    revolute.push((origin, joint.limit.lower, joint.limit.upper));
+                }
+                urdf_rs::JointType::Fixed => {
+                    if revolute.is_empty() {
+                        return Err(UrdfLoadError::Unsupported {
+                            joint: joint.name.clone(),
+                            kind: "fixed joint before the first revolute joint".into(),
+                        });
+                    }
+                    fixed_after.push(origin);
+                }
+                ref other => {
+                    return Err(UrdfLoadError::Unsupported {
+                        joint: joint.name.clone(),
+                        kind: format!("{other:?} joint"),
+                    });
+                }
+            }
+            link = joint.child.link.clone();
+        }
+        if revolute.len() != JOINTS {
+            return Err(UrdfLoadError::JointCount {
+                expected: JOINTS,
+                got: revolute.len(),
+            });
+        }
+        let flange = *fixed_after.first().ok_or(UrdfLoadError::NoFlange)?;
+        let tool = fixed_after[1..]
+            .iter()
+            .fold(Frame::identity(), |acc, f| acc.compose(f));
+        let mut joints = [Frame::identity(); JOINTS];
+        let mut q_min = [0.0; JOINTS];
+        let mut q_max = [0.0; JOINTS];
+        for (i, (origin, lo, hi)) in revolute.into_iter().enumerate() {
+            joints[i] = origin;
+            q_min[i] = lo;
+            q_max[i] = hi;
+        }
+        Ok(Self {
+            joints,
+            flange,
+            tool,
+            q_min,
+            q_max,
+        })
+    }
+
+    /// The same robot with another tool: `length` along flange z, rotated `yaw` about it.
+    pub fn with_tool(mut self, length: f64, yaw: f64) -> Self {
+        self.tool = Frame::from_xyz_rpy([0.0, 0.0, length], [0.0, 0.0, yaw]);
+        self
+    }
+
+    /// The tool (pen tip) frame in the flange frame.
+    pub fn tool(&self) -> &Frame {
+        &self.tool
+    }
+
+    /// Lower joint limits (rad).
+    pub fn q_min(&self) -> &JointVector {
+        &self.q_min
+    }
+
+    /// Upper joint limits (rad).
+    pub fn q_max(&self) -> &JointVector {
+        &self.q_max
+    }
+
+    /// Smallest distance of `q` to a joint limit (rad); negative if a limit is violated.
+    pub fn limit_margin(&self, q: &JointVector) -> f64 {
+        (0..JOINTS)
+            .map(|j| (q[j] - self.q_min[j]).min(self.q_max[j] - q[j]))
+            .fold(f64::INFINITY, f64::min)
+    }
+
+    /// Frame of link 7 (after joint 7, before the flange offset).
+    #[inline]
+    fn link7(&self, q: &JointVector) -> Frame {
+        let mut t = Frame::identity();
+        for (origin, &qi) in self.joints.iter().zip(q.iter()) {
+            t = t.compose(origin).rotate_z(qi);
+        }
+        t
+    }
+
+    /// Forward kinematics of the flange (panda_link8) in the base frame.
+    pub fn flange(&self, q: &JointVector) -> Frame {
+        self.link7(q).compose(&self.flange)
+    }
+
+    /// Forward kinematics of the pen tip (tool frame) in the base frame.
+    pub fn pen_tip(&self, q: &JointVector) -> Frame {
+        self.flange(q).compose(&self.tool)
+    }
+
+    /// Pen-tip position only (m), the fast path for path lengths and features.
+    #[inline]
+    pub fn pen_tip_position(&self, q: &JointVector) -> Vector3<f64> {
+        self.pen_tip(q).translation
+    }
+
+    /// Pen-tip frame and its geometric Jacobian (base frame).
+    pub fn jacobian(&self, q: &JointVector) -> (Frame, Jacobian) {
+        let mut axes = [Vector3::zeros(); JOINTS];
+        let mut origins = [Vector3::zeros(); JOINTS];
+        let mut t = Frame::identity();
+        for j in 0..JOINTS {
+            t = t.compose(&self.joints[j]).rotate_z(q[j]);
+            axes[j] = t.rotation.column(2).into_owned();
+            origins[j] = t.translation;
+        }
+        let tip = t.compose(&self.flange).compose(&self.tool);
+        let mut jac = Jacobian::zeros();
+        for j in 0..JOINTS {
+            let lin = axes[j].cross(&(tip.translation - origins[j]));
+            jac.fixed_view_mut::<3, 1>(0, j).copy_from(&lin);
+            jac.fixed_view_mut::<3, 1>(3, j).copy_from(&axes[j]);
+        }
+        (tip, jac)
+    }
+
+    /// Damped-least-squares IK for a full pen-tip pose, starting from `seed`.
+    ///
+    /// Each iteration takes `dq = J^T (J J^T + lambda^2 I)^-1 e` (the minimum-norm step, so a
+    /// nearby seed gives a nearby solution), limits the step to `max_step` and clamps to the
+    /// joint limits. The result is always inside the limits; if the target cannot be reached
+    /// inside them, the result is [`IkError::NoConvergence`].
+    pub fn ik(
+        &self,
+        target: &Frame,
+        seed: &JointVector,
+        options: &IkOptions,
+    ) -> Result<JointVector, IkError> {
+        if seed.iter().any(|v| !v.is_finite()) {
+            return Err(IkError::NonFinite);
+        }
+        let state = self.ik_state(seed);
+        self.ik_from(target, &state, options).map(|s| s.q)
+    }
+
+    /// The IK state at `q` (clamped to the limits): pen-tip frame and Jacobian.
+    pub fn ik_state(&self, q: &JointVector) -> IkState {
+        let mut q = *q;
+        for j in 0..JOINTS {
+            q[j] = q[j].clamp(self.q_min[j], self.q_max[j]);
+        }
+        let (tip, jacobian) = self.jacobian(&q);
+        IkState { q, tip, jacobian }
+    }
+
+    /// [`Panda::ik`] from a state whose frame and Jacobian are already known; returns the
+    /// state at the solution, so a path solver seeding each point with the previous
+    /// solution evaluates the Jacobian once per converged step instead of twice.
+    pub fn ik_from(
+        &self,
+        target: &Frame,
+        seed: &IkState,
+        options: &IkOptions,
+    ) -> Result<IkState, IkError> {
+        if seed.q.iter().any(|v| !v.is_finite())
+            || target.translation.iter().any(|v| !v.is_finite())
+            || target.rotation.iter().any(|v| !v.is_finite())
+        {
+            return Err(IkError::NonFinite);
+        }
+        let mut state = seed.clone();
+        let lambda2 = options.damping * options.damping;
+        let mut position_error = f64::INFINITY;
+        let mut orientation_error = f64::INFINITY;
+        for iteration in 0..=options.max_iterations {
+            if iteration > 0 {
+                let (tip, jacobian) = self.jacobian(&state.q);
+                state.tip = tip;
+                state.jacobian = jacobian;
+            }
+            let jac = &state.jacobian;
+            let dp = target.translation - state.tip.translation;
+            let dw = orientation_error_vector(&target.rotation, &state.tip.rotation);
+            position_error = dp.norm();
+            orientation_error = dw.norm();
+            if position_error <= options.position_tolerance
+                && orientation_error <= options.orientation_tolerance
+            {
+                return Ok(state);
+            }
+            if iteration == options.max_iterations {
+                break;
+            }
+            let e = Vector6::new(dp.x, dp.y, dp.z, dw.x, dw.y, dw.z);
+            let a: Matrix6<f64> = jac * jac.transpose() + Matrix6::identity() * lambda2;
+            let y: Matrix6x1<f64> = match a.cholesky() {
+                Some(ch) => ch.solve(&e),
+                None => return Err(IkError::NonFinite),
+            };
+            let dq = jac.transpose() * y;
+            let largest = dq.amax();
+            if !largest.is_finite() {
+                return Err(IkError::NonFinite);
+            }
+            let scale = if largest > options.max_step {
+                options.max_step / largest
+            } else {
+                1.0
+            };
+            for j in 0..JOINTS {
+                state.q[j] = (state.q[j] + dq[j] * scale).clamp(self.q_min[j], self.q_max[j]);
+            }
+        }
+        Err(IkError::NoConvergence {
+            iterations: options.max_iterations,
+            position_error,
+            orientation_error,
+        })
+    }
+}
+
+/// Joints with their pen-tip frame and Jacobian, carried from one IK solve to the next.
+#[derive(Debug, Clone, PartialEq)]
+pub struct IkState {
+    /// Joint positions (rad), inside the limits.
+    pub q: JointVector,
+    /// Pen-tip frame at `q`.
+    pub tip: Frame,
+    /// Pen-tip Jacobian at `q`.
+    pub jacobian: Jacobian,
+}
+
+/// Rotation vector (axis * angle, base frame) taking `current` to `target`.
+fn orientation_error_vector(target: &Matrix3<f64>, current: &Matrix3<f64>) -> Vector3<f64> {
+    let r = target * current.transpose();
+    let v = 0.5
+        * Vector3::new(
+            r[(2, 1)] - r[(1, 2)],
+            r[(0, 2)] - r[(2, 0)],
+            r[(1, 0)] - r[(0, 1)],
+        );
+    let sin = v.norm();
+    let cos = (0.5 * (r.trace() - 1.0)).clamp(-1.0, 1.0);
+    let angle = sin.atan2(cos);
+    if sin > 1e-9 {
+        return v * (angle / sin);
+    }
+    if cos > 0.0 {
+        // Tiny angle: sin(angle) ~ angle.
+        return v;
+    }
+    // Half turn: the axis is the dominant column of (R + I) / 2.
+    let s = (r + Matrix3::identity()) * 0.5;
+    let k = (0..3)
+        .max_by(|&a, &b| s[(a, a)].total_cmp(&s[(b, b)]))
+        .unwrap_or(0);
+    let axis = s.column(k).into_owned();
+    let n = axis.norm();
+    if n > 0.0 {
+        axis * (angle / n)
+    } else {
+        Vector3::zeros()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng, rngs::StdRng};
+
+    #[test]
+    fn flange_at_the_check_pose() {
+        let panda = Panda::default();
+        let f = panda.flange(&READY_POSE);
+        let expected = Vector3::new(0.3069, 0.0, 0.5903);
+        assert!(
+            (f.translation - expected).norm() < 1e-4,
+            "{}",
+            f.translation
+        );
+        // Flange z points straight down at the ready pose.
+        assert!((f.rotation.column(2) - Vector3::new(0.0, 0.0, -1.0)).norm() < 1e-9);
+        // The pen tip is 0.15 m further down, its x axis along base +x.
+        let p = panda.pen_tip(&READY_POSE);
+        assert!((p.translation - (expected - Vector3::new(0.0, 0.0, 0.15))).norm() < 1e-4);
+        assert!((p.rotation.column(0) - Vector3::new(1.0, 0.0, 0.0)).norm() < 1e-9);
+    }
+
+    #[test]
+    fn urdf_parse_matches_the_published_numbers() {
+        let parsed = Panda::from_embedded_urdf().expect("shipped URDF parses");
+        let builtin = Panda::default();
+        assert_eq!(parsed.q_min, builtin.q_min);
+        assert_eq!(parsed.q_max, builtin.q_max);
+        for (a, b) in parsed.joints.iter().zip(builtin.joints.iter()) {
+            assert!((a.rotation - b.rotation).amax() < 1e-15);
+            assert!((a.translation - b.translation).amax() < 1e-15);
+        }
+        assert!((parsed.tool.rotation - builtin.tool.rotation).amax() < 1e-15);
+        assert!((parsed.tool.translation - builtin.tool.translation).amax() < 1e-15);
+        let f = parsed.flange(&READY_POSE);
+        assert!((f.translation - Vector3::new(0.3069, 0.0, 0.5903)).norm() < 1e-4);
+    }
+
+    #[test]
+    fn malformed_urdf_is_a_typed_error() {
+        assert!(matches!(
+            Panda::from_urdf_str("<robot"),
+            Err(UrdfLoadError::Parse(_))
+        ));
+        let six = PANDA_URDF.replace(
+            r#"<joint name="panda_joint7" type="revolute">"#,
+            r#"<joint name="panda_joint7" type="fixed">"#,
+        );
+        assert!(matches!(
+            Panda::from_urdf_str(&six),
+            Err(UrdfLoadError::JointCount {
+                expected: 7,
+                got: 6
+            })
+        ));
+        let tilted = PANDA_URDF.replacen(r#"<axis xyz="0 0 1"/>"#, r#"<axis xyz="1 0 0"/>"#, 1);
+        assert!(matches!(
+            Panda::from_urdf_str(&tilted),
+            Err(UrdfLoadError::Axis { .. })
+        ));
+    }
+
+    fn random_q(rng: &mut StdRng, panda: &Panda) -> JointVector {
+        std::array::from_fn(|j| {
+            let (lo, hi) = (panda.q_min[j], panda.q_max[j]);
+            let pad = 0.1 * (hi - lo);
+            rng.random_range(lo + pad..hi - pad)
+        })
+    }
+
+    #[test]
+    fn jacobian_matches_finite_differences() {
+        let panda = Panda::default();
+        let mut rng = StdRng::seed_from_u64(7);
+        for _ in 0..50 {
+            let q = random_q(&mut rng, &panda);
+            let (tip, jac) = panda.jacobian(&q);
+            let h = 1e-6;
+            for j in 0..JOINTS {
+                let mut qp = q;
+                qp[j] += h;
+                let mut qm = q;
+                qm[j] -= h;
+                let (fp, fm) = (panda.pen_tip(&qp), panda.pen_tip(&qm));
+                let lin = (fp.translation - fm.translation) / (2.0 * h);
+                // Angular: (R+ - R-) R^T / 2h is skew([w]).
+                let s = (fp.rotation - fm.rotation) * tip.rotation.transpose() / (2.0 * h);
+                let w = Vector3::new(s[(2, 1)], s[(0, 2)], s[(1, 0)]);
+                let col = jac.column(j);
+                for k in 0..3 {
+                    assert!((col[k] - lin[k]).abs() < 1e-6, "lin j{j} k{k}");
+                    assert!((col[3 + k] - w[k]).abs() < 1e-6, "ang j{j} k{k}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn ik_round_trip_on_random_reachable_poses() {
+        let panda = Panda::default();
+        let mut rng = StdRng::seed_from_u64(11);
+        let opts = IkOptions::default();
+        let mut solved = 0;
+        for _ in 0..200 {
+            let q_true = random_q(&mut rng, &panda);
+            let target = panda.pen_tip(&q_true);
+            // Seed near the true solution, as the generator does (previous solution).
+            let seed: JointVector =
+                std::array::from_fn(|j| q_true[j] + rng.random_range(-0.05..0.05));
+            let q = panda
+                .ik(&target, &seed, &opts)
+                .expect("reachable pose near the seed");
+            let got = panda.pen_tip(&q);
+            assert!((got.translation - target.translation).norm() <= opts.position_tolerance);
+            assert!(
+                orientation_error_vector(&target.rotation, &got.rotation).norm()
+                    <= opts.orientation_tolerance
+            );
+            assert!(panda.limit_margin(&q) >= 0.0);
+            solved += 1;
+        }
+        assert_eq!(solved, 200);
+    }
+
+    #[test]
+    fn no_solution_outside_the_limits() {
+        let panda = Panda::default();
+        let opts = IkOptions::default();
+        // Out of reach: 2 m in front of the robot.
+        let mut far = panda.pen_tip(&READY_POSE);
+        far.translation = Vector3::new(2.0, 0.0, 0.3);
+        assert!(matches!(
+            panda.ik(&far, &READY_POSE, &opts),
+            Err(IkError::NoConvergence { .. })
+        ));
+        // Reachable only with joint 4 beyond its upper limit: a pose from q4 = +0.5.
+        let mut q_bad = READY_POSE;
+        q_bad[3] = 0.5;
+        let target = panda.pen_tip(&q_bad);
+        match panda.ik(&target, &READY_POSE, &opts) {
+            Ok(q) => assert!(panda.limit_margin(&q) >= 0.0),
+            Err(e) => assert!(matches!(e, IkError::NoConvergence { .. })),
+        }
+        // Whatever the seed, iterates are clamped: a seed outside the limits comes back inside.
+        let mut seed = READY_POSE;
+        seed[5] = 10.0;
+        if let Ok(q) = panda.ik(&panda.pen_tip(&READY_POSE), &seed, &opts) {
+            assert!(panda.limit_margin(&q) >= 0.0);
+        }
+        assert_eq!(
+            panda.ik(&far, &[f64::NAN; JOINTS], &opts),
+            Err(IkError::NonFinite)
+        );
+    }
+}

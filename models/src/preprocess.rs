@@ -1,0 +1,130 @@
+//! The one preprocessing step shared by training, evaluation and serving: validate a raw
+//! planner trajectory, measure its pen-tip path length by forward kinematics and resample it
+//! to [`STEPS`](guardian_shared::trajectory::STEPS) samples uniform in that length.
+
+use std::sync::LazyLock;
+
+use guardian_shared::trajectory::{self, InvalidTrajectory, Resampled, Waypoint};
+use nalgebra::Vector3;
+
+use crate::kinematics::{JointVector, Panda};
+
+/// The default robot (published Panda, default pen), built once.
+static PANDA: LazyLock<Panda> = LazyLock::new(Panda::default);
+
+/// The default robot model used by [`preprocess`].
+pub fn default_panda() -> &'static Panda {
+    &PANDA
+}
+
+/// Joint part of a waypoint in f64.
+#[inline]
+pub fn joints_of(w: &Waypoint) -> JointVector {
+    std::array::from_fn(|j| f64::from(w[j]))
+}
+
+/// Pen-tip positions (m, base frame) of each waypoint, with the default robot.
+pub fn pen_tip_positions(waypoints: &[Waypoint]) -> Vec<Vector3<f64>> {
+    pen_tip_positions_with(&PANDA, waypoints)
+}
+
+/// Pen-tip positions (m, base frame) of each waypoint, with a given robot.
+pub fn pen_tip_positions_with(panda: &Panda, waypoints: &[Waypoint]) -> Vec<Vector3<f64>> {
+    waypoints
+        .iter()
+        .map(|w| panda.pen_tip_position(&joints_of(w)))
+        .collect()
+}
+
+/// Cumulative pen-tip path length (m) by forward kinematics: element `i` is the length of
+/// the polyline through the pen-tip positions of waypoints `0..=i` (element 0 is 0).
+pub fn pen_path_lengths(waypoints: &[Waypoint]) -> Vec<f64> {
+    pen_path_lengths_with(&PANDA, waypoints)
+}
+
+/// [`pen_path_lengths`] with a given robot.
+pub fn pen_path_lengths_with(panda: &Panda, waypoints: &[Waypoint]) -> Vec<f64> {
+    let mut out = Vec::with_capacity(waypoints.len());
+    let mut total = 0.0;
+    let mut prev: Option<Vector3<f64>> = None;
+    for w in waypoints {
+        let p = panda.pen_tip_position(&joints_of(w));
+        if let Some(pp) = prev {
+            total += (p - pp).norm();
+        }
+        out.push(total);
+        prev = Some(p);
+    }
+    out
+}
+
+/// Validate `raw` ([`trajectory::validate`]) and resample it to 128 x 8 uniformly in pen-tip
+/// path length ([`trajectory::resample`]). The daemon and the dataset generator both call
+/// this, so a trajectory is seen the same way in training and in service.
+pub fn preprocess(raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
+    preprocess_with(&PANDA, raw)
+}
+
+/// [`preprocess`] with a given robot (e.g. another pen length).
+pub fn preprocess_with(panda: &Panda, raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
+    trajectory::validate(raw)?;
+    let cumulative = pen_path_lengths_with(panda, raw);
+    Ok(trajectory::resample(raw, &cumulative))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kinematics::READY_POSE;
+    use guardian_shared::trajectory::{InvalidKind, JOINTS, STEPS, TOOL};
+
+    fn wp(q: &JointVector, tool: f32) -> Waypoint {
+        let mut w = [0.0f32; 8];
+        for j in 0..JOINTS {
+            w[j] = q[j] as f32;
+        }
+        w[TOOL] = tool;
+        w
+    }
+
+    #[test]
+    fn path_length_follows_the_pen_tip() {
+        // Joint 1 swings the pen tip on a circle of radius r around the base z axis.
+        let mut q = READY_POSE;
+        let r = {
+            let p = default_panda().pen_tip_position(&q);
+            (p.x * p.x + p.y * p.y).sqrt()
+        };
+        let mut ws = Vec::new();
+        for k in 0..=100 {
+            q[0] = 0.5 * k as f64 / 100.0;
+            ws.push(wp(&q, 0.0));
+        }
+        let lens = pen_path_lengths(&ws);
+        assert_eq!(lens[0], 0.0);
+        assert!(
+            (lens[100] - 0.5 * r).abs() < 1e-5,
+            "{} vs {}",
+            lens[100],
+            0.5 * r
+        );
+        let out = preprocess(&ws).expect("valid");
+        assert_eq!(out.len(), STEPS);
+        assert!((f64::from(out[STEPS - 1][0]) - 0.5).abs() < 1e-6);
+    }
+
+    #[test]
+    fn invalid_input_is_rejected() {
+        let mut q = READY_POSE;
+        q[3] = 0.5; // beyond joint 4's upper limit
+        let ws = vec![wp(&READY_POSE, 0.0), wp(&q, 0.0)];
+        assert_eq!(
+            preprocess(&ws).unwrap_err().kind,
+            InvalidKind::JointOutOfLimits
+        );
+        assert_eq!(
+            preprocess(&ws[..1]).unwrap_err().kind,
+            InvalidKind::TooFewWaypoints
+        );
+    }
+}
