@@ -1,8 +1,32 @@
-//! guardian-lab: the research bench behind guardian — Omniglot strokes to Panda joint
-//! trajectories, training of the embedding network, baselines, few-shot evaluation and reports.
+//! `guardian-lab`: command-line entry to the research bench. One subcommand per module; each
+//! module owns its `Args` and `run`.
 #![forbid(unsafe_code)]
 
-fn main() {
-    eprintln!("guardian-lab: no subcommands yet");
-    std::process::exit(2);
+use clap::{Parser, Subcommand};
+
+#[derive(Debug, Parser)]
+#[command(name = "guardian-lab", version, about = "guardian research bench")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Convert Omniglot strokes into Panda joint trajectories (safetensors dataset).
+    Dataset(guardian_lab::dataset::Args),
+    /// Plot one drawing of a dataset: strokes, FK pen tip, joint curves.
+    Plot(guardian_lab::plot::Args),
+}
+
+fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    match &cli.command {
+        Command::Dataset(args) => guardian_lab::dataset::run(args),
+        Command::Plot(args) => guardian_lab::plot::run(args),
+    }
 }

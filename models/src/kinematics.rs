@@ -420,29 +420,57 @@ impl Panda {
         seed: &JointVector,
         options: &IkOptions,
     ) -> Result<JointVector, IkError> {
-        if seed.iter().any(|v| !v.is_finite())
+        if seed.iter().any(|v| !v.is_finite()) {
+            return Err(IkError::NonFinite);
+        }
+        let state = self.ik_state(seed);
+        self.ik_from(target, &state, options).map(|s| s.q)
+    }
+
+    /// The IK state at `q` (clamped to the limits): pen-tip frame and Jacobian.
+    pub fn ik_state(&self, q: &JointVector) -> IkState {
+        let mut q = *q;
+        for j in 0..JOINTS {
+            q[j] = q[j].clamp(self.q_min[j], self.q_max[j]);
+        }
+        let (tip, jacobian) = self.jacobian(&q);
+        IkState { q, tip, jacobian }
+    }
+
+    /// [`Panda::ik`] from a state whose frame and Jacobian are already known; returns the
+    /// state at the solution, so a path solver seeding each point with the previous
+    /// solution evaluates the Jacobian once per converged step instead of twice.
+    pub fn ik_from(
+        &self,
+        target: &Frame,
+        seed: &IkState,
+        options: &IkOptions,
+    ) -> Result<IkState, IkError> {
+        if seed.q.iter().any(|v| !v.is_finite())
             || target.translation.iter().any(|v| !v.is_finite())
             || target.rotation.iter().any(|v| !v.is_finite())
         {
             return Err(IkError::NonFinite);
         }
-        let mut q = *seed;
-        for j in 0..JOINTS {
-            q[j] = q[j].clamp(self.q_min[j], self.q_max[j]);
-        }
+        let mut state = seed.clone();
         let lambda2 = options.damping * options.damping;
         let mut position_error = f64::INFINITY;
         let mut orientation_error = f64::INFINITY;
         for iteration in 0..=options.max_iterations {
-            let (tip, jac) = self.jacobian(&q);
-            let dp = target.translation - tip.translation;
-            let dw = orientation_error_vector(&target.rotation, &tip.rotation);
+            if iteration > 0 {
+                let (tip, jacobian) = self.jacobian(&state.q);
+                state.tip = tip;
+                state.jacobian = jacobian;
+            }
+            let jac = &state.jacobian;
+            let dp = target.translation - state.tip.translation;
+            let dw = orientation_error_vector(&target.rotation, &state.tip.rotation);
             position_error = dp.norm();
             orientation_error = dw.norm();
             if position_error <= options.position_tolerance
                 && orientation_error <= options.orientation_tolerance
             {
-                return Ok(q);
+                return Ok(state);
             }
             if iteration == options.max_iterations {
                 break;
@@ -464,7 +492,7 @@ impl Panda {
                 1.0
             };
             for j in 0..JOINTS {
-                q[j] = (q[j] + dq[j] * scale).clamp(self.q_min[j], self.q_max[j]);
+                state.q[j] = (state.q[j] + dq[j] * scale).clamp(self.q_min[j], self.q_max[j]);
             }
         }
         Err(IkError::NoConvergence {
@@ -473,6 +501,17 @@ impl Panda {
             orientation_error,
         })
     }
+}
+
+/// Joints with their pen-tip frame and Jacobian, carried from one IK solve to the next.
+#[derive(Debug, Clone, PartialEq)]
+pub struct IkState {
+    /// Joint positions (rad), inside the limits.
+    pub q: JointVector,
+    /// Pen-tip frame at `q`.
+    pub tip: Frame,
+    /// Pen-tip Jacobian at `q`.
+    pub jacobian: Jacobian,
 }
 
 /// Rotation vector (axis * angle, base frame) taking `current` to `target`.

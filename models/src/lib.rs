@@ -8,5 +8,9 @@
 #![forbid(unsafe_code)]
 
 pub mod bank;
+pub mod embedder;
+pub mod features;
 pub mod kinematics;
+pub mod loss;
+pub mod net;
 pub mod preprocess;
