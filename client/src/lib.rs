@@ -88,22 +88,14 @@ impl Trajectory {
 
     /// From a flat buffer of `channels`-wide rows (a trailing partial row is dropped).
     pub fn from_flat(mut data: Vec<f32>, channels: usize) -> Self {
-        let keep = if channels == 0 {
-            0
-        } else {
-            data.len() / channels * channels
-        };
+        let keep = data.len().checked_div(channels).unwrap_or(0) * channels;
         data.truncate(keep);
         Self { data, channels }
     }
 
     /// Number of waypoints.
     pub fn len(&self) -> usize {
-        if self.channels == 0 {
-            0
-        } else {
-            self.data.len() / self.channels
-        }
+        self.data.len().checked_div(self.channels).unwrap_or(0)
     }
 
     /// No waypoints.

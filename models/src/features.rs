@@ -202,7 +202,15 @@ mod tests {
     #[test]
     fn fk_matches_the_published_ready_pose() {
         use std::f64::consts::PI;
-        let q = [0.0, -PI / 4.0, 0.0, -3.0 * PI / 4.0, 0.0, PI / 2.0, PI / 4.0];
+        let q = [
+            0.0,
+            -PI / 4.0,
+            0.0,
+            -3.0 * PI / 4.0,
+            0.0,
+            PI / 2.0,
+            PI / 4.0,
+        ];
         let p = pen_tip(&q);
         // Flange at (0.3069, 0, 0.5903), tool z straight down: pen 0.15 m lower.
         assert!((p[0] - 0.3069).abs() < 2e-4, "{p:?}");

@@ -173,7 +173,7 @@ impl ReasonCode {
     }
 }
 
-/// The request user header. 160 bytes, alignment 8; see `docs/wire-protocol.md`.
+/// The request user header. 152 bytes, alignment 8; see `docs/wire-protocol.md`.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
 #[type_name("guardian_v1_RequestHeader")]
 #[repr(C)]
@@ -438,7 +438,7 @@ mod tests {
 
     #[test]
     fn layout_matches_the_documented_offsets() {
-        assert_eq!(size_of::<RequestHeader>(), 160);
+        assert_eq!(size_of::<RequestHeader>(), 152);
         assert_eq!(align_of::<RequestHeader>(), 8);
         assert_eq!(offset_of!(RequestHeader, request_id), 0);
         assert_eq!(offset_of!(RequestHeader, op), 8);

@@ -266,6 +266,7 @@ pub fn run_to_exit(setup: &Setup) -> std::process::Output {
         std::thread::sleep(Duration::from_millis(10));
     }
     let _ = child.kill();
+    let _ = child.wait();
     panic!("guardiand did not exit");
 }
 
