@@ -431,3 +431,24 @@ fn print_default_config_parses_back() {
     let c = guardian_daemon::Config::from_toml(&text, std::path::Path::new("stdout")).unwrap();
     assert_eq!(c, guardian_daemon::Config::default());
 }
+
+#[test]
+fn busy_poll_and_spin_then_sleep_modes_serve() {
+    for mode in ["busy-poll", "spin-then-sleep"] {
+        let mut s = Setup::new(18);
+        s.extra = format!("default-threshold = 1e9\nserving-mode = \"{mode}\"");
+        let d = Daemon::start(&s);
+        let client = s.client();
+        enroll_classes(&client, &[0, 1]);
+        let v = client.check(&traj(1, 17), "task1").expect("check");
+        assert_eq!(v.decision, Decision::Go, "{mode}");
+        d.wait_log(&format!(
+            "mode={}",
+            if mode == "busy-poll" {
+                "BusyPoll"
+            } else {
+                "SpinThenSleep"
+            }
+        ));
+    }
+}

@@ -10,7 +10,7 @@ use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use guardian_client::{Client, ClientConfig, Trajectory, Waypoint};
+use guardian_client::{Client, ClientConfig, Trajectory};
 use guardian_models::embedder::Embedder;
 
 static COUNTER: AtomicU32 = AtomicU32::new(0);
@@ -270,42 +270,7 @@ pub fn run_to_exit(setup: &Setup) -> std::process::Output {
     panic!("guardiand did not exit");
 }
 
-/// The Franka ready pose.
-pub const READY: [f32; 7] = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785];
-
-/// A synthetic but valid "drawing" of task `class` by drawer `drawer`: each class moves
-/// the joints along its own smooth pattern with pen-down strokes; drawers differ by small
-/// amplitude, phase and speed changes and by waypoint count.
-pub fn task(class: u32, drawer: u32) -> Vec<Waypoint> {
-    let n = 60 + (drawer as usize * 7) % 40;
-    let c = class as f32;
-    let d = drawer as f32;
-    let amp = 0.25 * (1.0 + 0.03 * ((d * 1.7).sin()));
-    let phase = 0.05 * (d * 2.3).cos();
-    (0..n)
-        .map(|i| {
-            let t = i as f32 / (n - 1) as f32;
-            // Speed variation: reparametrise time.
-            let s = t + 0.03 * (d + 1.0).sin() * (std::f32::consts::PI * t).sin();
-            let mut w = [0.0f32; 8];
-            for j in 0..7 {
-                let f = 1.0 + ((class as usize * 3 + j * 5) % 4) as f32;
-                let ph = c * 1.3 + j as f32 * 0.7 + phase;
-                w[j] = READY[j]
-                    + amp
-                        * (std::f32::consts::TAU * f * s + ph).sin()
-                        * if j == 3 { 0.5 } else { 1.0 };
-            }
-            // Keep joint 4 and 6 inside their one-sided limits.
-            w[3] = w[3].clamp(-3.0, -0.1);
-            w[5] = w[5].clamp(0.0, 3.7);
-            // Pen down in class-specific bands.
-            let band = ((s * (2.0 + (class % 3) as f32)) as u32) % 2;
-            w[7] = if band == 0 { 1.0 } else { 0.0 };
-            w
-        })
-        .collect()
-}
+pub use guardian_client::samples::task;
 
 pub fn traj(class: u32, drawer: u32) -> Trajectory {
     Trajectory::from_waypoints(&task(class, drawer))
