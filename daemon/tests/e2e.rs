@@ -452,3 +452,124 @@ fn busy_poll_and_spin_then_sleep_modes_serve() {
         ));
     }
 }
+
+/// A planner that bypasses our client (as a C planner would) and sends malformed requests
+/// straight over iceoryx2: the daemon answers each with a typed status and keeps serving.
+#[test]
+fn raw_wire_requests_are_validated_by_the_daemon() {
+    use guardian_shared::wire::{
+        self, ClassEntry, Op, ReasonCode, RequestHeader, ResponseHeader, Status, VerdictCode,
+    };
+    use iceoryx2::prelude::*;
+
+    let mut s = Setup::new(19);
+    s.extra = "default-threshold = 1e9".into();
+    let _d = Daemon::start(&s);
+    enroll_classes(&s.client(), &[0]);
+
+    let mut ic = iceoryx2::config::Config::default();
+    let root = format!("{}/", s.dir.path().join("iox").display());
+    ic.global
+        .set_root_path(&Path::new(root.as_bytes()).unwrap());
+    ic.global.prefix = FileName::new(s.prefix.as_bytes()).unwrap();
+    let node = NodeBuilder::new()
+        .config(&ic)
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<ipc::Service>()
+        .unwrap();
+    let rpc = node
+        .service_builder(&ServiceName::new(&s.service).unwrap())
+        .request_response::<[f32], [ClassEntry]>()
+        .request_user_header::<RequestHeader>()
+        .response_user_header::<ResponseHeader>()
+        .open()
+        .unwrap();
+    let wake = node
+        .service_builder(&ServiceName::new(&wire::request_event_name(&s.service)).unwrap())
+        .event()
+        .open()
+        .unwrap()
+        .notifier_builder()
+        .create()
+        .unwrap();
+    let client = rpc
+        .client_builder()
+        .initial_max_slice_len(8192)
+        .allocation_strategy(AllocationStrategy::PowerOfTwo)
+        .create()
+        .unwrap();
+    let call = |h: RequestHeader, payload: &[f32]| -> ResponseHeader {
+        let mut r = client.loan_slice_uninit(payload.len()).unwrap();
+        *r.user_header_mut() = h;
+        let pending = r.write_from_slice(payload).send().unwrap();
+        wake.notify().unwrap();
+        let start = std::time::Instant::now();
+        loop {
+            if let Some(resp) = pending.receive().unwrap() {
+                assert_eq!(resp.user_header().request_id, h.request_id);
+                return *resp.user_header();
+            }
+            assert!(start.elapsed() < common::PATIENCE, "no response");
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    };
+    let good: Vec<f32> = task(0, 20).iter().flatten().copied().collect();
+    let check = |id: u64| {
+        let mut h = RequestHeader::new(id, Op::Check);
+        h.examples = 1;
+        h.waypoints[0] = (good.len() / 8) as u32;
+        h.class_name = wire::encode_class_name("task0").unwrap();
+        h
+    };
+
+    // Unknown op.
+    let mut h = check(1);
+    h.op = 99;
+    assert_eq!(call(h, &good).status, Status::BadRequest as u32);
+    // Payload length disagrees with the header.
+    let h = check(2);
+    assert_eq!(
+        call(h, &good[..good.len() - 8]).status,
+        Status::BadRequest as u32
+    );
+    // Class name: invalid UTF-8, control character, bytes after the NUL.
+    for (i, bad) in [&b"\xff\xfe"[..], b"a\x07b"].iter().enumerate() {
+        let mut h = check(3 + i as u64);
+        h.class_name = [0; 64];
+        h.class_name[..bad.len()].copy_from_slice(bad);
+        assert_eq!(call(h, &good).status, Status::InvalidClassName as u32);
+    }
+    let mut h = check(5);
+    h.class_name[40] = b'x';
+    assert_eq!(call(h, &good).status, Status::InvalidClassName as u32);
+    // Too many examples for enroll.
+    let mut h = check(6);
+    h.op = Op::Enroll as u32;
+    h.examples = 17;
+    assert_eq!(call(h, &good).status, Status::BadRequest as u32);
+    // A wrong channel count on the wire.
+    let mut h = check(7);
+    h.channels = 4;
+    h.waypoints[0] = (good.len() / 4) as u32;
+    let r = call(h, &good);
+    assert_eq!(
+        (
+            r.status,
+            r.verdict,
+            r.reason,
+            r.invalid_kind,
+            r.invalid_index
+        ),
+        (
+            Status::Ok as u32,
+            VerdictCode::NoGo as u32,
+            ReasonCode::InvalidTrajectory as u32,
+            2,
+            4
+        )
+    );
+    // And a well-formed request still gets a go.
+    let r = call(check(8), &good);
+    assert_eq!(r.verdict, VerdictCode::Go as u32);
+    assert!(r.errors >= 6);
+}
