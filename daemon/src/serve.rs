@@ -78,6 +78,9 @@ pub fn iceoryx2_config(config: &Config) -> Result<iceoryx2::config::Config, RunE
     Ok(c)
 }
 
+/// How often the serving loop reclaims resources of dead planner processes.
+const DEAD_NODE_CLEANUP: Duration = Duration::from_secs(30);
+
 type Rpc = RpcFactory<ipc::Service, [f32], RequestHeader, [ClassEntry], ResponseHeader>;
 
 /// Load model and bank, open the services and serve until `control.shutdown` is set.
@@ -181,6 +184,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         None => config.tick(),
     };
     let mut last_ping = Instant::now();
+    let mut last_cleanup = Instant::now();
     let mut last_request = Instant::now();
     let spin = Duration::from_micros(config.spin_us);
 
@@ -201,6 +205,17 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         {
             sd.watchdog();
             last_ping = Instant::now();
+        }
+        // Planners killed without cleanup keep client slots; reclaim them now and then.
+        if last_cleanup.elapsed() >= DEAD_NODE_CLEANUP {
+            let c = node.try_cleanup_dead_nodes();
+            if c.cleanups > 0 {
+                tracing::info!(
+                    nodes = c.cleanups,
+                    "removed resources of dead iceoryx2 nodes"
+                );
+            }
+            last_cleanup = Instant::now();
         }
         if served > 0 {
             continue;
