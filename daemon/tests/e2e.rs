@@ -386,6 +386,14 @@ fn a_killed_daemon_yields_errors_not_verdicts() {
             other => panic!("expected an error, got {other:?}"),
         }
     }
+    drop(client);
+    // A restart after SIGKILL removes the dead daemon's resources and serves again,
+    // with the enrollment persisted before the kill.
+    let d = Daemon::start(&s);
+    let client = s.client();
+    assert_eq!(client.classes().expect("classes").len(), 1);
+    drop(client);
+    drop(d);
 }
 
 #[test]
