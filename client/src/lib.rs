@@ -1,5 +1,769 @@
 //! guardian-client: the thin library a motion planner links to ask `guardiand` whether a
 //! candidate trajectory is the task it claims to be. It speaks iceoryx2 shared memory and
 //! pulls in no model code.
+//!
+//! ```no_run
+//! use guardian_client::{Client, ClientConfig, Trajectory};
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! let client = Client::connect(ClientConfig::default())?;
+//! let waypoints = vec![[0.0, -0.7, 0.0, -2.3, 0.0, 1.6, 0.8, 0.0]; 50];
+//! let verdict = client.check(&Trajectory::from_waypoints(&waypoints), "character01")?;
+//! if verdict.is_go() { /* execute */ } else { println!("no-go: {:?}", verdict.decision); }
+//! # Ok(()) }
+//! ```
+//!
+//! # Threads and processes
+//! A [`Client`] owns iceoryx2 `ipc::Service` ports, which are single-threaded: `Client` is
+//! neither `Send` nor `Sync`. Give every planner thread (or process) its own `Client` — each
+//! `connect` creates its own iceoryx2 node and ports, and the daemon serves them all; see
+//! `daemon/tests/e2e.rs` (`eight_concurrent_clients_get_their_own_answers`). The daemon admits
+//! `max-clients` (default 64) client ports at once.
+//!
+//! # Errors and timeouts
+//! Every call waits at most [`ClientConfig::timeout`] and then returns
+//! [`CheckError::Timeout`]. A dead daemon, a timeout or any transport problem is an error,
+//! never a `Go`. Responses whose `request_id` does not match the request are discarded.
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
+
+pub mod samples;
+
+use std::cell::Cell;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use iceoryx2::port::listener::ListenerWaitError;
+use iceoryx2::prelude::*;
+use serde::Serialize;
+
+pub use guardian_shared::trajectory::{
+    CHANNELS, InvalidKind, MAX_WAYPOINTS, MIN_WAYPOINTS, Waypoint,
+};
+use guardian_shared::wire::{
+    self, ClassEntry, ClassNameError, MAX_EXAMPLES, Op, ReasonCode, RequestHeader, ResponseHeader,
+    Status, VerdictCode,
+};
+
+/// How to reach the daemon.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ClientConfig {
+    /// The daemon's request-response service name ([`wire::DEFAULT_SERVICE_NAME`]).
+    pub service_name: String,
+    /// Longest wait for one response.
+    pub timeout: Duration,
+    /// iceoryx2 `global.root-path`; must match the daemon's.
+    pub iceoryx2_root_path: Option<PathBuf>,
+    /// iceoryx2 `global.prefix`; must match the daemon's.
+    pub iceoryx2_prefix: Option<String>,
+}
+
+impl Default for ClientConfig {
+    fn default() -> Self {
+        Self {
+            service_name: wire::DEFAULT_SERVICE_NAME.to_owned(),
+            timeout: Duration::from_secs(2),
+            iceoryx2_root_path: None,
+            iceoryx2_prefix: None,
+        }
+    }
+}
+
+/// A trajectory as sent: row-major waypoints of `channels` floats each. Build it from
+/// [`Waypoint`]s (7 joint positions in rad + tool 0/1); [`Trajectory::from_flat`] allows any
+/// channel count so that a wrong one reaches the daemon and is reported, as for a C planner.
+/// Bounds: [`MIN_WAYPOINTS`]..=[`MAX_WAYPOINTS`] waypoints, joints within the Panda limits,
+/// tool exactly 0 or 1 — checked by the daemon, not here.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Trajectory {
+    data: Vec<f32>,
+    channels: usize,
+}
+
+impl Trajectory {
+    /// From 8-channel waypoints.
+    pub fn from_waypoints(waypoints: &[Waypoint]) -> Self {
+        Self {
+            data: waypoints.iter().flatten().copied().collect(),
+            channels: CHANNELS,
+        }
+    }
+
+    /// From a flat buffer of `channels`-wide rows (a trailing partial row is dropped).
+    pub fn from_flat(mut data: Vec<f32>, channels: usize) -> Self {
+        let keep = data.len().checked_div(channels).unwrap_or(0) * channels;
+        data.truncate(keep);
+        Self { data, channels }
+    }
+
+    /// Number of waypoints.
+    pub fn len(&self) -> usize {
+        self.data.len().checked_div(self.channels).unwrap_or(0)
+    }
+
+    /// No waypoints.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Floats per waypoint.
+    pub fn channels(&self) -> usize {
+        self.channels
+    }
+
+    /// The flat data.
+    pub fn as_flat(&self) -> &[f32] {
+        &self.data
+    }
+}
+
+impl From<&[Waypoint]> for Trajectory {
+    fn from(w: &[Waypoint]) -> Self {
+        Self::from_waypoints(w)
+    }
+}
+
+/// Go, or no-go with the reason.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(rename_all = "kebab-case", tag = "decision")]
+pub enum Decision {
+    /// The trajectory is the task it claims to be.
+    Go,
+    /// It is not.
+    NoGo {
+        /// Why.
+        reason: NoGoReason,
+    },
+}
+
+/// Why a check answered no-go.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(rename_all = "kebab-case", tag = "reason")]
+#[non_exhaustive]
+pub enum NoGoReason {
+    /// Another enrolled class is nearer than the claimed one.
+    WrongTask {
+        /// The nearest class.
+        nearest: String,
+    },
+    /// The claimed class is nearest but farther than its threshold.
+    Outlier,
+    /// The claimed class is not enrolled.
+    UnknownClass,
+    /// The trajectory failed validation.
+    InvalidTrajectory {
+        /// What is wrong.
+        kind: InvalidKind,
+        /// Waypoint index, or the offending count for count/shape errors.
+        index: u32,
+    },
+}
+
+/// A class and its distance.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Neighbour {
+    /// Class name.
+    pub class: String,
+    /// Euclidean embedding distance to the class prototype.
+    pub distance: f32,
+    /// The class's decision threshold.
+    pub threshold: f32,
+}
+
+/// The answer to [`Client::check`].
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Verdict {
+    /// Go or no-go with its reason.
+    pub decision: Decision,
+    /// The class the trajectory claimed.
+    pub claimed_class: String,
+    /// Distance to the claimed class prototype (none if unknown class or invalid input).
+    pub claimed_distance: Option<f32>,
+    /// Threshold used for the claimed class.
+    pub threshold: Option<f32>,
+    /// `threshold - claimed_distance` (positive = inside the class).
+    pub margin: Option<f32>,
+    /// Distance to the nearest other class minus `claimed_distance` (positive = the claimed
+    /// class is the nearest).
+    pub gap: Option<f32>,
+    /// The k nearest classes, nearest first.
+    pub nearest: Vec<Neighbour>,
+    /// Model version that answered.
+    pub model_version: String,
+    /// Class bank version that answered.
+    pub bank_version: u64,
+}
+
+impl Verdict {
+    /// Whether the answer is `Go`.
+    pub fn is_go(&self) -> bool {
+        self.decision == Decision::Go
+    }
+}
+
+/// The answer to [`Client::identify`].
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Ranking {
+    /// The k nearest classes, nearest first.
+    pub nearest: Vec<Neighbour>,
+    /// Model version that answered.
+    pub model_version: String,
+    /// Class bank version that answered.
+    pub bank_version: u64,
+}
+
+/// An enrolled class.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ClassInfo {
+    /// Class name.
+    pub name: String,
+    /// Enrolled examples.
+    pub examples: u32,
+    /// Decision threshold.
+    pub threshold: f32,
+    /// Whether the threshold is calibrated for this class (else the global default).
+    pub calibrated: bool,
+}
+
+/// The answer to [`Client::status`].
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DaemonStatus {
+    /// Model version.
+    pub model_version: String,
+    /// Class bank version (increments on every change).
+    pub bank_version: u64,
+    /// Enrolled classes.
+    pub classes: u32,
+    /// Time since the daemon started.
+    pub uptime: Duration,
+    /// Requests answered.
+    pub requests: u64,
+    /// Requests answered with an error.
+    pub errors: u64,
+    /// Checks answered go.
+    pub go: u64,
+    /// Checks answered no-go.
+    pub no_go: u64,
+    /// Service-time percentiles over recent requests in microseconds: p50, p90, p99, max
+    /// (`None` before the first request).
+    pub latency_us: Option<[f32; 4]>,
+}
+
+/// [`Client::connect`] failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ConnectError {
+    /// A config value is unusable.
+    #[error("invalid client config: {detail}")]
+    InvalidConfig {
+        /// What is wrong.
+        detail: String,
+    },
+    /// No daemon serves this service name.
+    #[error("guardiand is not running (no server on service {service:?})")]
+    DaemonNotRunning {
+        /// The service name.
+        service: String,
+    },
+    /// An iceoryx2 operation failed.
+    #[error("iceoryx2: {what}: {detail}")]
+    Iceoryx {
+        /// What was being done.
+        what: &'static str,
+        /// The iceoryx2 error.
+        detail: String,
+    },
+}
+
+/// A request (check, identify, forget, classes, status) failed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum CheckError {
+    /// No response within the configured timeout.
+    #[error("no response from guardiand within {after:?}")]
+    Timeout {
+        /// The timeout.
+        after: Duration,
+    },
+    /// The daemon is gone (no server, or it dropped the request unanswered).
+    #[error("guardiand is not serving: {detail}")]
+    NotServing {
+        /// What was observed.
+        detail: String,
+    },
+    /// The class name was rejected (by this client or the daemon).
+    #[error("invalid class name: {0}")]
+    InvalidClassName(#[from] ClassNameError),
+    /// A trajectory failed validation (identify, enroll).
+    #[error("invalid trajectory {example}: {kind:?} at index {index}")]
+    InvalidTrajectory {
+        /// What is wrong.
+        kind: InvalidKind,
+        /// Waypoint index or offending count.
+        index: u32,
+        /// Which trajectory of the request.
+        example: u32,
+    },
+    /// The class is not enrolled.
+    #[error("class {class:?} is not enrolled")]
+    UnknownClass {
+        /// The class.
+        class: String,
+    },
+    /// The bank has no classes.
+    #[error("no classes are enrolled")]
+    EmptyBank,
+    /// The daemon rejected the request as malformed.
+    #[error("bad request: {message}")]
+    BadRequest {
+        /// The daemon's explanation.
+        message: String,
+    },
+    /// The daemon failed internally.
+    #[error("guardiand internal error: {message}")]
+    Internal {
+        /// The daemon's explanation.
+        message: String,
+    },
+    /// An iceoryx2 operation failed.
+    #[error("iceoryx2: {what}: {detail}")]
+    Transport {
+        /// What was being done.
+        what: &'static str,
+        /// The iceoryx2 error.
+        detail: String,
+    },
+    /// The response violates the protocol.
+    #[error("protocol violation: {detail}")]
+    Protocol {
+        /// What was wrong.
+        detail: String,
+    },
+}
+
+/// [`Client::enroll`] failed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum EnrollError {
+    /// No trajectories were given.
+    #[error("enroll needs at least one example")]
+    NoExamples,
+    /// More than [`MAX_EXAMPLES`] trajectories.
+    #[error("{got} examples, at most {max} per request")]
+    TooManyExamples {
+        /// Given.
+        got: usize,
+        /// Allowed.
+        max: usize,
+    },
+    /// The request failed.
+    #[error(transparent)]
+    Request(#[from] CheckError),
+}
+
+fn transport<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> CheckError {
+    move |e| CheckError::Transport {
+        what,
+        detail: format!("{e:?}"),
+    }
+}
+
+fn connect_err<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> ConnectError {
+    move |e| ConnectError::Iceoryx {
+        what,
+        detail: format!("{e:?}"),
+    }
+}
+
+type RpcClient = iceoryx2::port::client::Client<
+    ipc::Service,
+    [f32],
+    RequestHeader,
+    [ClassEntry],
+    ResponseHeader,
+>;
+
+/// A connection to `guardiand`. Not `Send`: one per thread (see the crate docs).
+pub struct Client {
+    client: RpcClient,
+    notifier: iceoryx2::port::notifier::Notifier<ipc::Service>,
+    listener: iceoryx2::port::listener::Listener<ipc::Service>,
+    timeout: Duration,
+    next_id: Cell<u64>,
+    // Declared last: ports must drop before their node.
+    _node: Node<ipc::Service>,
+}
+
+impl std::fmt::Debug for Client {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Client")
+            .field("timeout", &self.timeout)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Client {
+    /// Open the daemon's services. Fails with [`ConnectError::DaemonNotRunning`] when no
+    /// daemon serves `config.service_name`.
+    pub fn connect(config: ClientConfig) -> Result<Client, ConnectError> {
+        let mut ic = iceoryx2::config::Config::default();
+        if let Some(root) = &config.iceoryx2_root_path {
+            let mut s = root.to_string_lossy().into_owned();
+            if !s.ends_with('/') {
+                s.push('/');
+            }
+            let p = Path::new(s.as_bytes()).map_err(|e| ConnectError::InvalidConfig {
+                detail: format!("iceoryx2 root path: {e:?}"),
+            })?;
+            ic.global.set_root_path(&p);
+        }
+        if let Some(prefix) = &config.iceoryx2_prefix {
+            ic.global.prefix =
+                FileName::new(prefix.as_bytes()).map_err(|e| ConnectError::InvalidConfig {
+                    detail: format!("iceoryx2 prefix: {e:?}"),
+                })?;
+        }
+        let node = NodeBuilder::new()
+            .config(&ic)
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<ipc::Service>()
+            .map_err(connect_err("create node"))?;
+        let name = |s: String| {
+            ServiceName::new(&s).map_err(|e| ConnectError::InvalidConfig {
+                detail: format!("service name {s:?}: {e:?}"),
+            })
+        };
+        let not_running = || ConnectError::DaemonNotRunning {
+            service: config.service_name.clone(),
+        };
+        let rpc = node
+            .service_builder(&name(config.service_name.clone())?)
+            .request_response::<[f32], [ClassEntry]>()
+            .request_user_header::<RequestHeader>()
+            .response_user_header::<ResponseHeader>()
+            .open()
+            .map_err(|e| match e {
+                iceoryx2::service::builder::request_response::RequestResponseOpenError::DoesNotExist => {
+                    not_running()
+                }
+                other => connect_err("open request-response service")(other),
+            })?;
+        if rpc.dynamic_config().number_of_servers() == 0 {
+            return Err(not_running());
+        }
+        let wake_server = node
+            .service_builder(&name(wire::request_event_name(&config.service_name))?)
+            .event()
+            .open()
+            .map_err(connect_err("open request event service"))?;
+        let wake_client = node
+            .service_builder(&name(wire::response_event_name(&config.service_name))?)
+            .event()
+            .open()
+            .map_err(connect_err("open response event service"))?;
+        let listener = wake_client
+            .listener_builder()
+            .create()
+            .map_err(connect_err("create listener"))?;
+        let notifier = wake_server
+            .notifier_builder()
+            .create()
+            .map_err(connect_err("create notifier"))?;
+        let client = rpc
+            .client_builder()
+            .initial_max_slice_len(MAX_WAYPOINTS * CHANNELS)
+            .allocation_strategy(AllocationStrategy::PowerOfTwo)
+            .create()
+            .map_err(connect_err("create client port"))?;
+        // Distinct id streams per client keep logs readable; uniqueness per client is all
+        // the protocol needs.
+        let seed = u64::from(std::process::id()) << 32;
+        Ok(Client {
+            client,
+            notifier,
+            listener,
+            timeout: config.timeout,
+            next_id: Cell::new(seed | 1),
+            _node: node,
+        })
+    }
+
+    /// The per-request timeout.
+    pub fn timeout(&self) -> Duration {
+        self.timeout
+    }
+
+    /// Send one request and wait for the response with the same id.
+    fn call(
+        &self,
+        mut header: RequestHeader,
+        payload: &[f32],
+    ) -> Result<(ResponseHeader, Vec<ClassEntry>), CheckError> {
+        let id = self.next_id.get();
+        self.next_id.set(id.wrapping_add(1));
+        header.request_id = id;
+        let deadline = Instant::now() + self.timeout;
+        let mut request = self
+            .client
+            .loan_slice_uninit(payload.len())
+            .map_err(transport("loan request"))?;
+        *request.user_header_mut() = header;
+        let request = request.write_from_slice(payload);
+        let pending = request.send().map_err(transport("send request"))?;
+        if pending.number_of_server_connections() == 0 {
+            return Err(CheckError::NotServing {
+                detail: "no server received the request".into(),
+            });
+        }
+        self.notifier
+            .notify()
+            .map_err(transport("notify guardiand"))?;
+        loop {
+            while let Some(response) = pending.receive().map_err(transport("receive response"))? {
+                let h = *response.user_header();
+                if h.request_id != id {
+                    tracing::warn!(
+                        expected = id,
+                        got = h.request_id,
+                        "discarding response with a foreign id"
+                    );
+                    continue;
+                }
+                return Ok((h, response.payload().to_vec()));
+            }
+            if !pending.is_connected() {
+                if let Some(response) = pending.receive().map_err(transport("receive response"))?
+                    && response.user_header().request_id == id
+                {
+                    return Ok((*response.user_header(), response.payload().to_vec()));
+                }
+                return Err(CheckError::NotServing {
+                    detail: "guardiand dropped the request without answering".into(),
+                });
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Err(CheckError::Timeout {
+                    after: self.timeout,
+                });
+            }
+            let wait = (deadline - now).min(Duration::from_millis(5));
+            match self.listener.timed_wait(|_| {}, wait) {
+                // A signal in the planner process: just look again.
+                Ok(_) | Err(ListenerWaitError::InterruptSignal) => {}
+                Err(e) => return Err(transport("wait for response")(e)),
+            }
+        }
+    }
+
+    fn single(op: Op, t: &Trajectory, class: Option<&str>) -> Result<RequestHeader, CheckError> {
+        let mut h = RequestHeader::new(0, op);
+        h.channels = u32::try_from(t.channels()).unwrap_or(u32::MAX);
+        h.examples = 1;
+        h.waypoints[0] = u32::try_from(t.len()).unwrap_or(u32::MAX);
+        if let Some(c) = class {
+            h.class_name = wire::encode_class_name(c)?;
+        }
+        Ok(h)
+    }
+
+    /// Is `trajectory` the task `claimed_class`? Invalid trajectories and unknown classes
+    /// are answered with a `NoGo` verdict; transport problems and daemon errors are `Err`.
+    pub fn check(
+        &self,
+        trajectory: &Trajectory,
+        claimed_class: &str,
+    ) -> Result<Verdict, CheckError> {
+        let h = Self::single(Op::Check, trajectory, Some(claimed_class))?;
+        let (r, entries) = self.call(h, trajectory.as_flat())?;
+        status_ok(&r)?;
+        if r.op != Op::Check as u32 || wire::decode_text(&r.class_name) != claimed_class {
+            return Err(CheckError::Protocol {
+                detail: "response does not echo the request's op and class".into(),
+            });
+        }
+        let opt = |v: f32| if v.is_nan() { None } else { Some(v) };
+        let nearest = neighbours(&entries);
+        let decision = match VerdictCode::from_u32(r.verdict) {
+            Some(VerdictCode::Go) => Decision::Go,
+            Some(VerdictCode::NoGo) => Decision::NoGo {
+                reason: match ReasonCode::from_u32(r.reason) {
+                    Some(ReasonCode::WrongTask) => NoGoReason::WrongTask {
+                        nearest: nearest.first().map(|n| n.class.clone()).ok_or_else(|| {
+                            CheckError::Protocol {
+                                detail: "wrong-task verdict without a nearest class".into(),
+                            }
+                        })?,
+                    },
+                    Some(ReasonCode::Outlier) => NoGoReason::Outlier,
+                    Some(ReasonCode::UnknownClass) => NoGoReason::UnknownClass,
+                    Some(ReasonCode::InvalidTrajectory) => NoGoReason::InvalidTrajectory {
+                        kind: r.invalid().ok_or_else(|| CheckError::Protocol {
+                            detail: format!("unknown invalid kind {}", r.invalid_kind),
+                        })?,
+                        index: r.invalid_index,
+                    },
+                    _ => {
+                        return Err(CheckError::Protocol {
+                            detail: format!("no-go with unknown reason {}", r.reason),
+                        });
+                    }
+                },
+            },
+            _ => {
+                return Err(CheckError::Protocol {
+                    detail: format!("check answered without a verdict ({})", r.verdict),
+                });
+            }
+        };
+        Ok(Verdict {
+            decision,
+            claimed_class: claimed_class.to_owned(),
+            claimed_distance: opt(r.claimed_distance),
+            threshold: opt(r.threshold),
+            margin: opt(r.margin),
+            gap: opt(r.gap),
+            nearest,
+            model_version: wire::decode_text(&r.model_version),
+            bank_version: r.bank_version,
+        })
+    }
+
+    /// The nearest enrolled classes to `trajectory`.
+    pub fn identify(&self, trajectory: &Trajectory) -> Result<Ranking, CheckError> {
+        let h = Self::single(Op::Identify, trajectory, None)?;
+        let (r, entries) = self.call(h, trajectory.as_flat())?;
+        status_ok(&r)?;
+        Ok(Ranking {
+            nearest: neighbours(&entries),
+            model_version: wire::decode_text(&r.model_version),
+            bank_version: r.bank_version,
+        })
+    }
+
+    /// Add `examples` (1..=[`MAX_EXAMPLES`]) to `class`, creating it if new. No retraining:
+    /// the daemon embeds them, updates the prototype and persists the bank before answering.
+    pub fn enroll(&self, class: &str, examples: &[Trajectory]) -> Result<ClassInfo, EnrollError> {
+        if examples.is_empty() {
+            return Err(EnrollError::NoExamples);
+        }
+        if examples.len() > MAX_EXAMPLES {
+            return Err(EnrollError::TooManyExamples {
+                got: examples.len(),
+                max: MAX_EXAMPLES,
+            });
+        }
+        let mut h = RequestHeader::new(0, Op::Enroll);
+        h.class_name = wire::encode_class_name(class).map_err(CheckError::from)?;
+        h.examples = examples.len() as u32;
+        let channels = examples[0].channels();
+        h.channels = u32::try_from(channels).unwrap_or(u32::MAX);
+        let mut payload = Vec::new();
+        for (i, t) in examples.iter().enumerate() {
+            if t.channels() != channels {
+                return Err(CheckError::InvalidTrajectory {
+                    kind: InvalidKind::WrongChannelCount,
+                    index: u32::try_from(t.channels()).unwrap_or(u32::MAX),
+                    example: i as u32,
+                }
+                .into());
+            }
+            h.waypoints[i] = u32::try_from(t.len()).unwrap_or(u32::MAX);
+            payload.extend_from_slice(t.as_flat());
+        }
+        let (r, entries) = self.call(h, &payload)?;
+        status_ok(&r)?;
+        entries
+            .first()
+            .map(class_info)
+            .ok_or_else(|| CheckError::Protocol {
+                detail: "enroll answered without the class".into(),
+            })?
+            .map_err(Into::into)
+    }
+
+    /// Remove `class` from the bank.
+    pub fn forget(&self, class: &str) -> Result<(), CheckError> {
+        let mut h = RequestHeader::new(0, Op::Forget);
+        h.class_name = wire::encode_class_name(class)?;
+        let (r, _) = self.call(h, &[])?;
+        status_ok(&r)
+    }
+
+    /// Every enrolled class, by name.
+    pub fn classes(&self) -> Result<Vec<ClassInfo>, CheckError> {
+        let (r, entries) = self.call(RequestHeader::new(0, Op::Classes), &[])?;
+        status_ok(&r)?;
+        entries.iter().map(class_info).collect()
+    }
+
+    /// Versions, counters and latency percentiles.
+    pub fn status(&self) -> Result<DaemonStatus, CheckError> {
+        let (r, _) = self.call(RequestHeader::new(0, Op::Status), &[])?;
+        status_ok(&r)?;
+        let lat = [
+            r.latency_p50_us,
+            r.latency_p90_us,
+            r.latency_p99_us,
+            r.latency_max_us,
+        ];
+        Ok(DaemonStatus {
+            model_version: wire::decode_text(&r.model_version),
+            bank_version: r.bank_version,
+            classes: r.class_count,
+            uptime: Duration::from_millis(r.uptime_ms),
+            requests: r.requests,
+            errors: r.errors,
+            go: r.go,
+            no_go: r.no_go,
+            latency_us: if lat.iter().any(|v| v.is_nan()) {
+                None
+            } else {
+                Some(lat)
+            },
+        })
+    }
+}
+
+fn status_ok(r: &ResponseHeader) -> Result<(), CheckError> {
+    let message = wire::decode_text(&r.message);
+    match Status::from_u32(r.status) {
+        Some(Status::Ok) => Ok(()),
+        Some(Status::BadRequest) => Err(CheckError::BadRequest { message }),
+        Some(Status::InvalidTrajectory) => Err(CheckError::InvalidTrajectory {
+            kind: r.invalid().ok_or_else(|| CheckError::Protocol {
+                detail: format!("unknown invalid kind {}", r.invalid_kind),
+            })?,
+            index: r.invalid_index,
+            example: r.invalid_example,
+        }),
+        Some(Status::InvalidClassName) => Err(CheckError::BadRequest { message }),
+        Some(Status::UnknownClass) => Err(CheckError::UnknownClass {
+            class: wire::decode_text(&r.class_name),
+        }),
+        Some(Status::EmptyBank) => Err(CheckError::EmptyBank),
+        Some(Status::Internal) => Err(CheckError::Internal { message }),
+        _ => Err(CheckError::Protocol {
+            detail: format!("unknown status {}", r.status),
+        }),
+    }
+}
+
+fn neighbours(entries: &[ClassEntry]) -> Vec<Neighbour> {
+    entries
+        .iter()
+        .map(|e| Neighbour {
+            class: wire::decode_text(&e.name),
+            distance: e.distance,
+            threshold: e.threshold,
+        })
+        .collect()
+}
+
+fn class_info(e: &ClassEntry) -> Result<ClassInfo, CheckError> {
+    Ok(ClassInfo {
+        name: wire::decode_class_name(&e.name)?.to_owned(),
+        examples: e.examples,
+        threshold: e.threshold,
+        calibrated: e.calibrated != 0,
+    })
+}

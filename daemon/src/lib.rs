@@ -2,3 +2,12 @@
 //! receives candidate trajectories from planners over iceoryx2, embeds them with the shipped
 //! model, compares them with the persisted class bank and answers go or no-go with reasons.
 #![forbid(unsafe_code)]
+
+pub mod config;
+pub mod engine;
+pub mod notify;
+pub mod screen;
+pub mod serve;
+
+pub use config::{Config, ServingMode};
+pub use serve::{Control, RunError, run};

@@ -1,7 +1,66 @@
 //! `guardiand`: thin entry point; everything lives in the `guardian_daemon` library.
 #![forbid(unsafe_code)]
 
-fn main() {
-    eprintln!("guardiand: not implemented yet");
-    std::process::exit(2);
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Parser;
+use guardian_daemon::{Config, Control, run};
+use signal_hook::consts::{SIGHUP, SIGINT, SIGTERM};
+
+/// The guardian go/no-go screening daemon.
+#[derive(Debug, Parser)]
+#[command(version, about)]
+struct Args {
+    /// Config file (default: $GUARDIAN_CONFIG, else /etc/guardian/guardiand.toml if present).
+    #[arg(long, short)]
+    config: Option<PathBuf>,
+    /// Print the default configuration as TOML and exit.
+    #[arg(long)]
+    print_default_config: bool,
+    /// Check config, model and bank, then exit without serving.
+    #[arg(long)]
+    check: bool,
+}
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    if args.print_default_config {
+        print!("{}", Config::default_toml());
+        return Ok(());
+    }
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .init();
+    let (config, source) = Config::locate(args.config.as_deref())?;
+    match &source {
+        Some(p) => tracing::info!(config = %p.display(), "configuration loaded"),
+        None => tracing::info!("no config file; using built-in defaults"),
+    }
+    if args.check {
+        let engine = guardian_daemon::screen::load_engine(&config)?;
+        let (bank, src) = guardian_daemon::screen::load_bank(&config, &engine)?;
+        println!(
+            "ok: model {} ({}), {} with {} classes",
+            engine.version(),
+            config.model_path().display(),
+            src,
+            bank.len()
+        );
+        return Ok(());
+    }
+    let control = Control::default();
+    for sig in [SIGTERM, SIGINT] {
+        signal_hook::flag::register(sig, control.shutdown.clone())
+            .with_context(|| format!("cannot install handler for signal {sig}"))?;
+    }
+    signal_hook::flag::register(SIGHUP, control.reload.clone())
+        .context("cannot install SIGHUP handler")?;
+    run(config, control).context("guardiand failed")?;
+    Ok(())
 }

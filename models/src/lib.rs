@@ -7,5 +7,10 @@
 //! `panda.urdf`, model card) live in this crate's folder.
 #![forbid(unsafe_code)]
 
+pub mod bank;
+pub mod embedder;
+pub mod features;
 pub mod kinematics;
+pub mod loss;
+pub mod net;
 pub mod preprocess;

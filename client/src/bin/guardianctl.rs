@@ -1,7 +1,474 @@
-//! `guardianctl`: command-line access to a running `guardiand`.
+//! `guardianctl`: command-line client for a running `guardiand`.
 #![forbid(unsafe_code)]
 
-fn main() {
-    eprintln!("guardianctl: not implemented yet");
-    std::process::exit(2);
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use clap::{Parser, Subcommand};
+use guardian_client::{
+    CHANNELS, CheckError, Client, ClientConfig, Decision, NoGoReason, Trajectory, Verdict, samples,
+};
+
+/// Talk to guardiand: check, identify, enroll, forget, list classes, status, demo.
+#[derive(Debug, Parser)]
+#[command(version, about)]
+struct Args {
+    /// Request-response service name of the daemon.
+    #[arg(long, default_value = guardian_shared::wire::DEFAULT_SERVICE_NAME)]
+    service: String,
+    /// Per-request timeout in milliseconds.
+    #[arg(long, default_value_t = 2000)]
+    timeout_ms: u64,
+    /// iceoryx2 root path (must match the daemon's config).
+    #[arg(long)]
+    iceoryx2_root_path: Option<PathBuf>,
+    /// iceoryx2 prefix (must match the daemon's config).
+    #[arg(long)]
+    iceoryx2_prefix: Option<String>,
+    /// Print JSON instead of tables.
+    #[arg(long)]
+    json: bool,
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Debug, Subcommand)]
+enum Cmd {
+    /// Is the trajectory in FILE the task NAME?
+    Check {
+        /// CSV (one waypoint per line: q1..q7,tool) or dataset safetensors.
+        file: PathBuf,
+        /// The claimed class.
+        #[arg(long)]
+        class: String,
+        /// Row of a dataset safetensors file.
+        #[arg(long)]
+        index: Option<usize>,
+    },
+    /// The nearest enrolled classes to the trajectory in FILE.
+    Identify {
+        /// CSV or dataset safetensors.
+        file: PathBuf,
+        /// Row of a dataset safetensors file.
+        #[arg(long)]
+        index: Option<usize>,
+    },
+    /// Enroll class NAME from one or more trajectory files.
+    Enroll {
+        /// Class name.
+        name: String,
+        /// CSV or dataset safetensors files.
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+        /// Rows of a dataset safetensors file (repeatable; one example each).
+        #[arg(long)]
+        index: Vec<usize>,
+    },
+    /// Remove class NAME.
+    Forget {
+        /// Class name.
+        name: String,
+    },
+    /// List enrolled classes.
+    Classes,
+    /// Versions, counters and latency percentiles.
+    Status,
+    /// Enroll demo classes, send genuine and faulty trajectories, print a go/no-go table.
+    Demo {
+        /// Keep the demo classes enrolled afterwards.
+        #[arg(long)]
+        keep: bool,
+    },
+}
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let client = Client::connect(ClientConfig {
+        service_name: args.service.clone(),
+        timeout: Duration::from_millis(args.timeout_ms),
+        iceoryx2_root_path: args.iceoryx2_root_path.clone(),
+        iceoryx2_prefix: args.iceoryx2_prefix.clone(),
+    })
+    .context("cannot connect to guardiand")?;
+    let json = args.json;
+    match args.cmd {
+        Cmd::Check { file, class, index } => {
+            let t = read_trajectory(&file, index)?;
+            let v = client.check(&t, &class)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&v)?);
+            } else {
+                print_verdict(&v);
+            }
+            if !v.is_go() {
+                std::process::exit(1);
+            }
+        }
+        Cmd::Identify { file, index } => {
+            let t = read_trajectory(&file, index)?;
+            let r = client.identify(&t)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r)?);
+            } else {
+                println!(
+                    "{:<4} {:<32} {:>10} {:>10}",
+                    "rank", "class", "distance", "threshold"
+                );
+                for (i, n) in r.nearest.iter().enumerate() {
+                    println!(
+                        "{:<4} {:<32} {:>10.4} {:>10.4}",
+                        i + 1,
+                        n.class,
+                        n.distance,
+                        n.threshold
+                    );
+                }
+            }
+        }
+        Cmd::Enroll { name, files, index } => {
+            let mut examples = Vec::new();
+            for f in &files {
+                if is_safetensors(f) && !index.is_empty() {
+                    for &i in &index {
+                        examples.push(read_trajectory(f, Some(i))?);
+                    }
+                } else {
+                    examples.push(read_trajectory(f, None)?);
+                }
+            }
+            let info = client.enroll(&name, &examples)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&info)?);
+            } else {
+                println!(
+                    "enrolled {}: {} examples, threshold {:.4}",
+                    info.name, info.examples, info.threshold
+                );
+            }
+        }
+        Cmd::Forget { name } => {
+            client.forget(&name)?;
+            if json {
+                println!("{}", serde_json::json!({ "forgotten": name }));
+            } else {
+                println!("forgot {name}");
+            }
+        }
+        Cmd::Classes => {
+            let classes = client.classes()?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&classes)?);
+            } else {
+                println!(
+                    "{:<32} {:>8} {:>10} {:>10}",
+                    "class", "examples", "threshold", "calibrated"
+                );
+                for c in &classes {
+                    println!(
+                        "{:<32} {:>8} {:>10.4} {:>10}",
+                        c.name, c.examples, c.threshold, c.calibrated
+                    );
+                }
+            }
+        }
+        Cmd::Status => {
+            let s = client.status()?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&s)?);
+            } else {
+                println!("model version   {}", s.model_version);
+                println!("bank version    {}", s.bank_version);
+                println!("classes         {}", s.classes);
+                println!("uptime          {:.1} s", s.uptime.as_secs_f64());
+                println!(
+                    "requests        {} ({} errors, {} go, {} no-go)",
+                    s.requests, s.errors, s.go, s.no_go
+                );
+                match s.latency_us {
+                    Some([p50, p90, p99, max]) => println!(
+                        "service time    p50 {p50:.0} us, p90 {p90:.0} us, p99 {p99:.0} us, max {max:.0} us"
+                    ),
+                    None => println!("service time    (no requests yet)"),
+                }
+            }
+        }
+        Cmd::Demo { keep } => demo(&client, json, keep)?,
+    }
+    Ok(())
+}
+
+fn print_verdict(v: &Verdict) {
+    let opt = |x: Option<f32>| x.map_or("-".to_string(), |v| format!("{v:.4}"));
+    println!("verdict   {}", decision_text(&v.decision));
+    println!(
+        "claimed   {} (distance {}, threshold {})",
+        v.claimed_class,
+        opt(v.claimed_distance),
+        opt(v.threshold)
+    );
+    println!("margin    {}   gap {}", opt(v.margin), opt(v.gap));
+    for (i, n) in v.nearest.iter().enumerate() {
+        println!("  #{} {:<32} {:.4}", i + 1, n.class, n.distance);
+    }
+    println!("model {}  bank v{}", v.model_version, v.bank_version);
+}
+
+fn decision_text(d: &Decision) -> String {
+    match d {
+        Decision::Go => "GO".into(),
+        Decision::NoGo { reason } => format!("NO-GO {}", reason_text(reason)),
+    }
+}
+
+fn reason_text(r: &NoGoReason) -> String {
+    match r {
+        NoGoReason::WrongTask { nearest } => format!("wrong task (nearest {nearest})"),
+        NoGoReason::Outlier => "outlier".into(),
+        NoGoReason::UnknownClass => "unknown class".into(),
+        NoGoReason::InvalidTrajectory { kind, index } => format!("invalid: {kind:?} at {index}"),
+        _ => format!("{r:?}"),
+    }
+}
+
+fn is_safetensors(p: &Path) -> bool {
+    p.extension().is_some_and(|e| e == "safetensors")
+}
+
+/// Read a CSV trajectory, or row `index` of a dataset safetensors file.
+fn read_trajectory(path: &Path, index: Option<usize>) -> anyhow::Result<Trajectory> {
+    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    if is_safetensors(path) {
+        let Some(i) = index else {
+            bail!("{}: a dataset file needs --index", path.display());
+        };
+        let st = safetensors::SafeTensors::deserialize(&bytes)
+            .with_context(|| format!("{}: not a safetensors file", path.display()))?;
+        let t = st
+            .tensor("trajectories")
+            .with_context(|| format!("{}: no `trajectories` tensor", path.display()))?;
+        let shape = t.shape();
+        if t.dtype() != safetensors::Dtype::F32 || shape.len() != 3 || shape[2] != CHANNELS {
+            bail!(
+                "{}: trajectories must be f32 [N, steps, {CHANNELS}], got {:?} {:?}",
+                path.display(),
+                t.dtype(),
+                shape
+            );
+        }
+        if i >= shape[0] {
+            bail!(
+                "{}: index {i} out of range (N = {})",
+                path.display(),
+                shape[0]
+            );
+        }
+        let row = shape[1] * CHANNELS * 4;
+        let data: Vec<f32> = t.data()[i * row..(i + 1) * row]
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        return Ok(Trajectory::from_flat(data, CHANNELS));
+    }
+    let text =
+        String::from_utf8(bytes).with_context(|| format!("{}: not UTF-8", path.display()))?;
+    let mut data = Vec::new();
+    let mut channels = None;
+    for (n, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let vals: Result<Vec<f32>, _> = line.split(',').map(|v| v.trim().parse::<f32>()).collect();
+        let Ok(vals) = vals else {
+            if data.is_empty() && channels.is_none() {
+                continue; // a header line
+            }
+            bail!("{}:{}: not a list of numbers", path.display(), n + 1);
+        };
+        match channels {
+            None => channels = Some(vals.len()),
+            Some(c) if c != vals.len() => {
+                bail!(
+                    "{}:{}: {} values, earlier lines have {c}",
+                    path.display(),
+                    n + 1,
+                    vals.len()
+                )
+            }
+            _ => {}
+        }
+        data.extend(vals);
+    }
+    Ok(Trajectory::from_flat(data, channels.unwrap_or(CHANNELS)))
+}
+
+#[derive(serde::Serialize)]
+struct DemoRow {
+    case: String,
+    claimed: String,
+    expected: String,
+    verdict: String,
+    claimed_distance: Option<f32>,
+    threshold: Option<f32>,
+    latency_us: f64,
+    as_expected: bool,
+}
+
+/// Enroll three synthetic demo tasks, then send genuine and faulty trajectories.
+fn demo(client: &Client, json: bool, keep: bool) -> anyhow::Result<()> {
+    let classes = ["demo-wave", "demo-loop", "demo-zigzag"];
+    for (c, name) in classes.iter().enumerate() {
+        let ex: Vec<Trajectory> = (0..5)
+            .map(|d| Trajectory::from_waypoints(&samples::task(c as u32, d)))
+            .collect();
+        client
+            .enroll(name, &ex)
+            .with_context(|| format!("enroll {name}"))?;
+    }
+    let genuine = |c: u32, d: u32| samples::task(c, d);
+    let mut cases: Vec<(String, Trajectory, &str, &str)> = Vec::new();
+    for (c, name) in classes.iter().enumerate() {
+        cases.push((
+            format!("genuine {name}"),
+            Trajectory::from_waypoints(&genuine(c as u32, 30)),
+            name,
+            "go",
+        ));
+    }
+    cases.push((
+        "wave claimed as loop".into(),
+        Trajectory::from_waypoints(&genuine(0, 31)),
+        classes[1],
+        "wrong-task",
+    ));
+    cases.push((
+        "zigzag claimed as wave".into(),
+        Trajectory::from_waypoints(&genuine(2, 31)),
+        classes[0],
+        "wrong-task",
+    ));
+    cases.push((
+        "unknown class".into(),
+        Trajectory::from_waypoints(&genuine(0, 32)),
+        "demo-nothing",
+        "unknown-class",
+    ));
+    let mut w = genuine(0, 33);
+    w[10][2] = f32::NAN;
+    cases.push((
+        "NaN joint value".into(),
+        Trajectory::from_waypoints(&w),
+        classes[0],
+        "invalid",
+    ));
+    let mut w = genuine(0, 34);
+    w[20][3] = 0.5;
+    cases.push((
+        "joint 4 beyond limit".into(),
+        Trajectory::from_waypoints(&w),
+        classes[0],
+        "invalid",
+    ));
+    let mut w = genuine(1, 35);
+    w[5][7] = 0.5;
+    cases.push((
+        "tool value 0.5".into(),
+        Trajectory::from_waypoints(&w),
+        classes[1],
+        "invalid",
+    ));
+    let seven: Vec<f32> = genuine(1, 36)
+        .iter()
+        .flat_map(|w| w[..7].to_vec())
+        .collect();
+    cases.push((
+        "7 channels".into(),
+        Trajectory::from_flat(seven, 7),
+        classes[1],
+        "invalid",
+    ));
+    cases.push((
+        "1 waypoint".into(),
+        Trajectory::from_waypoints(&genuine(2, 37)[..1]),
+        classes[2],
+        "invalid",
+    ));
+
+    let mut rows = Vec::new();
+    for (case, t, claimed, expected) in cases {
+        let start = Instant::now();
+        let result = client.check(&t, claimed);
+        let latency_us = start.elapsed().as_secs_f64() * 1e6;
+        let (verdict, got, cd, th) = match &result {
+            Ok(v) => {
+                let got = match &v.decision {
+                    Decision::Go => "go",
+                    Decision::NoGo {
+                        reason: NoGoReason::WrongTask { .. },
+                    } => "wrong-task",
+                    Decision::NoGo {
+                        reason: NoGoReason::Outlier,
+                    } => "outlier",
+                    Decision::NoGo {
+                        reason: NoGoReason::UnknownClass,
+                    } => "unknown-class",
+                    Decision::NoGo {
+                        reason: NoGoReason::InvalidTrajectory { .. },
+                    } => "invalid",
+                    Decision::NoGo { .. } => "no-go",
+                };
+                (
+                    decision_text(&v.decision),
+                    got,
+                    v.claimed_distance,
+                    v.threshold,
+                )
+            }
+            Err(e) => (format!("ERROR {e}"), "error", None, None),
+        };
+        rows.push(DemoRow {
+            case,
+            claimed: claimed.to_string(),
+            expected: expected.to_string(),
+            verdict,
+            claimed_distance: cd,
+            threshold: th,
+            latency_us,
+            as_expected: got == expected,
+        });
+    }
+    if !keep {
+        for name in classes {
+            match client.forget(name) {
+                Ok(()) | Err(CheckError::UnknownClass { .. }) => {}
+                Err(e) => return Err(e).context("forget demo class"),
+            }
+        }
+    }
+    if json {
+        println!("{}", serde_json::to_string_pretty(&rows)?);
+    } else {
+        println!(
+            "{:<24} {:<14} {:<14} {:<44} {:>9} {:>9} {:>10}",
+            "case", "claimed", "expected", "verdict", "distance", "threshold", "round trip"
+        );
+        for r in &rows {
+            let opt = |x: Option<f32>| x.map_or("-".to_string(), |v| format!("{v:.3}"));
+            println!(
+                "{:<24} {:<14} {:<14} {:<44} {:>9} {:>9} {:>7.0} us{}",
+                r.case,
+                r.claimed,
+                r.expected,
+                r.verdict,
+                opt(r.claimed_distance),
+                opt(r.threshold),
+                r.latency_us,
+                if r.as_expected { "" } else { "  <- unexpected" }
+            );
+        }
+        let ok = rows.iter().filter(|r| r.as_expected).count();
+        println!("{ok}/{} as expected", rows.len());
+    }
+    Ok(())
 }

@@ -1,0 +1,301 @@
+//! `guardiand` configuration: TOML, kebab-case keys, unknown keys rejected.
+//!
+//! Lookup: `--config FILE` > `$GUARDIAN_CONFIG` > `/etc/guardian/guardiand.toml`; a missing
+//! default file means built-in defaults, a missing explicitly named file is an error.
+//!
+//! Paths left unset resolve at start-up:
+//! - `model`: `models/embedder.safetensors` relative to the working directory, else the same
+//!   file in the source checkout the binary was built from;
+//! - `default-bank`: `models/default-bank.gcb`, resolved the same way; none found = start
+//!   with an empty bank;
+//! - `state-dir`: `$STATE_DIRECTORY` (set by systemd's `StateDirectory=`), else
+//!   `./guardiand-state`.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+
+/// The system-wide config file consulted when nothing else is given.
+pub const SYSTEM_CONFIG: &str = "/etc/guardian/guardiand.toml";
+/// File name of the persisted class bank inside the state directory.
+pub const BANK_FILE: &str = "bank.gcb";
+const MODEL_REL: &str = "models/embedder.safetensors";
+const BANK_REL: &str = "models/default-bank.gcb";
+
+/// How the serving loop waits for requests.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum ServingMode {
+    /// Sleep on the request event service; wake on a client's notification (no busy spin).
+    #[default]
+    Event,
+    /// Poll for requests continuously; lowest latency, burns a core.
+    BusyPoll,
+    /// Poll for `spin-us` after each request, then sleep as in `event`.
+    SpinThenSleep,
+}
+
+/// iceoryx2 settings that isolate deployments (and tests) from each other.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields)]
+pub struct Iceoryx2Config {
+    /// `global.root-path` of iceoryx2 (where its service and node files live).
+    pub root_path: Option<PathBuf>,
+    /// `global.prefix` of iceoryx2 (prefix of every shared-memory and file name).
+    pub prefix: Option<String>,
+}
+
+/// The daemon's settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields, default)]
+pub struct Config {
+    /// Embedding model weights (safetensors). Unset: see the module docs.
+    pub model: Option<PathBuf>,
+    /// Class bank used when the state directory holds none. Unset: see the module docs;
+    /// an empty string disables it (start with an empty bank).
+    pub default_bank: Option<PathBuf>,
+    /// Where the enrolled class bank is persisted. Unset: see the module docs.
+    pub state_dir: Option<PathBuf>,
+    /// Name of the request-response service; the event services append `/requests` and
+    /// `/responses`.
+    pub service_name: String,
+    /// Global default decision threshold (Euclidean embedding distance) for classes without
+    /// a calibrated one. Unset: the bank's own default.
+    pub default_threshold: Option<f32>,
+    /// Number of nearest classes reported with a verdict or ranking.
+    pub k_nearest: usize,
+    /// How the serving loop waits.
+    pub serving_mode: ServingMode,
+    /// Spin time after a request in `spin-then-sleep` mode, microseconds.
+    pub spin_us: u64,
+    /// Longest sleep between two checks of the request queue, milliseconds (bounds how late
+    /// a lost wake-up, a signal or a watchdog ping is handled).
+    pub tick_ms: u64,
+    /// Send `WATCHDOG=1` to systemd when `$WATCHDOG_USEC` asks for it.
+    pub watchdog: bool,
+    /// Largest number of concurrent client ports the service admits.
+    pub max_clients: usize,
+    /// iceoryx2 isolation settings.
+    pub iceoryx2: Iceoryx2Config,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            model: None,
+            default_bank: None,
+            state_dir: None,
+            service_name: guardian_shared::wire::DEFAULT_SERVICE_NAME.to_owned(),
+            default_threshold: None,
+            k_nearest: 5,
+            serving_mode: ServingMode::Event,
+            spin_us: 200,
+            tick_ms: 100,
+            watchdog: true,
+            max_clients: 64,
+            iceoryx2: Iceoryx2Config::default(),
+        }
+    }
+}
+
+/// Loading the configuration failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum LoadConfigError {
+    /// The file could not be read.
+    #[error("cannot read config {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// The file is not valid TOML for [`Config`].
+    #[error("invalid config {path}: {source}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: Box<toml::de::Error>,
+    },
+    /// A value is out of range.
+    #[error("invalid config {path}: {detail}")]
+    Invalid {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        detail: String,
+    },
+}
+
+impl Config {
+    /// Parse TOML text.
+    pub fn from_toml(text: &str, path: &Path) -> Result<Self, LoadConfigError> {
+        let c: Config = toml::from_str(text).map_err(|e| LoadConfigError::Parse {
+            path: path.to_owned(),
+            source: Box::new(e),
+        })?;
+        c.check().map_err(|detail| LoadConfigError::Invalid {
+            path: path.to_owned(),
+            detail,
+        })?;
+        Ok(c)
+    }
+
+    /// Read one file.
+    pub fn from_file(path: &Path) -> Result<Self, LoadConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| LoadConfigError::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+        Self::from_toml(&text, path)
+    }
+
+    /// Apply the lookup order: `explicit` > `$GUARDIAN_CONFIG` > [`SYSTEM_CONFIG`] (if it
+    /// exists) > defaults. Returns the config and the file it came from.
+    pub fn locate(explicit: Option<&Path>) -> Result<(Self, Option<PathBuf>), LoadConfigError> {
+        if let Some(p) = explicit {
+            return Ok((Self::from_file(p)?, Some(p.to_owned())));
+        }
+        if let Some(p) = std::env::var_os("GUARDIAN_CONFIG").filter(|v| !v.is_empty()) {
+            let p = PathBuf::from(p);
+            return Ok((Self::from_file(&p)?, Some(p)));
+        }
+        let sys = Path::new(SYSTEM_CONFIG);
+        if sys.exists() {
+            return Ok((Self::from_file(sys)?, Some(sys.to_owned())));
+        }
+        Ok((Self::default(), None))
+    }
+
+    /// The default config as commented TOML (`--print-default-config`).
+    pub fn default_toml() -> String {
+        let body = toml::to_string(&Self::default()).unwrap_or_default();
+        format!(
+            "# guardiand configuration (all keys optional).\n\
+             # Unset paths: model = models/embedder.safetensors and default-bank =\n\
+             # models/default-bank.gcb (working directory, then the source checkout);\n\
+             # state-dir = $STATE_DIRECTORY, else ./guardiand-state.\n\
+             # model = \"/usr/share/guardian/embedder.safetensors\"\n\
+             # default-bank = \"/usr/share/guardian/default-bank.gcb\"\n\
+             # state-dir = \"/var/lib/guardian\"\n\
+             # default-threshold = {}\n\
+             # serving-mode: \"event\" | \"busy-poll\" | \"spin-then-sleep\"\n\
+             {body}\
+             # [iceoryx2]\n\
+             # root-path = \"/tmp/iceoryx2/\"\n\
+             # prefix = \"iox2_\"\n",
+            guardian_models::bank::DEFAULT_THRESHOLD
+        )
+    }
+
+    fn check(&self) -> Result<(), String> {
+        if self.k_nearest == 0 {
+            return Err("k-nearest must be at least 1".into());
+        }
+        if self.tick_ms == 0 {
+            return Err("tick-ms must be at least 1".into());
+        }
+        if self.max_clients == 0 {
+            return Err("max-clients must be at least 1".into());
+        }
+        if let Some(t) = self.default_threshold
+            && !(t.is_finite() && t >= 0.0)
+        {
+            return Err(format!(
+                "default-threshold must be finite and >= 0, got {t}"
+            ));
+        }
+        Ok(())
+    }
+
+    /// The serving loop's longest sleep.
+    pub fn tick(&self) -> Duration {
+        Duration::from_millis(self.tick_ms)
+    }
+
+    /// The model file to load.
+    pub fn model_path(&self) -> PathBuf {
+        self.model.clone().unwrap_or_else(|| shipped(MODEL_REL))
+    }
+
+    /// The default bank file, if one is configured or shipped.
+    pub fn default_bank_path(&self) -> Option<PathBuf> {
+        match &self.default_bank {
+            Some(p) if p.as_os_str().is_empty() => None,
+            Some(p) => Some(p.clone()),
+            None => Some(shipped(BANK_REL)).filter(|p| p.exists()),
+        }
+    }
+
+    /// The state directory.
+    pub fn state_dir(&self) -> PathBuf {
+        if let Some(d) = &self.state_dir {
+            return d.clone();
+        }
+        match std::env::var_os("STATE_DIRECTORY").filter(|v| !v.is_empty()) {
+            // systemd may pass several colon-separated directories; the first is ours.
+            Some(v) => PathBuf::from(
+                v.to_string_lossy()
+                    .split(':')
+                    .next()
+                    .unwrap_or_default()
+                    .to_owned(),
+            ),
+            None => PathBuf::from("guardiand-state"),
+        }
+    }
+
+    /// The persisted bank file.
+    pub fn bank_path(&self) -> PathBuf {
+        self.state_dir().join(BANK_FILE)
+    }
+}
+
+/// `rel` in the working directory if it exists there, else in the source checkout.
+fn shipped(rel: &str) -> PathBuf {
+    let local = PathBuf::from(rel);
+    if local.exists() {
+        return local;
+    }
+    let checkout = Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join(rel);
+    if checkout.exists() { checkout } else { local }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_config_round_trips_and_unknown_keys_fail() {
+        let text = Config::default_toml();
+        let c = Config::from_toml(&text, Path::new("default")).unwrap();
+        assert_eq!(c, Config::default());
+        let e = Config::from_toml("servce-name = \"x\"\n", Path::new("t")).unwrap_err();
+        assert!(e.to_string().contains("servce-name"), "{e}");
+        let c = Config::from_toml(
+            "serving-mode = \"spin-then-sleep\"\n[iceoryx2]\nprefix = \"t_\"\n",
+            Path::new("t"),
+        )
+        .unwrap();
+        assert_eq!(c.serving_mode, ServingMode::SpinThenSleep);
+        assert_eq!(c.iceoryx2.prefix.as_deref(), Some("t_"));
+        assert!(Config::from_toml("k-nearest = 0\n", Path::new("t")).is_err());
+        assert!(Config::from_toml("default-threshold = -1.0\n", Path::new("t")).is_err());
+    }
+
+    #[test]
+    fn every_shipped_sample_config_parses() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../systemd");
+        let mut n = 0;
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let p = entry.unwrap().path();
+            if p.extension().is_some_and(|e| e == "toml") {
+                Config::from_file(&p).unwrap();
+                n += 1;
+            }
+        }
+        assert!(n >= 1, "no sample config in {}", dir.display());
+    }
+}

@@ -1,0 +1,56 @@
+//! The inference path: shared preprocessing (validation + pen-path resampling, the same code
+//! the training data went through) followed by the shipped embedding network.
+
+use std::path::Path;
+
+use guardian_models::embedder::{EMBED_DIM, Embedder, LoadModelError};
+use guardian_shared::trajectory::{InvalidTrajectory, Waypoint};
+
+/// Why a trajectory could not be embedded.
+#[derive(Debug)]
+pub enum EmbedFailure {
+    /// Validation rejected it.
+    Invalid(InvalidTrajectory),
+    /// The network failed (never turned into a verdict).
+    Internal(String),
+}
+
+/// The loaded model.
+#[derive(Debug, Clone)]
+pub struct Engine {
+    embedder: Embedder,
+}
+
+impl Engine {
+    /// Load and verify weights (shape and checksum are checked by the model crate).
+    pub fn load(path: &Path) -> Result<Self, LoadModelError> {
+        Ok(Self {
+            embedder: Embedder::load(path)?,
+        })
+    }
+
+    /// Wrap an already loaded embedder.
+    pub fn from_embedder(embedder: Embedder) -> Self {
+        Self { embedder }
+    }
+
+    /// The model's version string.
+    pub fn version(&self) -> &str {
+        self.embedder.version()
+    }
+
+    /// Embedding length.
+    pub fn dim(&self) -> usize {
+        EMBED_DIM
+    }
+
+    /// Validate, resample and embed raw waypoints.
+    pub fn embed(&self, waypoints: &[Waypoint]) -> Result<Vec<f32>, EmbedFailure> {
+        let x =
+            guardian_models::preprocess::preprocess(waypoints).map_err(EmbedFailure::Invalid)?;
+        self.embedder
+            .embed(&x)
+            .map(|e| e.to_vec())
+            .map_err(|e| EmbedFailure::Internal(e.to_string()))
+    }
+}

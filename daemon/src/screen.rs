@@ -1,0 +1,491 @@
+//! The screen: model + class bank + counters, and the handling of one decoded request.
+//! Transport-free, so every request path is testable without iceoryx2.
+
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use guardian_models::bank::{ClassBank, DEFAULT_THRESHOLD, Outcome};
+use guardian_shared::trajectory::{InvalidTrajectory, Waypoint, from_flat};
+use guardian_shared::wire::{
+    ClassEntry, MAX_EXAMPLES, Op, ReasonCode, RequestHeader, ResponseHeader, Status, VerdictCode,
+    decode_class_name, encode_text,
+};
+
+use crate::config::Config;
+use crate::engine::Engine;
+
+const LATENCY_WINDOW: usize = 4096;
+
+/// Where the bank in use came from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum BankSource {
+    /// The persisted bank in the state directory.
+    State(PathBuf),
+    /// The shipped or configured default bank.
+    Default(PathBuf),
+    /// Nothing found; an empty bank.
+    Empty,
+}
+
+impl std::fmt::Display for BankSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::State(p) => write!(f, "persisted bank {}", p.display()),
+            Self::Default(p) => write!(f, "default bank {}", p.display()),
+            Self::Empty => write!(f, "empty bank"),
+        }
+    }
+}
+
+/// Loading the model or bank failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum LoadStateError {
+    /// The model could not be loaded.
+    #[error("cannot load model {path}: {detail}")]
+    Model {
+        /// The weights file.
+        path: PathBuf,
+        /// Why.
+        detail: String,
+    },
+    /// The bank could not be loaded.
+    #[error("cannot load class bank: {0}")]
+    Bank(#[from] guardian_models::bank::LoadBankError),
+    /// The bank was built with another model.
+    #[error(
+        "class bank {path} was built with model {bank_model} ({bank_dim}-d) but the loaded model is {model} ({model_dim}-d); \
+         re-enroll the classes or remove the file"
+    )]
+    BankModelMismatch {
+        /// The bank file.
+        path: PathBuf,
+        /// Model version recorded in the bank.
+        bank_model: String,
+        /// Its embedding dimension.
+        bank_dim: usize,
+        /// The loaded model's version.
+        model: String,
+        /// The loaded model's dimension.
+        model_dim: usize,
+    },
+}
+
+/// Load the model named by `config`.
+pub fn load_engine(config: &Config) -> Result<Engine, LoadStateError> {
+    let path = config.model_path();
+    Engine::load(&path).map_err(|e| LoadStateError::Model {
+        path,
+        detail: e.to_string(),
+    })
+}
+
+/// Load the bank for `engine`: the persisted one, else the default one, else empty.
+pub fn load_bank(
+    config: &Config,
+    engine: &Engine,
+) -> Result<(ClassBank, BankSource), LoadStateError> {
+    let state = config.bank_path();
+    let (mut bank, source) = if state.exists() {
+        (ClassBank::load(&state)?, BankSource::State(state))
+    } else if let Some(p) = config.default_bank_path() {
+        (ClassBank::load(&p)?, BankSource::Default(p))
+    } else {
+        let t = config.default_threshold.unwrap_or(DEFAULT_THRESHOLD);
+        (
+            ClassBank::new(engine.dim(), engine.version(), t),
+            BankSource::Empty,
+        )
+    };
+    if bank.dim() != engine.dim() || bank.model_version() != engine.version() {
+        let path = match &source {
+            BankSource::State(p) | BankSource::Default(p) => p.clone(),
+            BankSource::Empty => PathBuf::new(),
+        };
+        return Err(LoadStateError::BankModelMismatch {
+            path,
+            bank_model: bank.model_version().to_owned(),
+            bank_dim: bank.dim(),
+            model: engine.version().to_owned(),
+            model_dim: engine.dim(),
+        });
+    }
+    if let Some(t) = config.default_threshold
+        && t != bank.default_threshold()
+    {
+        bank.set_default_threshold(t);
+    }
+    Ok((bank, source))
+}
+
+/// Service times of the most recent requests.
+#[derive(Debug, Default)]
+struct Latencies(VecDeque<f32>);
+
+impl Latencies {
+    fn push(&mut self, d: Duration) {
+        if self.0.len() == LATENCY_WINDOW {
+            self.0.pop_front();
+        }
+        self.0.push_back(d.as_secs_f32() * 1e6);
+    }
+
+    /// p50, p90, p99, max in microseconds (NaN when empty).
+    fn percentiles(&self) -> [f32; 4] {
+        if self.0.is_empty() {
+            return [f32::NAN; 4];
+        }
+        let mut v: Vec<f32> = self.0.iter().copied().collect();
+        v.sort_by(f32::total_cmp);
+        let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
+        [q(0.5), q(0.9), q(0.99), v[v.len() - 1]]
+    }
+}
+
+/// Counters since start.
+#[derive(Debug, Default, Clone, Copy)]
+struct Counters {
+    requests: u64,
+    errors: u64,
+    go: u64,
+    no_go: u64,
+}
+
+/// Model, bank and statistics of a running daemon.
+#[derive(Debug)]
+pub struct Screen {
+    engine: Engine,
+    bank: ClassBank,
+    bank_path: PathBuf,
+    k: usize,
+    started: Instant,
+    counters: Counters,
+    latencies: Latencies,
+}
+
+enum Fail {
+    Status(Status, String),
+    Invalid(InvalidTrajectory, u32),
+}
+
+impl Screen {
+    /// A screen serving `bank` with `engine`, persisting the bank to `bank_path`.
+    pub fn new(engine: Engine, bank: ClassBank, bank_path: PathBuf, k: usize) -> Self {
+        Self {
+            engine,
+            bank,
+            bank_path,
+            k,
+            started: Instant::now(),
+            counters: Counters::default(),
+            latencies: Latencies::default(),
+        }
+    }
+
+    /// The model in use.
+    pub fn engine(&self) -> &Engine {
+        &self.engine
+    }
+    /// The bank in use.
+    pub fn bank(&self) -> &ClassBank {
+        &self.bank
+    }
+    /// Where the bank is persisted.
+    pub fn bank_path(&self) -> &Path {
+        &self.bank_path
+    }
+
+    /// Replace model and bank (after a successful reload).
+    pub fn replace(&mut self, engine: Engine, bank: ClassBank, k: usize) {
+        self.engine = engine;
+        self.bank = bank;
+        self.k = k;
+    }
+
+    /// Record the service time of one answered request.
+    pub fn record_latency(&mut self, d: Duration) {
+        self.latencies.push(d);
+    }
+
+    /// One-line status for logs and `STATUS=`.
+    pub fn summary(&self) -> String {
+        format!(
+            "serving {} classes (bank v{}), model {}",
+            self.bank.len(),
+            self.bank.generation(),
+            self.engine.version()
+        )
+    }
+
+    /// Answer one request. Never panics on input; errors become error statuses.
+    pub fn handle(
+        &mut self,
+        h: &RequestHeader,
+        payload: &[f32],
+    ) -> (ResponseHeader, Vec<ClassEntry>) {
+        let mut r = ResponseHeader::new(h.request_id, h.op);
+        r.class_name = h.class_name;
+        let entries = match Op::from_u32(h.op) {
+            None => Err(Fail::Status(
+                Status::BadRequest,
+                format!("unknown op {}", h.op),
+            )),
+            Some(Op::Check) => self.check(h, payload, &mut r),
+            Some(Op::Identify) => self.identify(h, payload),
+            Some(Op::Enroll) => self.enroll(h, payload),
+            Some(Op::Forget) => self.forget(h),
+            Some(Op::Classes) => Ok(self.class_list()),
+            Some(Op::Status) => Ok(Vec::new()),
+            Some(_) => Err(Fail::Status(Status::BadRequest, "unsupported op".into())),
+        };
+        self.counters.requests += 1;
+        let entries = match entries {
+            Ok(e) => e,
+            Err(fail) => {
+                self.counters.errors += 1;
+                match fail {
+                    Fail::Status(s, msg) => {
+                        r.status = s as u32;
+                        r.message = encode_text(&msg);
+                    }
+                    Fail::Invalid(inv, example) => {
+                        r.status = Status::InvalidTrajectory as u32;
+                        r.invalid_kind = inv.kind as u32;
+                        r.invalid_index = inv.index;
+                        r.invalid_example = example;
+                        r.message = encode_text(&inv.to_string());
+                    }
+                }
+                r.verdict = VerdictCode::None as u32;
+                Vec::new()
+            }
+        };
+        if r.verdict == VerdictCode::Go as u32 {
+            self.counters.go += 1;
+        } else if r.verdict == VerdictCode::NoGo as u32 {
+            self.counters.no_go += 1;
+        }
+        self.fill_common(&mut r);
+        (r, entries)
+    }
+
+    fn fill_common(&self, r: &mut ResponseHeader) {
+        r.bank_version = self.bank.generation();
+        r.class_count = u32::try_from(self.bank.len()).unwrap_or(u32::MAX);
+        r.model_version = encode_text(self.engine.version());
+        r.uptime_ms = u64::try_from(self.started.elapsed().as_millis()).unwrap_or(u64::MAX);
+        r.requests = self.counters.requests;
+        r.errors = self.counters.errors;
+        r.go = self.counters.go;
+        r.no_go = self.counters.no_go;
+        let [p50, p90, p99, max] = self.latencies.percentiles();
+        r.latency_p50_us = p50;
+        r.latency_p90_us = p90;
+        r.latency_p99_us = p99;
+        r.latency_max_us = max;
+    }
+
+    fn class_name(h: &RequestHeader) -> Result<String, Fail> {
+        decode_class_name(&h.class_name)
+            .map(str::to_owned)
+            .map_err(|e| Fail::Status(Status::InvalidClassName, e.to_string()))
+    }
+
+    /// Split the payload into the header's trajectories, validating each.
+    fn trajectories(
+        h: &RequestHeader,
+        payload: &[f32],
+        max_examples: usize,
+    ) -> Result<Result<Vec<Vec<Waypoint>>, Fail>, Fail> {
+        let n = h.examples as usize;
+        if n == 0 || n > max_examples {
+            return Err(Fail::Status(
+                Status::BadRequest,
+                format!("examples is {n}, expected 1..={max_examples}"),
+            ));
+        }
+        let channels = h.channels as u64;
+        let total: u64 = h.waypoints[..n]
+            .iter()
+            .map(|&w| u64::from(w) * channels)
+            .sum();
+        if total != payload.len() as u64 {
+            return Err(Fail::Status(
+                Status::BadRequest,
+                format!(
+                    "payload has {} floats, header announces {total}",
+                    payload.len()
+                ),
+            ));
+        }
+        let mut out = Vec::with_capacity(n);
+        let mut at = 0usize;
+        for (i, &w) in h.waypoints[..n].iter().enumerate() {
+            let len = w as usize * h.channels as usize;
+            let slice = &payload[at..at + len];
+            at += len;
+            // An empty trajectory with a wrong channel count is reported as too few
+            // waypoints, like any other empty one.
+            let parsed = if w == 0 {
+                from_flat(&[], guardian_shared::trajectory::CHANNELS)
+            } else {
+                from_flat(slice, h.channels as usize)
+            };
+            match parsed {
+                Ok(t) => out.push(t),
+                Err(e) => return Ok(Err(Fail::Invalid(e, i as u32))),
+            }
+        }
+        Ok(Ok(out))
+    }
+
+    fn embed(&self, t: &[Waypoint]) -> Result<Vec<f32>, Fail> {
+        self.engine.embed(t).map_err(|e| match e {
+            crate::engine::EmbedFailure::Invalid(inv) => Fail::Invalid(inv, 0),
+            crate::engine::EmbedFailure::Internal(msg) => {
+                tracing::error!(error = %msg, "embedding failed");
+                Fail::Status(Status::Internal, format!("embedding failed: {msg}"))
+            }
+        })
+    }
+
+    fn check(
+        &mut self,
+        h: &RequestHeader,
+        payload: &[f32],
+        r: &mut ResponseHeader,
+    ) -> Result<Vec<ClassEntry>, Fail> {
+        let claimed = Self::class_name(h)?;
+        let mut t = match Self::trajectories(h, payload, 1)? {
+            Ok(t) => t,
+            Err(Fail::Invalid(inv, _)) => {
+                r.verdict = VerdictCode::NoGo as u32;
+                r.reason = ReasonCode::InvalidTrajectory as u32;
+                r.invalid_kind = inv.kind as u32;
+                r.invalid_index = inv.index;
+                return Ok(Vec::new());
+            }
+            Err(other) => return Err(other),
+        };
+        let t = t.pop().unwrap_or_default();
+        let e = match self.embed(&t) {
+            Ok(e) => e,
+            Err(Fail::Invalid(inv, _)) => {
+                r.verdict = VerdictCode::NoGo as u32;
+                r.reason = ReasonCode::InvalidTrajectory as u32;
+                r.invalid_kind = inv.kind as u32;
+                r.invalid_index = inv.index;
+                return Ok(Vec::new());
+            }
+            Err(other) => return Err(other),
+        };
+        let d = self.bank.decide(&e, &claimed, self.k);
+        let (verdict, reason) = match &d.outcome {
+            Outcome::Go => (VerdictCode::Go, ReasonCode::None),
+            Outcome::WrongTask { .. } => (VerdictCode::NoGo, ReasonCode::WrongTask),
+            Outcome::Outlier => (VerdictCode::NoGo, ReasonCode::Outlier),
+            Outcome::UnknownClass => (VerdictCode::NoGo, ReasonCode::UnknownClass),
+        };
+        r.verdict = verdict as u32;
+        r.reason = reason as u32;
+        r.claimed_distance = d.claimed_distance.unwrap_or(f32::NAN);
+        r.threshold = d.threshold.unwrap_or(f32::NAN);
+        r.margin = d.margin.unwrap_or(f32::NAN);
+        r.gap = d.gap.unwrap_or(f32::NAN);
+        // With WrongTask the nearest class is the overall nearest, so it is entries[0].
+        Ok(d.nearest
+            .iter()
+            .map(|n| self.entry(&n.name, n.distance))
+            .collect())
+    }
+
+    fn identify(&mut self, h: &RequestHeader, payload: &[f32]) -> Result<Vec<ClassEntry>, Fail> {
+        let mut t = Self::trajectories(h, payload, 1)??;
+        let t = t.pop().unwrap_or_default();
+        let e = self.embed(&t)?;
+        if self.bank.is_empty() {
+            return Err(Fail::Status(
+                Status::EmptyBank,
+                "no classes enrolled".into(),
+            ));
+        }
+        Ok(self
+            .bank
+            .nearest(&e, self.k)
+            .iter()
+            .map(|n| self.entry(&n.name, n.distance))
+            .collect())
+    }
+
+    fn enroll(&mut self, h: &RequestHeader, payload: &[f32]) -> Result<Vec<ClassEntry>, Fail> {
+        let name = Self::class_name(h)?;
+        let ts = Self::trajectories(h, payload, MAX_EXAMPLES)??;
+        let mut embeddings = Vec::with_capacity(ts.len());
+        for (i, t) in ts.iter().enumerate() {
+            embeddings.push(self.embed(t).map_err(|f| match f {
+                Fail::Invalid(inv, _) => Fail::Invalid(inv, i as u32),
+                other => other,
+            })?);
+        }
+        let mut next = self.bank.clone();
+        next.enroll(&name, &embeddings)
+            .map_err(|e| Fail::Status(Status::Internal, e.to_string()))?;
+        self.commit(next)?;
+        tracing::info!(class = %name, examples = embeddings.len(), bank = self.bank.generation(), "enrolled");
+        Ok(vec![self.entry(&name, f32::NAN)])
+    }
+
+    fn forget(&mut self, h: &RequestHeader) -> Result<Vec<ClassEntry>, Fail> {
+        let name = Self::class_name(h)?;
+        let mut next = self.bank.clone();
+        let Some(_) = next.forget(&name) else {
+            return Err(Fail::Status(
+                Status::UnknownClass,
+                format!("class {name:?} is not enrolled"),
+            ));
+        };
+        self.commit(next)?;
+        tracing::info!(class = %name, bank = self.bank.generation(), "forgot class");
+        Ok(Vec::new())
+    }
+
+    /// Persist `next` atomically, then serve it. On failure the old bank stays.
+    fn commit(&mut self, next: ClassBank) -> Result<(), Fail> {
+        if let Err(e) = next.save(&self.bank_path) {
+            tracing::error!(error = %e, "cannot persist class bank; change rejected");
+            return Err(Fail::Status(
+                Status::Internal,
+                format!("cannot persist class bank: {e}"),
+            ));
+        }
+        self.bank = next;
+        Ok(())
+    }
+
+    /// Save the bank now (used at shutdown; every change is already saved).
+    pub fn flush(&self) -> Result<(), guardian_models::bank::SaveBankError> {
+        if self.bank.generation() == 0 && !self.bank_path.exists() {
+            return Ok(());
+        }
+        self.bank.save(&self.bank_path)
+    }
+
+    fn class_list(&self) -> Vec<ClassEntry> {
+        self.bank
+            .classes()
+            .map(|(n, _)| self.entry(n, f32::NAN))
+            .collect()
+    }
+
+    fn entry(&self, name: &str, distance: f32) -> ClassEntry {
+        let class = self.bank.class(name);
+        ClassEntry {
+            name: encode_text(name),
+            distance,
+            threshold: self.bank.threshold(name).unwrap_or(f32::NAN),
+            examples: class.map_or(0, |c| u32::try_from(c.embeddings.len()).unwrap_or(u32::MAX)),
+            calibrated: u32::from(class.is_some_and(|c| c.threshold.is_some())),
+        }
+    }
+}

@@ -1,0 +1,329 @@
+//! The serving loop: iceoryx2 ports, waiting strategy, signals, systemd notifications.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use iceoryx2::port::listener::ListenerWaitError;
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::request_response::PortFactory as RpcFactory;
+
+use guardian_shared::wire::{
+    ClassEntry, RequestHeader, ResponseHeader, request_event_name, response_event_name,
+};
+
+use crate::config::{Config, ServingMode};
+use crate::notify::SdNotify;
+use crate::screen::{LoadStateError, Screen, load_bank, load_engine};
+
+/// Flags set from signal handlers (or a test harness) to steer the loop.
+#[derive(Debug, Clone, Default)]
+pub struct Control {
+    /// Stop gracefully: answer what is queued, flush state, exit.
+    pub shutdown: Arc<AtomicBool>,
+    /// Reload model and bank; keep the old ones if that fails.
+    pub reload: Arc<AtomicBool>,
+}
+
+/// Starting or running the daemon failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum RunError {
+    /// Model or bank could not be loaded at start-up.
+    #[error(transparent)]
+    Load(#[from] LoadStateError),
+    /// The state directory could not be created.
+    #[error("cannot create state directory {path}: {source}")]
+    StateDir {
+        /// The directory.
+        path: std::path::PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// An iceoryx2 setup or port operation failed.
+    #[error("iceoryx2: {what}: {detail}")]
+    Iceoryx {
+        /// What was being done.
+        what: &'static str,
+        /// The iceoryx2 error.
+        detail: String,
+    },
+    /// Saving the bank at shutdown failed.
+    #[error("cannot flush class bank at shutdown: {0}")]
+    Flush(#[from] guardian_models::bank::SaveBankError),
+}
+
+fn iox<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> RunError {
+    move |e| RunError::Iceoryx {
+        what,
+        detail: format!("{e:?}"),
+    }
+}
+
+/// The iceoryx2 configuration for `config` (root path and prefix applied).
+pub fn iceoryx2_config(config: &Config) -> Result<iceoryx2::config::Config, RunError> {
+    let mut c = iceoryx2::config::Config::default();
+    if let Some(root) = &config.iceoryx2.root_path {
+        let mut s = root.to_string_lossy().into_owned();
+        if !s.ends_with('/') {
+            s.push('/');
+        }
+        let p = Path::new(s.as_bytes()).map_err(iox("invalid iceoryx2 root-path"))?;
+        c.global.set_root_path(&p);
+    }
+    if let Some(prefix) = &config.iceoryx2.prefix {
+        c.global.prefix =
+            FileName::new(prefix.as_bytes()).map_err(iox("invalid iceoryx2 prefix"))?;
+    }
+    Ok(c)
+}
+
+/// How often the serving loop reclaims resources of dead planner processes.
+const DEAD_NODE_CLEANUP: Duration = Duration::from_secs(30);
+
+type Rpc = RpcFactory<ipc::Service, [f32], RequestHeader, [ClassEntry], ResponseHeader>;
+
+/// Load model and bank, open the services and serve until `control.shutdown` is set.
+pub fn run(config: Config, control: Control) -> Result<(), RunError> {
+    let sd = SdNotify::from_env();
+    let state_dir = config.state_dir();
+    std::fs::create_dir_all(&state_dir).map_err(|source| RunError::StateDir {
+        path: state_dir.clone(),
+        source,
+    })?;
+
+    let engine = load_engine(&config)?;
+    tracing::info!(model = %config.model_path().display(), version = engine.version(), "model loaded");
+    let (bank, source) = load_bank(&config, &engine)?;
+    if bank.is_empty() {
+        tracing::info!(%source, "class bank is empty: enroll classes before checking");
+    } else {
+        tracing::info!(%source, classes = bank.len(), version = bank.generation(), "class bank loaded");
+    }
+    let mut screen = Screen::new(engine, bank, config.bank_path(), config.k_nearest);
+
+    let iox_config = iceoryx2_config(&config)?;
+    let node = NodeBuilder::new()
+        .config(&iox_config)
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<ipc::Service>()
+        .map_err(iox("create node"))?;
+    let cleaned = node.try_cleanup_dead_nodes();
+    if cleaned.cleanups > 0 {
+        tracing::info!(
+            nodes = cleaned.cleanups,
+            "removed resources of dead iceoryx2 nodes"
+        );
+    }
+    let max_clients = config.max_clients;
+    let max_nodes = max_clients * 2 + 4;
+    let rpc_name = ServiceName::new(&config.service_name).map_err(iox("invalid service name"))?;
+    let rpc: Rpc = node
+        .service_builder(&rpc_name)
+        .request_response::<[f32], [ClassEntry]>()
+        .request_user_header::<RequestHeader>()
+        .response_user_header::<ResponseHeader>()
+        .max_clients(max_clients)
+        .max_servers(1)
+        .max_nodes(max_nodes)
+        .max_active_requests_per_client(4)
+        .max_response_buffer_size(4)
+        .open_or_create()
+        .map_err(iox("open request-response service"))?;
+    let event = |name: String, what: &'static str| {
+        let n = ServiceName::new(&name).map_err(iox("invalid service name"))?;
+        node.service_builder(&n)
+            .event()
+            .max_listeners(max_clients + 2)
+            .max_notifiers(max_clients + 2)
+            .max_nodes(max_nodes)
+            .open_or_create()
+            .map_err(iox(what))
+    };
+    let wake_in = event(
+        request_event_name(&config.service_name),
+        "open request event service",
+    )?;
+    let wake_out = event(
+        response_event_name(&config.service_name),
+        "open response event service",
+    )?;
+    // The listener exists before the server port, so no request notification is lost.
+    let listener = wake_in
+        .listener_builder()
+        .create()
+        .map_err(iox("create listener"))?;
+    let notifier = wake_out
+        .notifier_builder()
+        .create()
+        .map_err(iox("create notifier"))?;
+    let server = rpc
+        .server_builder()
+        .initial_max_slice_len(256)
+        .allocation_strategy(AllocationStrategy::PowerOfTwo)
+        .create()
+        .map_err(|e| RunError::Iceoryx {
+            what: "create server port (is another guardiand serving this service name?)",
+            detail: format!("{e:?}"),
+        })?;
+
+    let watchdog = if config.watchdog {
+        sd.watchdog_timeout().map(|t| t / 2)
+    } else {
+        None
+    };
+    tracing::info!(
+        service = %config.service_name,
+        mode = ?config.serving_mode,
+        watchdog = ?watchdog,
+        "{}", screen.summary()
+    );
+    sd.ready(&screen.summary());
+    let tick = match watchdog {
+        Some(w) => config.tick().min(w),
+        None => config.tick(),
+    };
+    let mut last_ping = Instant::now();
+    let mut last_cleanup = Instant::now();
+    let mut last_request = Instant::now();
+    let spin = Duration::from_micros(config.spin_us);
+
+    loop {
+        // Answer everything queued first, so that a stop answers in-flight requests.
+        let served = drain(&server, &notifier, &mut screen)?;
+        if served > 0 {
+            last_request = Instant::now();
+        }
+        if control.shutdown.load(Ordering::SeqCst) {
+            break;
+        }
+        if control.reload.swap(false, Ordering::SeqCst) {
+            reload(&config, &mut screen, &sd);
+        }
+        if let Some(w) = watchdog
+            && last_ping.elapsed() >= w
+        {
+            sd.watchdog();
+            last_ping = Instant::now();
+        }
+        // Planners killed without cleanup keep client slots; reclaim them now and then.
+        if last_cleanup.elapsed() >= DEAD_NODE_CLEANUP {
+            let c = node.try_cleanup_dead_nodes();
+            if c.cleanups > 0 {
+                tracing::info!(
+                    nodes = c.cleanups,
+                    "removed resources of dead iceoryx2 nodes"
+                );
+            }
+            last_cleanup = Instant::now();
+        }
+        if served > 0 {
+            continue;
+        }
+        let sleep = match config.serving_mode {
+            ServingMode::Event => true,
+            ServingMode::BusyPoll => false,
+            ServingMode::SpinThenSleep => last_request.elapsed() >= spin,
+        };
+        if sleep {
+            // Wake on a client notification, or after one tick to re-check has_requests,
+            // flags and the watchdog.
+            match listener.timed_wait(|_| {}, tick) {
+                // A signal (SIGHUP, SIGTERM) interrupted the wait: loop to look at the flags.
+                Ok(_) | Err(ListenerWaitError::InterruptSignal) => {}
+                Err(e) => return Err(iox("wait on request events")(e)),
+            }
+        } else {
+            // Drop accumulated notifications so the queue does not fill up.
+            match listener.try_wait(|_| {}) {
+                Ok(_) | Err(ListenerWaitError::InterruptSignal) => {}
+                Err(e) => return Err(iox("drain request events")(e)),
+            }
+            std::hint::spin_loop();
+        }
+    }
+
+    sd.stopping();
+    tracing::info!("stopping: answering queued requests and flushing state");
+    let _ = drain(&server, &notifier, &mut screen)?;
+    screen.flush()?;
+    tracing::info!("stopped");
+    Ok(())
+}
+
+fn reload(config: &Config, screen: &mut Screen, sd: &SdNotify) {
+    tracing::info!("reload requested (SIGHUP)");
+    sd.status("reloading");
+    let result = load_engine(config).and_then(|engine| {
+        let (bank, source) = load_bank(config, &engine)?;
+        Ok((engine, bank, source))
+    });
+    match result {
+        Ok((engine, bank, source)) => {
+            screen.replace(engine, bank, config.k_nearest);
+            tracing::info!(%source, "reload complete: {}", screen.summary());
+        }
+        Err(e) => {
+            tracing::error!(error = %e, "reload failed; keeping the current model and bank");
+        }
+    }
+    sd.status(&screen.summary());
+}
+
+/// Answer every queued request; returns how many.
+fn drain(
+    server: &iceoryx2::port::server::Server<
+        ipc::Service,
+        [f32],
+        RequestHeader,
+        [ClassEntry],
+        ResponseHeader,
+    >,
+    notifier: &iceoryx2::port::notifier::Notifier<ipc::Service>,
+    screen: &mut Screen,
+) -> Result<usize, RunError> {
+    let mut n = 0;
+    loop {
+        let request = match server.receive() {
+            Ok(Some(r)) => r,
+            Ok(None) => break,
+            Err(e) => {
+                tracing::warn!(error = ?e, "receiving a request failed");
+                break;
+            }
+        };
+        let start = Instant::now();
+        let header = *request.user_header();
+        let span = tracing::debug_span!("request", id = header.request_id, op = header.op);
+        let _enter = span.enter();
+        let (response, entries) = screen.handle(&header, request.payload());
+        let sent = request
+            .loan_slice_uninit(entries.len())
+            .map(|mut r| {
+                *r.user_header_mut() = response;
+                r.write_from_slice(&entries)
+            })
+            .map_err(|e| format!("{e:?}"))
+            .and_then(|r| r.send().map_err(|e| format!("{e:?}")));
+        drop(request);
+        match sent {
+            Ok(()) => {
+                if let Err(e) = notifier.notify() {
+                    tracing::warn!(error = ?e, "cannot notify clients");
+                }
+            }
+            Err(e) => tracing::warn!(error = %e, "cannot send response (client gone?)"),
+        }
+        let elapsed = start.elapsed();
+        screen.record_latency(elapsed);
+        tracing::debug!(
+            status = response.status,
+            verdict = response.verdict,
+            reason = response.reason,
+            micros = elapsed.as_micros() as u64,
+            "answered"
+        );
+        n += 1;
+    }
+    Ok(n)
+}

@@ -1,0 +1,295 @@
+//! Test harness: a real `guardiand` process with its own service name, iceoryx2 prefix,
+//! state directory, model file and `NOTIFY_SOCKET`, killed on drop.
+#![allow(dead_code)]
+
+use std::io::Read;
+use std::os::unix::net::UnixDatagram;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use guardian_client::{Client, ClientConfig, Trajectory};
+use guardian_models::embedder::Embedder;
+
+static COUNTER: AtomicU32 = AtomicU32::new(0);
+
+/// Functional bound for start-up and signals (not a performance claim).
+pub const PATIENCE: Duration = Duration::from_secs(60);
+
+pub struct Setup {
+    pub dir: tempfile::TempDir,
+    pub service: String,
+    pub prefix: String,
+    pub model: PathBuf,
+    pub extra: String,
+}
+
+impl Setup {
+    pub fn new(seed: u64) -> Self {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let n = COUNTER.fetch_add(1, Ordering::SeqCst);
+        let tag = format!("{}x{n}", std::process::id());
+        let model = dir.path().join("model.safetensors");
+        Embedder::random(seed).save(&model).expect("save model");
+        Self {
+            service: format!("guardian-test/{tag}/v1/rpc"),
+            prefix: format!("gt{tag}_"),
+            model,
+            dir,
+            extra: String::new(),
+        }
+    }
+
+    pub fn state_dir(&self) -> PathBuf {
+        self.dir.path().join("state")
+    }
+
+    pub fn config_path(&self) -> PathBuf {
+        self.dir.path().join("guardiand.toml")
+    }
+
+    pub fn write_config(&self) -> PathBuf {
+        let text = format!(
+            "model = {:?}\ndefault-bank = \"\"\nstate-dir = {:?}\nservice-name = {:?}\ntick-ms = 50\n{}\n[iceoryx2]\nroot-path = {:?}\nprefix = {:?}\n",
+            self.model,
+            self.state_dir(),
+            self.service,
+            self.extra,
+            self.dir.path().join("iox"),
+            self.prefix
+        );
+        let p = self.config_path();
+        std::fs::write(&p, text).expect("write config");
+        p
+    }
+
+    pub fn client_config(&self) -> ClientConfig {
+        ClientConfig {
+            service_name: self.service.clone(),
+            timeout: Duration::from_secs(10),
+            iceoryx2_root_path: Some(self.dir.path().join("iox")),
+            iceoryx2_prefix: Some(self.prefix.clone()),
+        }
+    }
+
+    pub fn client(&self) -> Client {
+        Client::connect(self.client_config()).expect("connect")
+    }
+}
+
+/// A running daemon plus the datagrams it sent to its `NOTIFY_SOCKET`.
+pub struct Daemon {
+    pub child: Child,
+    pub notes: Arc<Mutex<Vec<String>>>,
+    pub stderr: Arc<Mutex<String>>,
+}
+
+pub fn bin() -> &'static str {
+    env!("CARGO_BIN_EXE_guardiand")
+}
+
+impl Daemon {
+    /// Start and wait for `READY=1`.
+    pub fn start(setup: &Setup) -> Self {
+        Self::start_with_env(setup, &[])
+    }
+
+    pub fn start_with_env(setup: &Setup, env: &[(&str, String)]) -> Self {
+        let d = Self::spawn(setup, env, None);
+        d.wait_note("READY=1");
+        d
+    }
+
+    /// Spawn with an optional pre-bound notify socket path (`@name` = abstract).
+    pub fn spawn(
+        setup: &Setup,
+        env: &[(&str, String)],
+        notify: Option<(UnixDatagram, String)>,
+    ) -> Self {
+        let config = setup.write_config();
+        let (sock, addr) = match notify {
+            Some(n) => n,
+            None => {
+                let p = setup.dir.path().join(format!(
+                    "notify{}.sock",
+                    COUNTER.fetch_add(1, Ordering::SeqCst)
+                ));
+                let s = UnixDatagram::bind(&p).expect("bind notify socket");
+                (s, p.to_string_lossy().into_owned())
+            }
+        };
+        let mut cmd = Command::new(bin());
+        cmd.arg("--config")
+            .arg(&config)
+            .env("NOTIFY_SOCKET", &addr)
+            .env("RUST_LOG", "info,guardian_daemon=debug")
+            .env_remove("WATCHDOG_USEC")
+            .env_remove("STATE_DIRECTORY")
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped());
+        for (k, v) in env {
+            cmd.env(k, v);
+        }
+        let mut child = cmd.spawn().expect("spawn guardiand");
+        let notes = Arc::new(Mutex::new(Vec::new()));
+        let n2 = notes.clone();
+        sock.set_read_timeout(Some(Duration::from_millis(100))).ok();
+        std::thread::spawn(move || {
+            let mut buf = [0u8; 4096];
+            loop {
+                match sock.recv(&mut buf) {
+                    Ok(len) => n2
+                        .lock()
+                        .unwrap()
+                        .push(String::from_utf8_lossy(&buf[..len]).into_owned()),
+                    Err(e)
+                        if e.kind() == std::io::ErrorKind::WouldBlock
+                            || e.kind() == std::io::ErrorKind::TimedOut =>
+                    {
+                        if Arc::strong_count(&n2) == 1 {
+                            return;
+                        }
+                    }
+                    Err(_) => return,
+                }
+            }
+        });
+        let stderr = Arc::new(Mutex::new(String::new()));
+        let s2 = stderr.clone();
+        let mut pipe = child.stderr.take().expect("stderr");
+        std::thread::spawn(move || {
+            let mut buf = [0u8; 4096];
+            while let Ok(n) = pipe.read(&mut buf) {
+                if n == 0 {
+                    break;
+                }
+                s2.lock()
+                    .unwrap()
+                    .push_str(&String::from_utf8_lossy(&buf[..n]));
+            }
+        });
+        Daemon {
+            child,
+            notes,
+            stderr,
+        }
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    pub fn log(&self) -> String {
+        self.stderr.lock().unwrap().clone()
+    }
+
+    pub fn notes(&self) -> Vec<String> {
+        self.notes.lock().unwrap().clone()
+    }
+
+    /// Wait until a notification containing `what` arrived.
+    pub fn wait_note(&self, what: &str) {
+        let start = Instant::now();
+        while start.elapsed() < PATIENCE {
+            if self.notes().iter().any(|n| n.contains(what)) {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        panic!(
+            "no {what:?} from guardiand; notes {:?}\nlog:\n{}",
+            self.notes(),
+            self.log()
+        );
+    }
+
+    /// Wait until the log contains `what`.
+    pub fn wait_log(&self, what: &str) {
+        let start = Instant::now();
+        while start.elapsed() < PATIENCE {
+            if self.log().contains(what) {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        panic!("log never showed {what:?}:\n{}", self.log());
+    }
+
+    pub fn signal(&self, sig: &str) {
+        let ok = Command::new("kill")
+            .arg(format!("-{sig}"))
+            .arg(self.pid().to_string())
+            .status()
+            .expect("run kill")
+            .success();
+        assert!(ok, "kill -{sig} failed");
+    }
+
+    /// Wait for exit; returns the exit status.
+    pub fn wait_exit(&mut self) -> std::process::ExitStatus {
+        let start = Instant::now();
+        while start.elapsed() < PATIENCE {
+            if let Some(s) = self.child.try_wait().expect("try_wait") {
+                return s;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        panic!("guardiand did not exit; log:\n{}", self.log());
+    }
+}
+
+impl Drop for Daemon {
+    /// Stop gracefully (so iceoryx2 removes its shared memory), kill if that hangs.
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            let _ = Command::new("kill")
+                .arg("-TERM")
+                .arg(self.pid().to_string())
+                .status();
+            let start = Instant::now();
+            while start.elapsed() < Duration::from_secs(10) {
+                if let Ok(Some(_)) = self.child.try_wait() {
+                    return;
+                }
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Run `guardiand` to completion (for start-up failures).
+pub fn run_to_exit(setup: &Setup) -> std::process::Output {
+    let config = setup.write_config();
+    let mut child = Command::new(bin())
+        .arg("--config")
+        .arg(&config)
+        .env_remove("NOTIFY_SOCKET")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn");
+    let start = Instant::now();
+    while start.elapsed() < PATIENCE {
+        if child.try_wait().expect("try_wait").is_some() {
+            return child.wait_with_output().expect("output");
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let _ = child.kill();
+    let _ = child.wait();
+    panic!("guardiand did not exit");
+}
+
+pub use guardian_client::samples::task;
+
+pub fn traj(class: u32, drawer: u32) -> Trajectory {
+    Trajectory::from_waypoints(&task(class, drawer))
+}
+
+pub fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}

@@ -1,0 +1,583 @@
+//! End-to-end tests across real processes: the `guardiand` binary and `guardian-client`.
+
+mod common;
+
+use std::time::Duration;
+
+use common::{Daemon, Setup, task, traj};
+use guardian_client::{
+    CheckError, Client, Decision, EnrollError, InvalidKind, MAX_WAYPOINTS, NoGoReason, Trajectory,
+};
+
+fn enroll_classes(client: &Client, classes: &[u32]) {
+    for &c in classes {
+        let examples: Vec<Trajectory> = (0..4).map(|d| traj(c, d)).collect();
+        let info = client
+            .enroll(&format!("task{c}"), &examples)
+            .expect("enroll");
+        assert_eq!(info.examples, 4);
+        assert_eq!(info.name, format!("task{c}"));
+    }
+}
+
+fn no_go(d: &Decision) -> &NoGoReason {
+    match d {
+        Decision::NoGo { reason } => reason,
+        Decision::Go => panic!("expected no-go, got go"),
+    }
+}
+
+#[test]
+fn go_wrong_task_unknown_class_identify_classes_status() {
+    let mut s = Setup::new(7);
+    s.extra = "default-threshold = 1e9\nk-nearest = 3".into();
+    let _d = Daemon::start(&s);
+    let client = s.client();
+    enroll_classes(&client, &[0, 1, 2, 3]);
+
+    // Genuine: an unseen drawer of task1 claiming task1.
+    let genuine = traj(1, 11);
+    let v = client.check(&genuine, "task1").expect("check");
+    assert_eq!(v.decision, Decision::Go, "{v:?}");
+    assert_eq!(v.nearest[0].class, "task1");
+    assert_eq!(v.nearest.len(), 3);
+    assert!(v.margin.unwrap() > 0.0 && v.gap.unwrap() > 0.0, "{v:?}");
+    assert_eq!(v.bank_version, 4);
+    assert!(!v.model_version.is_empty());
+
+    // The same trajectory claiming another task.
+    let v = client.check(&genuine, "task2").expect("check");
+    assert_eq!(
+        no_go(&v.decision),
+        &NoGoReason::WrongTask {
+            nearest: "task1".into()
+        }
+    );
+    assert!(v.gap.unwrap() < 0.0);
+
+    let v = client.check(&genuine, "never-enrolled").expect("check");
+    assert_eq!(no_go(&v.decision), &NoGoReason::UnknownClass);
+    assert_eq!(v.claimed_distance, None);
+
+    let r = client.identify(&genuine).expect("identify");
+    assert_eq!(r.nearest[0].class, "task1");
+    assert!(r.nearest.windows(2).all(|w| w[0].distance <= w[1].distance));
+
+    let classes = client.classes().expect("classes");
+    let names: Vec<_> = classes.iter().map(|c| c.name.as_str()).collect();
+    assert_eq!(names, ["task0", "task1", "task2", "task3"]);
+
+    client.forget("task3").expect("forget");
+    assert!(matches!(
+        client.forget("task3"),
+        Err(CheckError::UnknownClass { .. })
+    ));
+    let st = client.status().expect("status");
+    assert_eq!(st.classes, 3);
+    assert_eq!(st.go, 1);
+    assert_eq!(st.no_go, 2);
+    assert!(st.requests >= 11);
+    assert!(st.latency_us.is_some());
+}
+
+#[test]
+fn outlier_when_the_claimed_class_is_nearest_but_beyond_threshold() {
+    let mut s = Setup::new(8);
+    s.extra = "default-threshold = 0.0".into();
+    let _d = Daemon::start(&s);
+    let client = s.client();
+    enroll_classes(&client, &[0, 1]);
+    let v = client.check(&traj(0, 12), "task0").expect("check");
+    assert_eq!(no_go(&v.decision), &NoGoReason::Outlier, "{v:?}");
+    assert!(v.margin.unwrap() < 0.0);
+    assert_eq!(v.threshold, Some(0.0));
+}
+
+#[test]
+fn every_invalid_input_is_answered_with_its_reason_and_serving_continues() {
+    let mut s = Setup::new(9);
+    s.extra = "default-threshold = 1e9".into();
+    let _d = Daemon::start(&s);
+    let client = s.client();
+    enroll_classes(&client, &[0, 1]);
+    let good = task(0, 13);
+
+    let expect = |t: Trajectory, kind: InvalidKind, index: u32| {
+        let v = client.check(&t, "task0").expect("check answers");
+        assert_eq!(
+            no_go(&v.decision),
+            &NoGoReason::InvalidTrajectory { kind, index },
+            "{kind:?}"
+        );
+        // identify reports the same problem as a typed error.
+        match client.identify(&t) {
+            Err(CheckError::InvalidTrajectory {
+                kind: k, index: i, ..
+            }) => assert_eq!((k, i), (kind, index)),
+            other => panic!("identify of {kind:?}: {other:?}"),
+        }
+    };
+
+    let mut w = good.clone();
+    w[5][2] = f32::NAN;
+    expect(Trajectory::from_waypoints(&w), InvalidKind::NonFinite, 5);
+    let mut w = good.clone();
+    w[6][0] = f32::INFINITY;
+    expect(Trajectory::from_waypoints(&w), InvalidKind::NonFinite, 6);
+    let seven: Vec<f32> = good.iter().flat_map(|w| w[..7].to_vec()).collect();
+    expect(
+        Trajectory::from_flat(seven, 7),
+        InvalidKind::WrongChannelCount,
+        7,
+    );
+    expect(
+        Trajectory::from_waypoints(&good[..1]),
+        InvalidKind::TooFewWaypoints,
+        1,
+    );
+    expect(
+        Trajectory::from_waypoints(&[]),
+        InvalidKind::TooFewWaypoints,
+        0,
+    );
+    let many: Vec<_> = (0..MAX_WAYPOINTS + 1)
+        .map(|i| good[i % good.len()])
+        .collect();
+    expect(
+        Trajectory::from_waypoints(&many),
+        InvalidKind::TooManyWaypoints,
+        (MAX_WAYPOINTS + 1) as u32,
+    );
+    let mut w = good.clone();
+    w[9][3] = 0.0; // joint 4 must stay below -0.0698
+    expect(
+        Trajectory::from_waypoints(&w),
+        InvalidKind::JointOutOfLimits,
+        9,
+    );
+    let mut w = good.clone();
+    w[2][0] = 3.0; // joint 1 limit is 2.8973
+    expect(
+        Trajectory::from_waypoints(&w),
+        InvalidKind::JointOutOfLimits,
+        2,
+    );
+    let mut w = good.clone();
+    w[4][7] = 0.5;
+    expect(
+        Trajectory::from_waypoints(&w),
+        InvalidKind::ToolOutOfRange,
+        4,
+    );
+
+    // Enrollment with one bad example among good ones names the example.
+    let mut bad = good.clone();
+    bad[3][7] = 2.0;
+    let r = client.enroll(
+        "task9",
+        &[
+            Trajectory::from_waypoints(&good),
+            Trajectory::from_waypoints(&bad),
+        ],
+    );
+    assert_eq!(
+        r,
+        Err(EnrollError::Request(CheckError::InvalidTrajectory {
+            kind: InvalidKind::ToolOutOfRange,
+            index: 3,
+            example: 1
+        }))
+    );
+    // Bad class names never reach the daemon.
+    assert!(matches!(
+        client.check(&traj(0, 1), "bad\nname"),
+        Err(CheckError::InvalidClassName(_))
+    ));
+    assert!(matches!(
+        client.enroll(&"x".repeat(64), &[traj(0, 1)]),
+        Err(EnrollError::Request(CheckError::InvalidClassName(_)))
+    ));
+
+    // Still serving, and nothing was enrolled by the failed request.
+    let v = client.check(&traj(0, 14), "task0").expect("check");
+    assert_eq!(v.decision, Decision::Go);
+    assert_eq!(client.classes().expect("classes").len(), 2);
+}
+
+#[test]
+fn eight_concurrent_clients_get_their_own_answers() {
+    let mut s = Setup::new(10);
+    s.extra = "default-threshold = 1e9".into();
+    let _d = Daemon::start(&s);
+    enroll_classes(&s.client(), &[0, 1, 2, 3, 4, 5, 6, 7]);
+    let config = s.client_config();
+    let threads: Vec<_> = (0..8u32)
+        .map(|c| {
+            let config = config.clone();
+            std::thread::spawn(move || {
+                // One Client per thread: ports are single-threaded.
+                let client = Client::connect(config).expect("connect");
+                for i in 0..25u32 {
+                    let drawer = 20 + i;
+                    let claim = if i % 5 == 4 { (c + 1) % 8 } else { c };
+                    let v = client
+                        .check(&traj(c, drawer), &format!("task{claim}"))
+                        .expect("check");
+                    assert_eq!(v.claimed_class, format!("task{claim}"));
+                    assert_eq!(v.nearest[0].class, format!("task{c}"), "thread {c} req {i}");
+                    if claim == c {
+                        assert_eq!(v.decision, Decision::Go);
+                    } else {
+                        assert_eq!(
+                            no_go(&v.decision),
+                            &NoGoReason::WrongTask {
+                                nearest: format!("task{c}")
+                            }
+                        );
+                    }
+                }
+            })
+        })
+        .collect();
+    for t in threads {
+        t.join().expect("client thread");
+    }
+    let st = s.client().status().expect("status");
+    assert_eq!(st.go + st.no_go, 200);
+}
+
+#[test]
+fn enrollment_persists_across_restart() {
+    let mut s = Setup::new(11);
+    s.extra = "default-threshold = 1e9".into();
+    let model_version;
+    {
+        let mut d = Daemon::start(&s);
+        let client = s.client();
+        enroll_classes(&client, &[0, 1, 2]);
+        client.forget("task2").expect("forget");
+        model_version = client.status().expect("status").model_version;
+        drop(client);
+        d.signal("TERM");
+        assert!(d.wait_exit().success());
+    }
+    let bank = s.state_dir().join("bank.gcb");
+    let text = std::fs::read(&bank).expect("bank file");
+    assert!(text.starts_with(b"guardian-class-bank 1 sha256:"));
+
+    let d = Daemon::start(&s);
+    d.wait_log("persisted bank");
+    let client = s.client();
+    let names: Vec<String> = client
+        .classes()
+        .expect("classes")
+        .into_iter()
+        .map(|c| c.name)
+        .collect();
+    assert_eq!(names, ["task0", "task1"]);
+    let st = client.status().expect("status");
+    assert_eq!(st.model_version, model_version);
+    assert_eq!(st.bank_version, 4);
+    assert_eq!(
+        client.check(&traj(1, 15), "task1").expect("check").decision,
+        Decision::Go
+    );
+}
+
+#[test]
+fn corrupt_persisted_bank_or_model_refuses_to_start() {
+    let s = Setup::new(12);
+    std::fs::create_dir_all(s.state_dir()).unwrap();
+    std::fs::write(
+        s.state_dir().join("bank.gcb"),
+        b"guardian-class-bank 1 sha256:00\n{}",
+    )
+    .unwrap();
+    let out = common::run_to_exit(&s);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("checksum mismatch"), "{err}");
+
+    let s = Setup::new(13);
+    let mut bytes = std::fs::read(&s.model).unwrap();
+    let n = bytes.len();
+    bytes[n - 3] ^= 0x40;
+    std::fs::write(&s.model, bytes).unwrap();
+    let out = common::run_to_exit(&s);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("cannot load model"), "{err}");
+}
+
+#[test]
+fn sighup_reloads_and_a_failed_reload_keeps_the_old_state() {
+    let mut s = Setup::new(14);
+    s.extra = "default-threshold = 1e9".into();
+    let d = Daemon::start(&s);
+    let client = s.client();
+    enroll_classes(&client, &[0, 1]);
+    let before = client.status().expect("status");
+
+    // A successful reload picks up a bank changed on disk: add a class with the lab API.
+    let path = s.state_dir().join("bank.gcb");
+    let mut bank = guardian_models::bank::ClassBank::load(&path).expect("bank");
+    let e = vec![0.5f32; bank.dim()];
+    bank.enroll("from-disk", &[e]).expect("enroll");
+    bank.save(&path).expect("save");
+    d.signal("HUP");
+    d.wait_log("reload complete");
+    let names: Vec<String> = client
+        .classes()
+        .expect("classes")
+        .into_iter()
+        .map(|c| c.name)
+        .collect();
+    assert_eq!(names, ["from-disk", "task0", "task1"]);
+
+    // A failed reload: the model file is now corrupt. The old model keeps serving.
+    std::fs::write(&s.model, b"not a model").unwrap();
+    d.signal("HUP");
+    d.wait_log("reload failed; keeping the current model and bank");
+    let after = client.status().expect("status");
+    assert_eq!(after.model_version, before.model_version);
+    assert_eq!(after.classes, 3);
+    assert_eq!(
+        client.check(&traj(0, 16), "task0").expect("check").decision,
+        Decision::Go
+    );
+}
+
+#[test]
+fn sigterm_stops_gracefully_and_a_dead_daemon_is_an_error() {
+    let mut s = Setup::new(15);
+    s.extra = "default-threshold = 1e9".into();
+    let mut d = Daemon::start(&s);
+    let client = s.client();
+    enroll_classes(&client, &[0]);
+    d.signal("TERM");
+    let status = d.wait_exit();
+    assert!(status.success(), "exit {status:?}\n{}", d.log());
+    d.wait_note("STOPPING=1");
+    assert!(d.log().contains("stopped"));
+    // The daemon is gone: the client gets an error, never a verdict.
+    let mut c = s.client_config();
+    c.timeout = Duration::from_millis(300);
+    match client.check(&traj(0, 1), "task0") {
+        Err(CheckError::NotServing { .. } | CheckError::Timeout { .. }) => {}
+        other => panic!("expected an error, got {other:?}"),
+    }
+    assert!(Client::connect(c).is_err());
+}
+
+#[test]
+fn a_killed_daemon_yields_errors_not_verdicts() {
+    let mut s = Setup::new(16);
+    s.extra = "default-threshold = 1e9".into();
+    let mut d = Daemon::start(&s);
+    let mut c = s.client_config();
+    c.timeout = Duration::from_millis(500);
+    let client = Client::connect(c).expect("connect");
+    client.enroll("task0", &[traj(0, 0)]).expect("enroll");
+    d.signal("KILL");
+    d.wait_exit();
+    for _ in 0..3 {
+        match client.check(&traj(0, 1), "task0") {
+            Err(CheckError::NotServing { .. } | CheckError::Timeout { .. }) => {}
+            other => panic!("expected an error, got {other:?}"),
+        }
+    }
+    drop(client);
+    // A restart after SIGKILL removes the dead daemon's resources and serves again,
+    // with the enrollment persisted before the kill.
+    let d = Daemon::start(&s);
+    let client = s.client();
+    assert_eq!(client.classes().expect("classes").len(), 1);
+    drop(client);
+    drop(d);
+}
+
+#[test]
+fn sd_notify_ready_status_watchdog_stopping_on_an_abstract_socket() {
+    let s = Setup::new(17);
+    let name = format!("guardian-test-notify-{}", std::process::id());
+    let addr = {
+        use std::os::linux::net::SocketAddrExt;
+        std::os::unix::net::SocketAddr::from_abstract_name(name.as_bytes()).unwrap()
+    };
+    let sock = std::os::unix::net::UnixDatagram::bind_addr(&addr).expect("bind abstract");
+    let mut d = Daemon::spawn(
+        &s,
+        &[("WATCHDOG_USEC", "200000".to_string())],
+        Some((sock, format!("@{name}"))),
+    );
+    d.wait_note("READY=1");
+    let ready = d
+        .notes()
+        .into_iter()
+        .find(|n| n.contains("READY=1"))
+        .unwrap();
+    assert!(ready.contains("STATUS=serving 0 classes"), "{ready}");
+    // Pings every WATCHDOG_USEC/2 from the serving loop.
+    let start = std::time::Instant::now();
+    while d.notes().iter().filter(|n| *n == "WATCHDOG=1").count() < 3 {
+        assert!(start.elapsed() < common::PATIENCE, "{:?}", d.notes());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    d.signal("INT");
+    assert!(d.wait_exit().success());
+    d.wait_note("STOPPING=1");
+}
+
+#[test]
+fn print_default_config_parses_back() {
+    let out = std::process::Command::new(common::bin())
+        .arg("--print-default-config")
+        .output()
+        .expect("run");
+    assert!(out.status.success());
+    let text = String::from_utf8(out.stdout).unwrap();
+    let c = guardian_daemon::Config::from_toml(&text, std::path::Path::new("stdout")).unwrap();
+    assert_eq!(c, guardian_daemon::Config::default());
+}
+
+#[test]
+fn busy_poll_and_spin_then_sleep_modes_serve() {
+    for mode in ["busy-poll", "spin-then-sleep"] {
+        let mut s = Setup::new(18);
+        s.extra = format!("default-threshold = 1e9\nserving-mode = \"{mode}\"");
+        let d = Daemon::start(&s);
+        let client = s.client();
+        enroll_classes(&client, &[0, 1]);
+        let v = client.check(&traj(1, 17), "task1").expect("check");
+        assert_eq!(v.decision, Decision::Go, "{mode}");
+        d.wait_log(&format!(
+            "mode={}",
+            if mode == "busy-poll" {
+                "BusyPoll"
+            } else {
+                "SpinThenSleep"
+            }
+        ));
+    }
+}
+
+/// A planner that bypasses our client (as a C planner would) and sends malformed requests
+/// straight over iceoryx2: the daemon answers each with a typed status and keeps serving.
+#[test]
+fn raw_wire_requests_are_validated_by_the_daemon() {
+    use guardian_shared::wire::{
+        self, ClassEntry, Op, ReasonCode, RequestHeader, ResponseHeader, Status, VerdictCode,
+    };
+    use iceoryx2::prelude::*;
+
+    let mut s = Setup::new(19);
+    s.extra = "default-threshold = 1e9".into();
+    let _d = Daemon::start(&s);
+    enroll_classes(&s.client(), &[0]);
+
+    let mut ic = iceoryx2::config::Config::default();
+    let root = format!("{}/", s.dir.path().join("iox").display());
+    ic.global
+        .set_root_path(&Path::new(root.as_bytes()).unwrap());
+    ic.global.prefix = FileName::new(s.prefix.as_bytes()).unwrap();
+    let node = NodeBuilder::new()
+        .config(&ic)
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<ipc::Service>()
+        .unwrap();
+    let rpc = node
+        .service_builder(&ServiceName::new(&s.service).unwrap())
+        .request_response::<[f32], [ClassEntry]>()
+        .request_user_header::<RequestHeader>()
+        .response_user_header::<ResponseHeader>()
+        .open()
+        .unwrap();
+    let wake = node
+        .service_builder(&ServiceName::new(&wire::request_event_name(&s.service)).unwrap())
+        .event()
+        .open()
+        .unwrap()
+        .notifier_builder()
+        .create()
+        .unwrap();
+    let client = rpc
+        .client_builder()
+        .initial_max_slice_len(8192)
+        .allocation_strategy(AllocationStrategy::PowerOfTwo)
+        .create()
+        .unwrap();
+    let call = |h: RequestHeader, payload: &[f32]| -> ResponseHeader {
+        let mut r = client.loan_slice_uninit(payload.len()).unwrap();
+        *r.user_header_mut() = h;
+        let pending = r.write_from_slice(payload).send().unwrap();
+        wake.notify().unwrap();
+        let start = std::time::Instant::now();
+        loop {
+            if let Some(resp) = pending.receive().unwrap() {
+                assert_eq!(resp.user_header().request_id, h.request_id);
+                return *resp.user_header();
+            }
+            assert!(start.elapsed() < common::PATIENCE, "no response");
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    };
+    let good: Vec<f32> = task(0, 20).iter().flatten().copied().collect();
+    let check = |id: u64| {
+        let mut h = RequestHeader::new(id, Op::Check);
+        h.examples = 1;
+        h.waypoints[0] = (good.len() / 8) as u32;
+        h.class_name = wire::encode_class_name("task0").unwrap();
+        h
+    };
+
+    // Unknown op.
+    let mut h = check(1);
+    h.op = 99;
+    assert_eq!(call(h, &good).status, Status::BadRequest as u32);
+    // Payload length disagrees with the header.
+    let h = check(2);
+    assert_eq!(
+        call(h, &good[..good.len() - 8]).status,
+        Status::BadRequest as u32
+    );
+    // Class name: invalid UTF-8, control character, bytes after the NUL.
+    for (i, bad) in [&b"\xff\xfe"[..], b"a\x07b"].iter().enumerate() {
+        let mut h = check(3 + i as u64);
+        h.class_name = [0; 64];
+        h.class_name[..bad.len()].copy_from_slice(bad);
+        assert_eq!(call(h, &good).status, Status::InvalidClassName as u32);
+    }
+    let mut h = check(5);
+    h.class_name[40] = b'x';
+    assert_eq!(call(h, &good).status, Status::InvalidClassName as u32);
+    // Too many examples for enroll.
+    let mut h = check(6);
+    h.op = Op::Enroll as u32;
+    h.examples = 17;
+    assert_eq!(call(h, &good).status, Status::BadRequest as u32);
+    // A wrong channel count on the wire.
+    let mut h = check(7);
+    h.channels = 4;
+    h.waypoints[0] = (good.len() / 4) as u32;
+    let r = call(h, &good);
+    assert_eq!(
+        (
+            r.status,
+            r.verdict,
+            r.reason,
+            r.invalid_kind,
+            r.invalid_index
+        ),
+        (
+            Status::Ok as u32,
+            VerdictCode::NoGo as u32,
+            ReasonCode::InvalidTrajectory as u32,
+            2,
+            4
+        )
+    );
+    // And a well-formed request still gets a go.
+    let r = call(check(8), &good);
+    assert_eq!(r.verdict, VerdictCode::Go as u32);
+    assert!(r.errors >= 6);
+}

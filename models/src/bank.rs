@@ -1,0 +1,636 @@
+//! The class bank: a prototype per enrolled task class, its decision threshold, nearest-class
+//! search, the go/no-go decision rule, and the bank's on-disk format.
+//!
+//! The daemon serves from it and the lab builds the shipped default bank and evaluates with
+//! it, so serving and evaluation share one decision rule ([`ClassBank::decide`]):
+//!
+//! 1. the claimed class is not enrolled → [`Outcome::UnknownClass`];
+//! 2. another class is strictly nearer than the claimed one → [`Outcome::WrongTask`];
+//! 3. the distance to the claimed prototype exceeds the class threshold → [`Outcome::Outlier`];
+//! 4. otherwise [`Outcome::Go`].
+//!
+//! Distances are Euclidean between embeddings; a prototype is the mean of a class's enrolled
+//! embeddings. A class uses its own calibrated threshold when it has one, else the bank's
+//! global default ([`DEFAULT_THRESHOLD`] unless the bank says otherwise). The margin is
+//! `threshold - d_claimed` (positive = inside) and the gap `d_nearest_other - d_claimed`
+//! (positive = the claimed class is the nearest).
+//!
+//! ## File format (version [`FORMAT_VERSION`])
+//! One ASCII header line, `guardian-class-bank <version> sha256:<64 hex>\n`, then a UTF-8 JSON
+//! body; the checksum is SHA-256 of the body bytes exactly as stored. Saving is atomic: a
+//! temporary file in the target directory, `fsync`, `rename`, `fsync` of the directory.
+
+use std::collections::BTreeMap;
+use std::fs;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+/// Version of the on-disk format written by [`ClassBank::to_bytes`].
+pub const FORMAT_VERSION: u32 = 1;
+/// Global default decision threshold (Euclidean embedding distance) used until per-class
+/// thresholds are calibrated. Provisional: a later calibration replaces it per class.
+pub const DEFAULT_THRESHOLD: f32 = 0.5;
+const MAGIC: &str = "guardian-class-bank";
+
+/// Euclidean distance between two embeddings of equal length.
+pub fn distance(a: &[f32], b: &[f32]) -> f32 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| {
+            let d = x - y;
+            d * d
+        })
+        .sum::<f32>()
+        .sqrt()
+}
+
+/// How a threshold was calibrated (room for the calibration issue; free-form today).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Calibration {
+    /// Method name, e.g. `"quantile"`.
+    pub method: String,
+    /// Number of samples the threshold was derived from.
+    pub samples: u32,
+    /// Target false-reject (or other) rate the method aimed at, if any.
+    pub target_rate: Option<f32>,
+    /// Free text: data set, date, model version.
+    pub note: String,
+}
+
+/// One enrolled class.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Class {
+    /// Every enrolled embedding, in enrollment order.
+    pub embeddings: Vec<Vec<f32>>,
+    /// Mean of `embeddings`.
+    pub prototype: Vec<f32>,
+    /// Calibrated threshold for this class; `None` uses the bank default.
+    pub threshold: Option<f32>,
+    /// How `threshold` was calibrated.
+    pub calibration: Option<Calibration>,
+}
+
+/// A class and its distance to a query.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Neighbour {
+    /// Class name.
+    pub name: String,
+    /// Euclidean distance from the query to the class prototype.
+    pub distance: f32,
+}
+
+/// The decision of [`ClassBank::decide`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum Outcome {
+    /// The trajectory is the class it claims to be.
+    Go,
+    /// Another class is nearer than the claimed one.
+    WrongTask {
+        /// The nearest class.
+        nearest: String,
+    },
+    /// The claimed class is nearest but farther than its threshold.
+    Outlier,
+    /// The claimed class is not enrolled.
+    UnknownClass,
+}
+
+/// A decision with the numbers behind it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Decision {
+    /// Go or why not.
+    pub outcome: Outcome,
+    /// Distance to the claimed prototype (`None` if the class is unknown).
+    pub claimed_distance: Option<f32>,
+    /// Threshold used for the claimed class.
+    pub threshold: Option<f32>,
+    /// `threshold - claimed_distance`.
+    pub margin: Option<f32>,
+    /// Distance to the nearest other class minus `claimed_distance`.
+    pub gap: Option<f32>,
+    /// The k nearest classes, nearest first.
+    pub nearest: Vec<Neighbour>,
+}
+
+/// Enrolling into the bank failed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum EnrollError {
+    /// No embeddings were given.
+    #[error("no examples to enroll")]
+    NoExamples,
+    /// An embedding has the wrong length.
+    #[error("embedding {index} has {got} values, the bank expects {expected}")]
+    DimensionMismatch {
+        /// Which embedding.
+        index: usize,
+        /// Bank dimension.
+        expected: usize,
+        /// Its length.
+        got: usize,
+    },
+    /// An embedding holds NaN or infinity.
+    #[error("embedding {index} is not finite")]
+    NonFinite {
+        /// Which embedding.
+        index: usize,
+    },
+}
+
+/// Loading a bank failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum LoadBankError {
+    /// The file could not be read.
+    #[error("cannot read class bank {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// The header line is missing or malformed.
+    #[error("not a guardian class bank (bad header line): {detail}")]
+    BadHeader {
+        /// What was wrong.
+        detail: String,
+    },
+    /// The format version is not supported.
+    #[error("class bank format {found} is not supported (this build reads {supported})")]
+    UnsupportedFormat {
+        /// Version in the file.
+        found: u32,
+        /// Version this build reads.
+        supported: u32,
+    },
+    /// The body does not match its checksum.
+    #[error("class bank checksum mismatch: header says {expected}, body hashes to {found}")]
+    ChecksumMismatch {
+        /// Checksum from the header.
+        expected: String,
+        /// Checksum of the body.
+        found: String,
+    },
+    /// The body is not a valid bank document.
+    #[error("class bank body does not parse: {0}")]
+    Parse(#[from] serde_json::Error),
+    /// The document parses but is inconsistent.
+    #[error("class bank is inconsistent: {detail}")]
+    Inconsistent {
+        /// What is wrong.
+        detail: String,
+    },
+}
+
+/// Saving a bank failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SaveBankError {
+    /// Writing, syncing or renaming failed.
+    #[error("cannot save class bank to {path}: {source}")]
+    Io {
+        /// The file being written.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// Serialisation failed.
+    #[error("cannot serialise class bank: {0}")]
+    Serialize(#[from] serde_json::Error),
+}
+
+/// Prototypes, thresholds and enrolled embeddings of every class.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ClassBank {
+    dim: usize,
+    model_version: String,
+    generation: u64,
+    default_threshold: f32,
+    calibration: Option<Calibration>,
+    classes: BTreeMap<String, Class>,
+}
+
+impl ClassBank {
+    /// An empty bank for embeddings of `dim` values from the model `model_version`.
+    pub fn new(dim: usize, model_version: impl Into<String>, default_threshold: f32) -> Self {
+        Self {
+            dim,
+            model_version: model_version.into(),
+            generation: 0,
+            default_threshold,
+            calibration: None,
+            classes: BTreeMap::new(),
+        }
+    }
+
+    /// Embedding length.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+    /// Version of the model whose embeddings the bank holds.
+    pub fn model_version(&self) -> &str {
+        &self.model_version
+    }
+    /// Increments on every change (enroll, forget, threshold).
+    pub fn generation(&self) -> u64 {
+        self.generation
+    }
+    /// Threshold for classes without a calibrated one.
+    pub fn default_threshold(&self) -> f32 {
+        self.default_threshold
+    }
+    /// Set the global default threshold.
+    pub fn set_default_threshold(&mut self, t: f32) {
+        self.default_threshold = t;
+        self.generation += 1;
+    }
+    /// Bank-level calibration record.
+    pub fn calibration(&self) -> Option<&Calibration> {
+        self.calibration.as_ref()
+    }
+    /// Set a class's calibrated threshold; `false` if the class is unknown.
+    pub fn set_class_threshold(
+        &mut self,
+        name: &str,
+        threshold: Option<f32>,
+        calibration: Option<Calibration>,
+    ) -> bool {
+        match self.classes.get_mut(name) {
+            Some(c) => {
+                c.threshold = threshold;
+                c.calibration = calibration;
+                self.generation += 1;
+                true
+            }
+            None => false,
+        }
+    }
+    /// Number of classes.
+    pub fn len(&self) -> usize {
+        self.classes.len()
+    }
+    /// No classes enrolled.
+    pub fn is_empty(&self) -> bool {
+        self.classes.is_empty()
+    }
+    /// Classes by name (sorted).
+    pub fn classes(&self) -> impl Iterator<Item = (&str, &Class)> {
+        self.classes.iter().map(|(n, c)| (n.as_str(), c))
+    }
+    /// One class.
+    pub fn class(&self, name: &str) -> Option<&Class> {
+        self.classes.get(name)
+    }
+    /// The threshold the decision uses for `name`.
+    pub fn threshold(&self, name: &str) -> Option<f32> {
+        self.classes
+            .get(name)
+            .map(|c| c.threshold.unwrap_or(self.default_threshold))
+    }
+
+    /// Add `embeddings` to class `name` (created if new) and recompute its prototype.
+    pub fn enroll(&mut self, name: &str, embeddings: &[Vec<f32>]) -> Result<&Class, EnrollError> {
+        if embeddings.is_empty() {
+            return Err(EnrollError::NoExamples);
+        }
+        for (index, e) in embeddings.iter().enumerate() {
+            if e.len() != self.dim {
+                return Err(EnrollError::DimensionMismatch {
+                    index,
+                    expected: self.dim,
+                    got: e.len(),
+                });
+            }
+            if e.iter().any(|v| !v.is_finite()) {
+                return Err(EnrollError::NonFinite { index });
+            }
+        }
+        let dim = self.dim;
+        let class = self
+            .classes
+            .entry(name.to_owned())
+            .or_insert_with(|| Class {
+                embeddings: Vec::new(),
+                prototype: vec![0.0; dim],
+                threshold: None,
+                calibration: None,
+            });
+        class.embeddings.extend(embeddings.iter().cloned());
+        class.prototype = mean(&class.embeddings, dim);
+        self.generation += 1;
+        Ok(class)
+    }
+
+    /// Remove a class; returns it if it was enrolled.
+    pub fn forget(&mut self, name: &str) -> Option<Class> {
+        let c = self.classes.remove(name);
+        if c.is_some() {
+            self.generation += 1;
+        }
+        c
+    }
+
+    /// Every class with its distance to `query`, nearest first (ties by name).
+    pub fn ranked(&self, query: &[f32]) -> Vec<Neighbour> {
+        let mut v: Vec<Neighbour> = self
+            .classes
+            .iter()
+            .map(|(n, c)| Neighbour {
+                name: n.clone(),
+                distance: distance(query, &c.prototype),
+            })
+            .collect();
+        v.sort_by(|a, b| a.distance.total_cmp(&b.distance).then(a.name.cmp(&b.name)));
+        v
+    }
+
+    /// The `k` nearest classes to `query`, nearest first.
+    pub fn nearest(&self, query: &[f32], k: usize) -> Vec<Neighbour> {
+        let mut v = self.ranked(query);
+        v.truncate(k);
+        v
+    }
+
+    /// Apply the decision rule (see the module docs) to `query` claiming class `claimed`.
+    pub fn decide(&self, query: &[f32], claimed: &str, k: usize) -> Decision {
+        let ranked = self.ranked(query);
+        let nearest: Vec<Neighbour> = ranked.iter().take(k).cloned().collect();
+        let Some(class) = self.classes.get(claimed) else {
+            return Decision {
+                outcome: Outcome::UnknownClass,
+                claimed_distance: None,
+                threshold: None,
+                margin: None,
+                gap: None,
+                nearest,
+            };
+        };
+        let d = distance(query, &class.prototype);
+        let threshold = class.threshold.unwrap_or(self.default_threshold);
+        let other = ranked.iter().find(|n| n.name != claimed);
+        let outcome = match other {
+            Some(o) if o.distance < d => Outcome::WrongTask {
+                nearest: o.name.clone(),
+            },
+            _ if d.is_nan() || d > threshold => Outcome::Outlier,
+            _ => Outcome::Go,
+        };
+        Decision {
+            outcome,
+            claimed_distance: Some(d),
+            threshold: Some(threshold),
+            margin: Some(threshold - d),
+            gap: other.map(|o| o.distance - d),
+            nearest,
+        }
+    }
+
+    /// Serialise to the on-disk format (header line + JSON body).
+    pub fn to_bytes(&self) -> Result<Vec<u8>, serde_json::Error> {
+        let body = serde_json::to_vec(self)?;
+        let sum = hex(&Sha256::digest(&body));
+        let mut out = format!("{MAGIC} {FORMAT_VERSION} sha256:{sum}\n").into_bytes();
+        out.extend_from_slice(&body);
+        Ok(out)
+    }
+
+    /// Parse the on-disk format, verifying version and checksum.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, LoadBankError> {
+        let nl = bytes
+            .iter()
+            .position(|&b| b == b'\n')
+            .ok_or_else(|| bad("no header line"))?;
+        let header = std::str::from_utf8(&bytes[..nl]).map_err(|_| bad("header is not UTF-8"))?;
+        let body = &bytes[nl + 1..];
+        let mut parts = header.split(' ');
+        if parts.next() != Some(MAGIC) {
+            return Err(bad("missing magic"));
+        }
+        let found: u32 = parts
+            .next()
+            .and_then(|v| v.parse().ok())
+            .ok_or_else(|| bad("missing format version"))?;
+        if found != FORMAT_VERSION {
+            return Err(LoadBankError::UnsupportedFormat {
+                found,
+                supported: FORMAT_VERSION,
+            });
+        }
+        let expected = parts
+            .next()
+            .and_then(|v| v.strip_prefix("sha256:"))
+            .ok_or_else(|| bad("missing checksum"))?
+            .to_owned();
+        let found_sum = hex(&Sha256::digest(body));
+        if found_sum != expected {
+            return Err(LoadBankError::ChecksumMismatch {
+                expected,
+                found: found_sum,
+            });
+        }
+        let bank: ClassBank = serde_json::from_slice(body)?;
+        bank.check()?;
+        Ok(bank)
+    }
+
+    fn check(&self) -> Result<(), LoadBankError> {
+        let inconsistent = |detail: String| Err(LoadBankError::Inconsistent { detail });
+        if !self.default_threshold.is_finite() {
+            return inconsistent("default threshold is not finite".into());
+        }
+        for (name, c) in &self.classes {
+            if c.prototype.len() != self.dim {
+                return inconsistent(format!("class {name:?}: prototype length"));
+            }
+            if c.embeddings.is_empty() {
+                return inconsistent(format!("class {name:?}: no embeddings"));
+            }
+            if c.embeddings.iter().any(|e| e.len() != self.dim) {
+                return inconsistent(format!("class {name:?}: embedding length"));
+            }
+            if c.threshold.is_some_and(|t| !t.is_finite()) {
+                return inconsistent(format!("class {name:?}: threshold is not finite"));
+            }
+        }
+        Ok(())
+    }
+
+    /// Read and verify a bank file.
+    pub fn load(path: &Path) -> Result<Self, LoadBankError> {
+        let bytes = fs::read(path).map_err(|source| LoadBankError::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+        Self::from_bytes(&bytes)
+    }
+
+    /// Save atomically: write a temporary file in the same directory, fsync it, rename it
+    /// over `path`, fsync the directory. A crash leaves either the old or the new file.
+    pub fn save(&self, path: &Path) -> Result<(), SaveBankError> {
+        let bytes = self.to_bytes()?;
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d.to_owned(),
+            _ => PathBuf::from("."),
+        };
+        let file_name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "bank".into());
+        let tmp = dir.join(format!(".{file_name}.tmp.{}", std::process::id()));
+        let io = |p: &Path| {
+            let p = p.to_owned();
+            move |source| SaveBankError::Io { path: p, source }
+        };
+        let result = (|| {
+            let mut f = fs::File::create(&tmp).map_err(io(&tmp))?;
+            f.write_all(&bytes).map_err(io(&tmp))?;
+            f.sync_all().map_err(io(&tmp))?;
+            drop(f);
+            fs::rename(&tmp, path).map_err(io(path))?;
+            fs::File::open(&dir)
+                .and_then(|d| d.sync_all())
+                .map_err(io(&dir))?;
+            Ok(())
+        })();
+        if result.is_err() {
+            let _ = fs::remove_file(&tmp);
+        }
+        result
+    }
+}
+
+fn bad(detail: &str) -> LoadBankError {
+    LoadBankError::BadHeader {
+        detail: detail.to_owned(),
+    }
+}
+
+fn mean(rows: &[Vec<f32>], dim: usize) -> Vec<f32> {
+    let mut m = vec![0.0f64; dim];
+    for r in rows {
+        for (a, &v) in m.iter_mut().zip(r) {
+            *a += f64::from(v);
+        }
+    }
+    let n = rows.len().max(1) as f64;
+    m.into_iter().map(|v| (v / n) as f32).collect()
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bank() -> ClassBank {
+        let mut b = ClassBank::new(2, "test-model", 1.0);
+        b.enroll("a", &[vec![0.0, 0.0], vec![0.0, 2.0]]).unwrap();
+        b.enroll("b", &[vec![10.0, 0.0]]).unwrap();
+        b
+    }
+
+    #[test]
+    fn prototypes_are_means_and_enroll_extends() {
+        let mut b = bank();
+        assert_eq!(b.class("a").unwrap().prototype, vec![0.0, 1.0]);
+        assert_eq!(b.generation(), 2);
+        b.enroll("a", &[vec![3.0, 1.0]]).unwrap();
+        assert_eq!(b.class("a").unwrap().prototype, vec![1.0, 1.0]);
+        assert_eq!(b.class("a").unwrap().embeddings.len(), 3);
+        assert_eq!(
+            b.enroll("a", &[vec![1.0]]),
+            Err(EnrollError::DimensionMismatch {
+                index: 0,
+                expected: 2,
+                got: 1
+            })
+        );
+        assert_eq!(
+            b.enroll("a", &[vec![1.0, f32::NAN]]),
+            Err(EnrollError::NonFinite { index: 0 })
+        );
+        assert_eq!(b.enroll("a", &[]), Err(EnrollError::NoExamples));
+        assert!(b.forget("a").is_some());
+        assert!(b.forget("a").is_none());
+        assert_eq!(b.len(), 1);
+    }
+
+    #[test]
+    fn decision_rule_covers_every_outcome() {
+        let mut b = bank();
+        let d = b.decide(&[0.0, 1.5], "a", 5);
+        assert_eq!(d.outcome, Outcome::Go);
+        assert_eq!(d.claimed_distance, Some(0.5));
+        assert_eq!(d.margin, Some(0.5));
+        assert!((d.gap.unwrap() - (10.0f32.hypot(1.5) - 0.5)).abs() < 1e-5);
+        assert_eq!(d.nearest[0].name, "a");
+        let d = b.decide(&[0.0, 1.5], "b", 1);
+        assert_eq!(
+            d.outcome,
+            Outcome::WrongTask {
+                nearest: "a".into()
+            }
+        );
+        assert_eq!(d.nearest.len(), 1);
+        assert!(d.gap.unwrap() < 0.0);
+        let d = b.decide(&[0.0, 3.0], "a", 5);
+        assert_eq!(d.outcome, Outcome::Outlier);
+        assert!(d.margin.unwrap() < 0.0);
+        assert!(b.set_class_threshold("a", Some(2.5), None));
+        assert_eq!(b.decide(&[0.0, 3.0], "a", 5).outcome, Outcome::Go);
+        let d = b.decide(&[0.0, 3.0], "zzz", 5);
+        assert_eq!(d.outcome, Outcome::UnknownClass);
+        assert_eq!(d.nearest.len(), 2);
+        // A single class: no gap, decided by threshold only.
+        b.forget("b");
+        assert_eq!(b.decide(&[0.0, 1.0], "a", 5).gap, None);
+    }
+
+    #[test]
+    fn file_round_trips_and_detects_corruption() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("bank.gcb");
+        let b = bank();
+        b.save(&path).unwrap();
+        assert_eq!(ClassBank::load(&path).unwrap(), b);
+        // No temporary file is left behind.
+        assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 1);
+
+        let bytes = fs::read(&path).unwrap();
+        let mut flipped = bytes.clone();
+        let last = flipped.len() - 2;
+        flipped[last] ^= 0x01;
+        assert!(matches!(
+            ClassBank::from_bytes(&flipped),
+            Err(LoadBankError::ChecksumMismatch { .. })
+        ));
+        let newer = String::from_utf8(bytes.clone()).unwrap().replacen(
+            "guardian-class-bank 1 ",
+            "guardian-class-bank 2 ",
+            1,
+        );
+        assert!(matches!(
+            ClassBank::from_bytes(newer.as_bytes()),
+            Err(LoadBankError::UnsupportedFormat {
+                found: 2,
+                supported: 1
+            })
+        ));
+        assert!(matches!(
+            ClassBank::from_bytes(b"hello\n{}"),
+            Err(LoadBankError::BadHeader { .. })
+        ));
+        assert!(matches!(
+            ClassBank::load(&dir.path().join("missing")),
+            Err(LoadBankError::Io { .. })
+        ));
+    }
+}

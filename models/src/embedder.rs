@@ -1,0 +1,554 @@
+//! The inference-side embedder: load/save a trained network, embed resampled trajectories.
+//!
+//! File format: safetensors with one f32 tensor per parameter and `__metadata__`:
+//! `format` (`guardian-embedder/1`), `config` (the [`NetConfig`] as JSON), `input-shape`
+//! (`128x8`), `embed-dim`, and `sha256` — a hex SHA-256 over every tensor (in name order:
+//! name, shape, little-endian bytes). [`Embedder::load`] refuses a file whose format,
+//! shapes or checksum do not match.
+
+use std::collections::HashMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use candle_core::{DType, Device, Tensor};
+use guardian_shared::trajectory::{CHANNELS, Resampled, STEPS};
+use safetensors::{Dtype, SafeTensors, tensor::TensorView};
+use sha2::{Digest, Sha256};
+
+use crate::net::{Net, NetConfig};
+
+/// Embedding dimension.
+pub const EMBED_DIM: usize = 128;
+/// One embedding.
+pub type Embedding = [f32; EMBED_DIM];
+
+/// Value of the `format` metadata key.
+pub const FORMAT: &str = "guardian-embedder/1";
+
+/// Loading a model file failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum LoadModelError {
+    /// The file could not be read.
+    #[error("cannot read model file {path}: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The bytes are not a valid safetensors file (truncated, corrupt header, ...).
+    #[error("model file is not valid safetensors: {0}")]
+    Format(String),
+    /// A metadata key is missing.
+    #[error("model file lacks metadata key `{key}`")]
+    MissingMetadata {
+        /// The key.
+        key: &'static str,
+    },
+    /// A metadata value is not what this build understands.
+    #[error("model metadata `{key}`: expected {expected}, got {got}")]
+    BadMetadata {
+        /// The key.
+        key: &'static str,
+        /// What was expected.
+        expected: String,
+        /// What the file says.
+        got: String,
+    },
+    /// A parameter tensor is missing.
+    #[error("model file lacks tensor `{name}`")]
+    MissingTensor {
+        /// Tensor name.
+        name: String,
+    },
+    /// The file holds a tensor the architecture does not use.
+    #[error("model file has unexpected tensor `{name}`")]
+    UnexpectedTensor {
+        /// Tensor name.
+        name: String,
+    },
+    /// A tensor has the wrong shape or dtype.
+    #[error("tensor `{name}`: expected f32 {expected:?}, got {dtype} {got:?}")]
+    ShapeMismatch {
+        /// Tensor name.
+        name: String,
+        /// Expected shape.
+        expected: Vec<usize>,
+        /// Shape in the file.
+        got: Vec<usize>,
+        /// Dtype in the file.
+        dtype: String,
+    },
+    /// The tensors do not hash to the recorded checksum (flipped bits, edited weights).
+    #[error("model checksum mismatch: metadata says {expected}, tensors hash to {got}")]
+    ChecksumMismatch {
+        /// Checksum in the metadata.
+        expected: String,
+        /// Checksum of the tensors.
+        got: String,
+    },
+    /// A weight is NaN or infinite.
+    #[error("tensor `{name}` holds a non-finite value")]
+    NonFinite {
+        /// Tensor name.
+        name: String,
+    },
+    /// Building the network failed.
+    #[error("building the network: {0}")]
+    Candle(#[from] candle_core::Error),
+}
+
+/// Saving a model file failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SaveModelError {
+    /// Reading the weights out of the network failed.
+    #[error("reading weights: {0}")]
+    Candle(#[from] candle_core::Error),
+    /// Serialising failed.
+    #[error("serialising safetensors: {0}")]
+    Serialize(String),
+    /// Writing, syncing or renaming failed.
+    #[error("writing model file {path}: {source}")]
+    Io {
+        /// The file being written (the temporary file or the target).
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+}
+
+/// Embedding failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum EmbedError {
+    /// The network's forward pass failed.
+    #[error("forward pass: {0}")]
+    Candle(#[from] candle_core::Error),
+    /// An input value is NaN or infinite.
+    #[error("input {index} holds a non-finite value")]
+    NonFinite {
+        /// Index of the input in the batch.
+        index: usize,
+    },
+    /// The network produced a non-finite embedding.
+    #[error("embedding {index} is non-finite")]
+    NonFiniteOutput {
+        /// Index of the input in the batch.
+        index: usize,
+    },
+}
+
+/// A trained (or random) embedding network with its feature computation. `Send + Sync`.
+#[derive(Debug, Clone)]
+pub struct Embedder {
+    net: Net,
+    version: String,
+    checksum: String,
+}
+
+impl Embedder {
+    /// Load and verify a model file.
+    pub fn load(path: &Path) -> Result<Self, LoadModelError> {
+        let bytes = std::fs::read(path).map_err(|source| LoadModelError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_bytes(&bytes)
+    }
+
+    /// Parse and verify a model from the bytes of a file.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, LoadModelError> {
+        let st =
+            SafeTensors::deserialize(bytes).map_err(|e| LoadModelError::Format(e.to_string()))?;
+        let (_, header) =
+            SafeTensors::read_metadata(bytes).map_err(|e| LoadModelError::Format(e.to_string()))?;
+        let empty = HashMap::new();
+        let meta = header.metadata().as_ref().unwrap_or(&empty);
+        let get = |key: &'static str| {
+            meta.get(key)
+                .map(String::as_str)
+                .ok_or(LoadModelError::MissingMetadata { key })
+        };
+        let format = get("format")?;
+        if format != FORMAT {
+            return Err(LoadModelError::BadMetadata {
+                key: "format",
+                expected: FORMAT.into(),
+                got: format.into(),
+            });
+        }
+        let input_shape = get("input-shape")?;
+        let want_shape = format!("{STEPS}x{CHANNELS}");
+        if input_shape != want_shape {
+            return Err(LoadModelError::BadMetadata {
+                key: "input-shape",
+                expected: want_shape,
+                got: input_shape.into(),
+            });
+        }
+        let embed_dim = get("embed-dim")?;
+        if embed_dim != EMBED_DIM.to_string() {
+            return Err(LoadModelError::BadMetadata {
+                key: "embed-dim",
+                expected: EMBED_DIM.to_string(),
+                got: embed_dim.into(),
+            });
+        }
+        let config_json = get("config")?;
+        let config: NetConfig =
+            serde_json::from_str(config_json).map_err(|e| LoadModelError::BadMetadata {
+                key: "config",
+                expected: "a network config".into(),
+                got: format!("{config_json} ({e})"),
+            })?;
+        if config.embed_dim != EMBED_DIM {
+            return Err(LoadModelError::BadMetadata {
+                key: "config",
+                expected: format!("embed-dim {EMBED_DIM}"),
+                got: config.embed_dim.to_string(),
+            });
+        }
+        config.check().map_err(|e| LoadModelError::BadMetadata {
+            key: "config",
+            expected: "a valid network config".into(),
+            got: e,
+        })?;
+        let expected_sum = get("sha256")?.to_string();
+
+        let shapes = config.param_shapes();
+        for name in st.names() {
+            if !shapes.iter().any(|(n, _)| n == name) {
+                return Err(LoadModelError::UnexpectedTensor { name: name.into() });
+            }
+        }
+        let mut tensors = Vec::with_capacity(shapes.len());
+        let mut named: Vec<(String, Vec<usize>, Vec<f32>)> = Vec::with_capacity(shapes.len());
+        for (name, shape) in &shapes {
+            let view = st
+                .tensor(name)
+                .map_err(|_| LoadModelError::MissingTensor { name: name.clone() })?;
+            if view.dtype() != Dtype::F32 || view.shape() != shape.as_slice() {
+                return Err(LoadModelError::ShapeMismatch {
+                    name: name.clone(),
+                    expected: shape.clone(),
+                    got: view.shape().to_vec(),
+                    dtype: format!("{:?}", view.dtype()),
+                });
+            }
+            let data: Vec<f32> = view
+                .data()
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect();
+            named.push((name.clone(), shape.clone(), data));
+        }
+        let got_sum = checksum(&named);
+        if got_sum != expected_sum {
+            return Err(LoadModelError::ChecksumMismatch {
+                expected: expected_sum,
+                got: got_sum,
+            });
+        }
+        for (name, shape, data) in named {
+            if data.iter().any(|v| !v.is_finite()) {
+                return Err(LoadModelError::NonFinite { name });
+            }
+            tensors.push(Tensor::from_vec(data, shape, &Device::Cpu)?);
+        }
+        Ok(Self::from_net(Net::new(config, tensors)?, got_sum))
+    }
+
+    /// A network with deterministic random weights (the default architecture) for tests.
+    pub fn random(seed: u64) -> Self {
+        Self::random_with(NetConfig::default(), seed)
+            .expect("the default architecture builds; a failure is a bug in this crate")
+    }
+
+    /// A network with deterministic random weights for a given architecture.
+    pub fn random_with(config: NetConfig, seed: u64) -> Result<Self, LoadModelError> {
+        Self::from_params(config, |_| None, seed)
+    }
+
+    /// Build from a trained network (the lab's trainer uses this).
+    pub fn from_trained(net: &Net) -> Result<Self, LoadModelError> {
+        let params = net
+            .params()
+            .iter()
+            .map(|t| t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>())
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        let mut it = params.into_iter();
+        Self::from_params(net.config().clone(), |_| it.next(), 0)
+    }
+
+    fn from_params(
+        config: NetConfig,
+        mut given: impl FnMut(&str) -> Option<Vec<f32>>,
+        seed: u64,
+    ) -> Result<Self, LoadModelError> {
+        config.check().map_err(|e| LoadModelError::BadMetadata {
+            key: "config",
+            expected: "a valid network config".into(),
+            got: e,
+        })?;
+        let named: Vec<(String, Vec<usize>, Vec<f32>)> = config
+            .init(seed)
+            .into_iter()
+            .map(|(name, shape, init)| {
+                let data = given(&name).unwrap_or(init);
+                (name, shape, data)
+            })
+            .collect();
+        let sum = checksum(&named);
+        let tensors = named
+            .into_iter()
+            .map(|(_, shape, data)| Tensor::from_vec(data, shape, &Device::Cpu))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        Ok(Self::from_net(Net::new(config, tensors)?, sum))
+    }
+
+    fn from_net(net: Net, checksum: String) -> Self {
+        Self {
+            net,
+            version: checksum[..16].to_string(),
+            checksum,
+        }
+    }
+
+    /// Write the model atomically: a temporary file beside `path`, fsync, rename.
+    pub fn save(&self, path: &Path) -> Result<(), SaveModelError> {
+        let bytes = self.to_bytes()?;
+        let dir = path
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        let file_name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "model".into());
+        let tmp = dir.join(format!(".{file_name}.tmp{}", std::process::id()));
+        let io = |path: &Path| {
+            let path = path.to_path_buf();
+            move |source| SaveModelError::Io { path, source }
+        };
+        let mut f = std::fs::File::create(&tmp).map_err(io(&tmp))?;
+        f.write_all(&bytes).map_err(io(&tmp))?;
+        f.sync_all().map_err(io(&tmp))?;
+        drop(f);
+        std::fs::rename(&tmp, path).map_err(|e| {
+            let _ = std::fs::remove_file(&tmp);
+            SaveModelError::Io {
+                path: path.to_path_buf(),
+                source: e,
+            }
+        })?;
+        // Persist the rename itself.
+        if let Ok(d) = std::fs::File::open(dir) {
+            let _ = d.sync_all();
+        }
+        Ok(())
+    }
+
+    /// The model file's bytes.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, SaveModelError> {
+        let shapes = self.net.config().param_shapes();
+        let mut buffers = Vec::with_capacity(shapes.len());
+        for ((name, shape), t) in shapes.into_iter().zip(self.net.params()) {
+            let data = t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+            let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
+            buffers.push((name, shape, bytes));
+        }
+        let views = buffers
+            .iter()
+            .map(|(name, shape, bytes)| {
+                TensorView::new(Dtype::F32, shape.clone(), bytes).map(|v| (name.clone(), v))
+            })
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| SaveModelError::Serialize(e.to_string()))?;
+        let config = serde_json::to_string(self.net.config())
+            .map_err(|e| SaveModelError::Serialize(e.to_string()))?;
+        let meta = HashMap::from([
+            ("format".to_string(), FORMAT.to_string()),
+            ("config".to_string(), config),
+            ("input-shape".to_string(), format!("{STEPS}x{CHANNELS}")),
+            ("embed-dim".to_string(), EMBED_DIM.to_string()),
+            ("sha256".to_string(), self.checksum.clone()),
+        ]);
+        safetensors::serialize(views, Some(meta))
+            .map_err(|e| SaveModelError::Serialize(e.to_string()))
+    }
+
+    /// Embed one resampled trajectory.
+    pub fn embed(&self, x: &Resampled) -> Result<Embedding, EmbedError> {
+        let mut v = self.embed_batch(std::slice::from_ref(x))?;
+        Ok(v.pop().unwrap_or([0.0; EMBED_DIM]))
+    }
+
+    /// Embed a batch of resampled trajectories.
+    pub fn embed_batch(&self, xs: &[Resampled]) -> Result<Vec<Embedding>, EmbedError> {
+        if xs.is_empty() {
+            return Ok(Vec::new());
+        }
+        for (index, x) in xs.iter().enumerate() {
+            if x.iter().flatten().any(|v| !v.is_finite()) {
+                return Err(EmbedError::NonFinite { index });
+            }
+        }
+        let kind = self.net.config().features;
+        let c = kind.channels();
+        let mut feats = vec![0.0f32; xs.len() * STEPS * c];
+        for (x, out) in xs.iter().zip(feats.chunks_exact_mut(STEPS * c)) {
+            crate::features::compute(kind, x, out);
+        }
+        let input = Tensor::from_vec(feats, (xs.len(), STEPS, c), &Device::Cpu)?;
+        let out = self.net.forward(&input)?.flatten_all()?.to_vec1::<f32>()?;
+        let mut embs = Vec::with_capacity(xs.len());
+        for (index, chunk) in out.chunks_exact(EMBED_DIM).enumerate() {
+            if chunk.iter().any(|v| !v.is_finite()) {
+                return Err(EmbedError::NonFiniteOutput { index });
+            }
+            let mut e = [0.0f32; EMBED_DIM];
+            e.copy_from_slice(chunk);
+            embs.push(e);
+        }
+        Ok(embs)
+    }
+
+    /// Stable id: the first 16 hex characters of the SHA-256 over the weights.
+    pub fn version(&self) -> &str {
+        &self.version
+    }
+
+    /// The full SHA-256 over the weights (hex).
+    pub fn checksum(&self) -> &str {
+        &self.checksum
+    }
+
+    /// The architecture.
+    pub fn config(&self) -> &NetConfig {
+        self.net.config()
+    }
+
+    /// The network (for training and analysis).
+    pub fn net(&self) -> &Net {
+        &self.net
+    }
+}
+
+/// Squared Euclidean distance between two embeddings.
+pub fn sq_dist(a: &Embedding, b: &Embedding) -> f32 {
+    a.iter().zip(b.iter()).map(|(x, y)| (x - y) * (x - y)).sum()
+}
+
+/// SHA-256 (hex) over tensors in name order: name bytes, shape (u64 LE each), f32 LE data.
+fn checksum(named: &[(String, Vec<usize>, Vec<f32>)]) -> String {
+    let mut order: Vec<&(String, Vec<usize>, Vec<f32>)> = named.iter().collect();
+    order.sort_by(|a, b| a.0.cmp(&b.0));
+    let mut h = Sha256::new();
+    for (name, shape, data) in order {
+        h.update((name.len() as u64).to_le_bytes());
+        h.update(name.as_bytes());
+        h.update((shape.len() as u64).to_le_bytes());
+        for &d in shape {
+            h.update((d as u64).to_le_bytes());
+        }
+        for v in data {
+            h.update(v.to_le_bytes());
+        }
+    }
+    h.finalize().iter().map(|b| format!("{b:02x}")).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(phase: f32) -> Resampled {
+        let mut x = [[0.0f32; CHANNELS]; STEPS];
+        for (t, w) in x.iter_mut().enumerate() {
+            let s = t as f32 / STEPS as f32;
+            *w = [
+                0.1 * (6.0 * s + phase).sin(),
+                0.2 + 0.1 * (4.0 * s + phase).cos(),
+                0.0,
+                -2.0 + 0.1 * s,
+                0.0,
+                2.2,
+                0.78,
+                if t % 40 < 30 { 1.0 } else { 0.0 },
+            ];
+        }
+        x
+    }
+
+    fn assert_send_sync<T: Send + Sync>() {}
+
+    #[test]
+    fn round_trip_is_exact_and_versioned() {
+        assert_send_sync::<Embedder>();
+        let e = Embedder::random(5);
+        assert_eq!(e.version().len(), 16);
+        assert_eq!(Embedder::random(5).version(), e.version());
+        assert_ne!(Embedder::random(6).version(), e.version());
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.safetensors");
+        e.save(&path).unwrap();
+        let back = Embedder::load(&path).unwrap();
+        assert_eq!(back.version(), e.version());
+        let xs = [sample(0.0), sample(1.0)];
+        let a = e.embed_batch(&xs).unwrap();
+        let b = back.embed_batch(&xs).unwrap();
+        assert_eq!(a, b);
+        assert_eq!(e.embed(&xs[1]).unwrap(), a[1]);
+        let norm: f32 = a[0].iter().map(|v| v * v).sum();
+        assert!((norm - 1.0).abs() < 1e-4);
+        assert!(sq_dist(&a[0], &a[1]) > 0.0);
+        assert_eq!(sq_dist(&a[0], &a[0]), 0.0);
+        // No temporary file is left behind.
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn corrupt_files_are_refused() {
+        let e = Embedder::random(1);
+        let bytes = e.to_bytes().unwrap();
+        // Truncated.
+        let err = Embedder::from_bytes(&bytes[..bytes.len() - 10]).unwrap_err();
+        assert!(matches!(err, LoadModelError::Format(_)), "{err}");
+        // A flipped bit in the last weight.
+        let mut flipped = bytes.clone();
+        let n = flipped.len();
+        flipped[n - 2] ^= 0x10;
+        let err = Embedder::from_bytes(&flipped).unwrap_err();
+        assert!(
+            matches!(err, LoadModelError::ChecksumMismatch { .. }),
+            "{err}"
+        );
+        // Wrong shape: a file for another architecture, relabelled with this config.
+        let other = Embedder::random_with(
+            NetConfig {
+                channels: vec![32, 128, 128],
+                ..NetConfig::default()
+            },
+            1,
+        )
+        .unwrap();
+        let other_bytes = other.to_bytes().unwrap();
+        let mut wrong = other_bytes.clone();
+        let pat = b"[32,128,128]";
+        let at = wrong
+            .windows(pat.len())
+            .position(|w| w == pat)
+            .expect("config in header");
+        wrong[at..at + pat.len()].copy_from_slice(b"[64,128,128]");
+        // The header length stays the same, so it still parses; the shapes must not pass.
+        let err = Embedder::from_bytes(&wrong).unwrap_err();
+        assert!(matches!(err, LoadModelError::ShapeMismatch { .. }), "{err}");
+        // Not a model at all.
+        let err = Embedder::from_bytes(b"hello").unwrap_err();
+        assert!(matches!(err, LoadModelError::Format(_)), "{err}");
+        let err = Embedder::load(Path::new("/nonexistent/model.safetensors")).unwrap_err();
+        assert!(matches!(err, LoadModelError::Read { .. }), "{err}");
+    }
+}

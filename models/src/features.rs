@@ -1,0 +1,255 @@
+//! Features the embedder computes from a resampled joint trajectory, inside `embed`, so
+//! callers only ever pass [`Resampled`].
+//!
+//! * [`FeatureKind::Joints`] — the paper's input: the 7 joint angles scaled to `[-1, 1]` by
+//!   the Panda limits, and the tool channel as `±1`.
+//! * [`FeatureKind::Pen`] — the pen-tip path on the canvas from forward kinematics, with the
+//!   drawing's position and size normalised away: `x, y` (bounding box of the pen-down part
+//!   centred, longest side scaled to 2), the pen state, the undirected tangent
+//!   `(cos 2θ, sin 2θ)` (the same for a stroke drawn either way) and the directed unit tangent.
+//!   What varies between drawers of one character (where and how large they drew it, speed)
+//!   is removed here; what joint angles hide (the pen path is their forward kinematics) is
+//!   made explicit.
+
+use guardian_shared::trajectory::{JOINTS, Q_MAX, Q_MIN, Resampled, STEPS, TOOL};
+use serde::{Deserialize, Serialize};
+
+/// Which features the network sees.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+#[non_exhaustive]
+pub enum FeatureKind {
+    /// Joint angles and tool state, scaled (8 channels).
+    Joints,
+    /// Normalised pen-tip path features from forward kinematics (7 channels).
+    Pen,
+}
+
+impl FeatureKind {
+    /// Feature channels per time step.
+    pub fn channels(self) -> usize {
+        match self {
+            Self::Joints => 8,
+            Self::Pen => PEN_CHANNELS,
+        }
+    }
+}
+
+/// Channels of [`FeatureKind::Pen`].
+pub const PEN_CHANNELS: usize = 7;
+
+/// One pen-tip sample: `x`, `y` on the canvas (m; x = drawing "right", y = drawing "up")
+/// and the pen state (1 down, 0 up).
+pub type PenPoint = [f32; 3];
+
+/// A geometric augmentation applied to the pen path before normalisation (training only).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Augment {
+    /// Rotation about the drawing's centre (rad).
+    pub rotation: f32,
+    /// Horizontal shear (x += shear * y).
+    pub shear: f32,
+    /// Scale of x.
+    pub scale_x: f32,
+    /// Scale of y.
+    pub scale_y: f32,
+    /// Reverse time (every stroke drawn backwards, strokes in reverse order).
+    pub reverse: bool,
+}
+
+impl Default for Augment {
+    fn default() -> Self {
+        Self {
+            rotation: 0.0,
+            shear: 0.0,
+            scale_x: 1.0,
+            scale_y: 1.0,
+            reverse: false,
+        }
+    }
+}
+
+/// Pen-tip path of a resampled trajectory by forward kinematics.
+pub fn pen_path(x: &Resampled) -> [PenPoint; STEPS] {
+    let mut out = [[0.0f32; 3]; STEPS];
+    for (o, w) in out.iter_mut().zip(x.iter()) {
+        let mut q = [0.0f64; JOINTS];
+        for (qi, wi) in q.iter_mut().zip(w.iter()) {
+            *qi = f64::from(*wi);
+        }
+        let p = pen_tip(&q);
+        // Base +x is drawing "up", base -y is drawing "right".
+        *o = [-p[1] as f32, p[0] as f32, w[TOOL]];
+    }
+    out
+}
+
+/// Write the features of `x` for `kind` into `out` (`STEPS * kind.channels()`, row-major by
+/// time step).
+pub fn compute(kind: FeatureKind, x: &Resampled, out: &mut [f32]) {
+    match kind {
+        FeatureKind::Joints => joint_features(x, out),
+        FeatureKind::Pen => pen_features(&pen_path(x), &Augment::default(), out),
+    }
+}
+
+fn joint_features(x: &Resampled, out: &mut [f32]) {
+    let c = FeatureKind::Joints.channels();
+    for (t, w) in x.iter().enumerate() {
+        let row = &mut out[t * c..(t + 1) * c];
+        for j in 0..JOINTS {
+            let mid = 0.5 * (Q_MAX[j] + Q_MIN[j]);
+            let half = 0.5 * (Q_MAX[j] - Q_MIN[j]);
+            row[j] = ((f64::from(w[j]) - mid) / half) as f32;
+        }
+        row[JOINTS] = 2.0 * w[TOOL] - 1.0;
+    }
+}
+
+/// Pen features of a pen path after an augmentation (see the module docs).
+pub fn pen_features(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
+    let c = PEN_CHANNELS;
+    // Augment (about the path's mean, which normalisation removes anyway).
+    let mut p = *path;
+    if aug.reverse {
+        p.reverse();
+    }
+    let (cr, sr) = (aug.rotation.cos(), aug.rotation.sin());
+    for pt in p.iter_mut() {
+        let (x, y) = (pt[0], pt[1]);
+        let (x, y) = (cr * x - sr * y, sr * x + cr * y);
+        let x = x + aug.shear * y;
+        pt[0] = x * aug.scale_x;
+        pt[1] = y * aug.scale_y;
+    }
+    // Normalise by the bounding box of the pen-down part (all points if never down).
+    let any_down = p.iter().any(|q| q[2] > 0.5);
+    let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
+    for q in p.iter().filter(|q| !any_down || q[2] > 0.5) {
+        for d in 0..2 {
+            lo[d] = lo[d].min(q[d]);
+            hi[d] = hi[d].max(q[d]);
+        }
+    }
+    let centre = [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])];
+    let half = (0.5 * (hi[0] - lo[0]).max(hi[1] - lo[1])).max(2e-3);
+    for t in 0..STEPS {
+        let a = p[t.saturating_sub(1)];
+        let b = p[(t + 1).min(STEPS - 1)];
+        let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+        let len = (dx * dx + dy * dy).sqrt();
+        let (ux, uy) = if len > 1e-6 {
+            (dx / len, dy / len)
+        } else {
+            (0.0, 0.0)
+        };
+        let row = &mut out[t * c..(t + 1) * c];
+        row[0] = (p[t][0] - centre[0]) / half;
+        row[1] = (p[t][1] - centre[1]) / half;
+        row[2] = 2.0 * p[t][2] - 1.0;
+        row[3] = ux * ux - uy * uy;
+        row[4] = 2.0 * ux * uy;
+        row[5] = ux;
+        row[6] = uy;
+    }
+}
+
+/// Pen-tip position in the base frame (m) for joint angles `q` (Panda chain, flange, pen
+/// 0.15 m along flange z).
+fn pen_tip(q: &[f64; JOINTS]) -> [f64; 3] {
+    use std::f64::consts::FRAC_PI_2;
+    // (origin xyz, origin roll) of joints 1..7; every joint rotates about its z.
+    const CHAIN: [([f64; 3], f64); JOINTS] = [
+        ([0.0, 0.0, 0.333], 0.0),
+        ([0.0, 0.0, 0.0], -FRAC_PI_2),
+        ([0.0, -0.316, 0.0], FRAC_PI_2),
+        ([0.0825, 0.0, 0.0], FRAC_PI_2),
+        ([-0.0825, 0.384, 0.0], -FRAC_PI_2),
+        ([0.0, 0.0, 0.0], FRAC_PI_2),
+        ([0.088, 0.0, 0.0], FRAC_PI_2),
+    ];
+    const FLANGE_TO_PEN: f64 = 0.107 + 0.15;
+    let mut r = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0f64]];
+    let mut p = [0.0f64; 3];
+    let mul = |a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]| {
+        let mut m = [[0.0; 3]; 3];
+        for i in 0..3 {
+            for j in 0..3 {
+                m[i][j] = (0..3).map(|k| a[i][k] * b[k][j]).sum();
+            }
+        }
+        m
+    };
+    for (&(xyz, roll), &qi) in CHAIN.iter().zip(q.iter()) {
+        for i in 0..3 {
+            p[i] += r[i][0] * xyz[0] + r[i][1] * xyz[1] + r[i][2] * xyz[2];
+        }
+        let (cr, sr) = (roll.cos(), roll.sin());
+        let (cq, sq) = (qi.cos(), qi.sin());
+        // RotX(roll) * RotZ(q)
+        let rx = [[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]];
+        let rz = [[cq, -sq, 0.0], [sq, cq, 0.0], [0.0, 0.0, 1.0]];
+        r = mul(&r, &mul(&rx, &rz));
+    }
+    for i in 0..3 {
+        p[i] += r[i][2] * FLANGE_TO_PEN;
+    }
+    p
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn fk_matches_the_published_ready_pose() {
+        use std::f64::consts::PI;
+        let q = [
+            0.0,
+            -PI / 4.0,
+            0.0,
+            -3.0 * PI / 4.0,
+            0.0,
+            PI / 2.0,
+            PI / 4.0,
+        ];
+        let p = pen_tip(&q);
+        // Flange at (0.3069, 0, 0.5903), tool z straight down: pen 0.15 m lower.
+        assert!((p[0] - 0.3069).abs() < 2e-4, "{p:?}");
+        assert!(p[1].abs() < 1e-6, "{p:?}");
+        assert!((p[2] - (0.5903 - 0.15)).abs() < 2e-4, "{p:?}");
+    }
+
+    use super::*;
+
+    fn straight_line(scale: f32, offset: f32) -> [PenPoint; STEPS] {
+        let mut p = [[0.0f32; 3]; STEPS];
+        for (t, q) in p.iter_mut().enumerate() {
+            let s = t as f32 / (STEPS - 1) as f32;
+            *q = [offset + scale * s, offset + 0.5 * scale * s, 1.0];
+        }
+        p
+    }
+
+    #[test]
+    fn pen_features_ignore_position_and_size() {
+        let c = PEN_CHANNELS;
+        let mut a = vec![0.0; STEPS * c];
+        let mut b = vec![0.0; STEPS * c];
+        pen_features(&straight_line(0.05, 0.0), &Augment::default(), &mut a);
+        pen_features(&straight_line(0.02, 0.3), &Augment::default(), &mut b);
+        for (x, y) in a.iter().zip(&b) {
+            assert!((x - y).abs() < 1e-3, "{x} vs {y}");
+        }
+        // Longest side spans [-1, 1].
+        assert!((a[0] + 1.0).abs() < 1e-5 && (a[(STEPS - 1) * c] - 1.0).abs() < 1e-5);
+        // Undirected tangent is the same when reversed; directed tangent flips.
+        let aug = Augment {
+            reverse: true,
+            ..Augment::default()
+        };
+        pen_features(&straight_line(0.05, 0.0), &aug, &mut b);
+        let mid = STEPS / 2 * c;
+        assert!((a[mid + 3] - b[mid + 3]).abs() < 1e-5);
+        assert!((a[mid + 4] - b[mid + 4]).abs() < 1e-5);
+        assert!((a[mid + 5] + b[mid + 5]).abs() < 1e-5);
+    }
+}

@@ -1,0 +1,164 @@
+//! Metric-learning losses on squared Euclidean distances.
+//!
+//! * [`triplet_loss`] — the paper's loss on explicit (anchor, positive, negative) triplets:
+//!   `mean(max(0, d_p - d_n + margin))`.
+//! * [`batch_hard_triplet_loss`] / [`batch_all_triplet_loss`] — online mining over a batch of
+//!   labelled embeddings (class-balanced P x K batches): every sample is an anchor with its
+//!   hardest positive and hardest negative, or every valid triplet averaged over the active ones.
+//! * [`contrastive_loss`] — the Siamese baseline's pair loss:
+//!   `y * d + (1 - y) * max(0, margin - sqrt(d))^2` over all pairs of the batch.
+
+use candle_core::{D, Device, Tensor};
+
+/// Squared Euclidean distances between all rows of `e [B, E]` -> `[B, B]` (clamped at 0).
+pub fn pairwise_sq_dist(e: &Tensor) -> candle_core::Result<Tensor> {
+    let sq = e.sqr()?.sum_keepdim(1)?; // [B, 1]
+    let gram = e.matmul(&e.t()?)?; // [B, B]
+    let d = sq.broadcast_add(&sq.t()?)?.sub(&(gram * 2.0)?)?;
+    d.relu()
+}
+
+/// The paper's triplet loss on explicit triplets `[B, E]` each.
+pub fn triplet_loss(
+    anchor: &Tensor,
+    positive: &Tensor,
+    negative: &Tensor,
+    margin: f64,
+) -> candle_core::Result<Tensor> {
+    let dp = (anchor - positive)?.sqr()?.sum(D::Minus1)?;
+    let dn = (anchor - negative)?.sqr()?.sum(D::Minus1)?;
+    ((dp - dn)? + margin)?.relu()?.mean_all()
+}
+
+fn masks(
+    labels: &[u32],
+    device: &Device,
+    dtype: candle_core::DType,
+) -> candle_core::Result<(Tensor, Tensor)> {
+    let b = labels.len();
+    let mut pos = vec![0.0f32; b * b];
+    let mut neg = vec![0.0f32; b * b];
+    for i in 0..b {
+        for j in 0..b {
+            if i != j && labels[i] == labels[j] {
+                pos[i * b + j] = 1.0;
+            }
+            if labels[i] != labels[j] {
+                neg[i * b + j] = 1.0;
+            }
+        }
+    }
+    Ok((
+        Tensor::from_vec(pos, (b, b), device)?.to_dtype(dtype)?,
+        Tensor::from_vec(neg, (b, b), device)?.to_dtype(dtype)?,
+    ))
+}
+
+/// Batch-hard triplet loss: for every anchor, its farthest positive and nearest negative in
+/// the batch. Anchors without a positive or a negative in the batch contribute 0 (the batch
+/// sampler avoids them). Returns `(loss, fraction of anchors with a non-zero loss)`.
+pub fn batch_hard_triplet_loss(
+    e: &Tensor,
+    labels: &[u32],
+    margin: f64,
+) -> candle_core::Result<(Tensor, f32)> {
+    let d = pairwise_sq_dist(e)?;
+    let (pos, neg) = masks(labels, e.device(), e.dtype())?;
+    let hardest_pos = (&d * &pos)?.max(1)?;
+    // Push non-negatives out of reach of the min.
+    let big = (neg.ones_like()? - &neg)? * 1e6;
+    let hardest_neg = (&d + big)?.min(1)?;
+    let per_anchor = ((hardest_pos - hardest_neg)? + margin)?.relu()?;
+    let active = per_anchor
+        .to_dtype(candle_core::DType::F32)?
+        .to_vec1::<f32>()?
+        .iter()
+        .filter(|&&v| v > 0.0)
+        .count() as f32
+        / labels.len().max(1) as f32;
+    Ok((per_anchor.mean_all()?, active))
+}
+
+/// Batch-all triplet loss: every valid (a, p, n) in the batch, averaged over the triplets
+/// with a positive loss. Returns `(loss, fraction of valid triplets that are active)`.
+pub fn batch_all_triplet_loss(
+    e: &Tensor,
+    labels: &[u32],
+    margin: f64,
+) -> candle_core::Result<(Tensor, f32)> {
+    let b = labels.len();
+    let d = pairwise_sq_dist(e)?;
+    let (pos, neg) = masks(labels, e.device(), e.dtype())?;
+    // t[a, p, n] = d[a, p] - d[a, n] + margin, valid where pos[a, p] * neg[a, n].
+    let t = (d.unsqueeze(2)?.broadcast_sub(&d.unsqueeze(1)?)? + margin)?.relu()?;
+    let valid = pos.unsqueeze(2)?.broadcast_mul(&neg.unsqueeze(1)?)?;
+    let t = (t * &valid)?;
+    let flat = t
+        .flatten_all()?
+        .to_dtype(candle_core::DType::F32)?
+        .to_vec1::<f32>()?;
+    let active = flat.iter().filter(|&&v| v > 1e-12).count();
+    let n_valid: f32 = valid
+        .to_dtype(candle_core::DType::F32)?
+        .sum_all()?
+        .to_scalar()?;
+    let loss = (t.sum_all()? / (active.max(1) as f64))?;
+    let _ = b;
+    Ok((loss, active as f32 / n_valid.max(1.0)))
+}
+
+/// Contrastive (Siamese) loss over all pairs of the batch: same-class pairs are pulled
+/// together (`d`), different-class pairs pushed beyond `margin` in distance
+/// (`max(0, margin - sqrt(d))^2`).
+pub fn contrastive_loss(e: &Tensor, labels: &[u32], margin: f64) -> candle_core::Result<Tensor> {
+    let d = pairwise_sq_dist(e)?;
+    let (pos, neg) = masks(labels, e.device(), e.dtype())?;
+    let dist = (d.clone() + 1e-9)?.sqrt()?;
+    let push = (dist.affine(-1.0, margin)?).relu()?.sqr()?;
+    let n_pos = pos.sum_all()?;
+    let n_neg = neg.sum_all()?;
+    // Balance the two terms: mean over positive pairs + mean over negative pairs.
+    let pull = (&d * &pos)?.sum_all()?.broadcast_div(&(n_pos + 1.0)?)?;
+    let push = (push * &neg)?.sum_all()?.broadcast_div(&(n_neg + 1.0)?)?;
+    pull + push
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn t(rows: &[[f32; 2]]) -> Tensor {
+        let v: Vec<f32> = rows.iter().flatten().copied().collect();
+        Tensor::from_vec(v, (rows.len(), 2), &Device::Cpu).unwrap()
+    }
+
+    #[test]
+    fn distances_and_losses_on_a_known_case() -> candle_core::Result<()> {
+        let e = t(&[[0.0, 0.0], [1.0, 0.0], [0.0, 2.0], [0.0, 3.0]]);
+        let d = pairwise_sq_dist(&e)?.to_vec2::<f32>()?;
+        assert_eq!(d[0][1], 1.0);
+        assert_eq!(d[0][3], 9.0);
+        assert_eq!(d[2][3], 1.0);
+        // Explicit triplet: d_p = 1, d_n = 4, margin 0.5 -> 0; margin 4 -> 1.
+        let a = t(&[[0.0, 0.0]]);
+        let p = t(&[[1.0, 0.0]]);
+        let n = t(&[[0.0, 2.0]]);
+        assert_eq!(triplet_loss(&a, &p, &n, 0.5)?.to_scalar::<f32>()?, 0.0);
+        assert_eq!(triplet_loss(&a, &p, &n, 4.0)?.to_scalar::<f32>()?, 1.0);
+        // Labels [0, 0, 1, 1]: anchor 0 hardest pos 1 (d 1), hardest neg 2 (d 4).
+        // anchor 1: pos 1, neg min(5, 10) = 5; anchor 2: pos 1, neg min(4, 5) = 4;
+        // anchor 3: pos 1, neg min(9, 10) = 9. margin 3.5 -> [0.5, 0, 0.5, 0] -> mean 0.25.
+        let (l, active) = batch_hard_triplet_loss(&e, &[0, 0, 1, 1], 3.5)?;
+        assert!((l.to_scalar::<f32>()? - 0.25).abs() < 1e-6);
+        assert_eq!(active, 0.5);
+        // Batch-all with the same margin: active triplets (a,p,n) with d_ap - d_an + 3.5 > 0:
+        // (0,1,2)=0.5 (1,0,2)=-0.5 (2,3,0)=0.5 ... average over active ones.
+        let (l, _) = batch_all_triplet_loss(&e, &[0, 0, 1, 1], 3.5)?;
+        assert!((l.to_scalar::<f32>()? - 0.5).abs() < 1e-6);
+        // Contrastive: a perfectly separated batch has zero loss.
+        let sep = t(&[[0.0, 0.0], [0.0, 0.0], [5.0, 0.0], [5.0, 0.0]]);
+        let l = contrastive_loss(&sep, &[0, 0, 1, 1], 1.0)?.to_scalar::<f32>()?;
+        assert!(l.abs() < 1e-3, "{l}");
+        Ok(())
+    }
+}
