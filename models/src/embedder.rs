@@ -160,7 +160,8 @@ impl Embedder {
 
     /// Parse and verify a model from the bytes of a file.
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, LoadModelError> {
-        let st = SafeTensors::deserialize(bytes).map_err(|e| LoadModelError::Format(e.to_string()))?;
+        let st =
+            SafeTensors::deserialize(bytes).map_err(|e| LoadModelError::Format(e.to_string()))?;
         let (_, header) =
             SafeTensors::read_metadata(bytes).map_err(|e| LoadModelError::Format(e.to_string()))?;
         let empty = HashMap::new();
@@ -374,7 +375,8 @@ impl Embedder {
             ("embed-dim".to_string(), EMBED_DIM.to_string()),
             ("sha256".to_string(), self.checksum.clone()),
         ]);
-        safetensors::serialize(views, Some(meta)).map_err(|e| SaveModelError::Serialize(e.to_string()))
+        safetensors::serialize(views, Some(meta))
+            .map_err(|e| SaveModelError::Serialize(e.to_string()))
     }
 
     /// Embed one resampled trajectory.
@@ -519,7 +521,10 @@ mod tests {
         let n = flipped.len();
         flipped[n - 2] ^= 0x10;
         let err = Embedder::from_bytes(&flipped).unwrap_err();
-        assert!(matches!(err, LoadModelError::ChecksumMismatch { .. }), "{err}");
+        assert!(
+            matches!(err, LoadModelError::ChecksumMismatch { .. }),
+            "{err}"
+        );
         // Wrong shape: a file for another architecture, relabelled with this config.
         let other = Embedder::random_with(
             NetConfig {

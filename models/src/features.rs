@@ -71,13 +71,10 @@ impl Default for Augment {
 
 /// Pen-tip path of a resampled trajectory by forward kinematics.
 pub fn pen_path(x: &Resampled) -> [PenPoint; STEPS] {
+    let panda = crate::preprocess::default_panda();
     let mut out = [[0.0f32; 3]; STEPS];
     for (o, w) in out.iter_mut().zip(x.iter()) {
-        let mut q = [0.0f64; JOINTS];
-        for (qi, wi) in q.iter_mut().zip(w.iter()) {
-            *qi = f64::from(*wi);
-        }
-        let p = pen_tip(&q);
+        let p = panda.pen_tip_position(&crate::preprocess::joints_of(w));
         // Base +x is drawing "up", base -y is drawing "right".
         *o = [-p[1] as f32, p[0] as f32, w[TOOL]];
     }
@@ -154,64 +151,8 @@ pub fn pen_features(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
     }
 }
 
-/// Pen-tip position in the base frame (m) for joint angles `q` (Panda chain, flange, pen
-/// 0.15 m along flange z).
-fn pen_tip(q: &[f64; JOINTS]) -> [f64; 3] {
-    use std::f64::consts::FRAC_PI_2;
-    // (origin xyz, origin roll) of joints 1..7; every joint rotates about its z.
-    const CHAIN: [([f64; 3], f64); JOINTS] = [
-        ([0.0, 0.0, 0.333], 0.0),
-        ([0.0, 0.0, 0.0], -FRAC_PI_2),
-        ([0.0, -0.316, 0.0], FRAC_PI_2),
-        ([0.0825, 0.0, 0.0], FRAC_PI_2),
-        ([-0.0825, 0.384, 0.0], -FRAC_PI_2),
-        ([0.0, 0.0, 0.0], FRAC_PI_2),
-        ([0.088, 0.0, 0.0], FRAC_PI_2),
-    ];
-    const FLANGE_TO_PEN: f64 = 0.107 + 0.15;
-    let mut r = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0f64]];
-    let mut p = [0.0f64; 3];
-    let mul = |a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]| {
-        let mut m = [[0.0; 3]; 3];
-        for i in 0..3 {
-            for j in 0..3 {
-                m[i][j] = (0..3).map(|k| a[i][k] * b[k][j]).sum();
-            }
-        }
-        m
-    };
-    for (&(xyz, roll), &qi) in CHAIN.iter().zip(q.iter()) {
-        for i in 0..3 {
-            p[i] += r[i][0] * xyz[0] + r[i][1] * xyz[1] + r[i][2] * xyz[2];
-        }
-        let (cr, sr) = (roll.cos(), roll.sin());
-        let (cq, sq) = (qi.cos(), qi.sin());
-        // RotX(roll) * RotZ(q)
-        let rx = [[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]];
-        let rz = [[cq, -sq, 0.0], [sq, cq, 0.0], [0.0, 0.0, 1.0]];
-        r = mul(&r, &mul(&rx, &rz));
-    }
-    for i in 0..3 {
-        p[i] += r[i][2] * FLANGE_TO_PEN;
-    }
-    p
-}
-
 #[cfg(test)]
 mod tests {
-    #[test]
-    fn fk_matches_the_published_ready_pose() {
-        use std::f64::consts::PI;
-        let q = [0.0, -PI / 4.0, 0.0, -3.0 * PI / 4.0, 0.0, PI / 2.0, PI / 4.0];
-        let p = pen_tip(&q);
-        // Flange at (0.3069, 0, 0.5903), tool z straight down: pen 0.15 m lower.
-        assert!((p[0] - 0.3069).abs() < 2e-4, "{p:?}");
-        assert!(p[1].abs() < 1e-6, "{p:?}");
-        assert!((p[2] - (0.5903 - 0.15)).abs() < 2e-4, "{p:?}");
-    }
-
-    use super::*;
-
     fn straight_line(scale: f32, offset: f32) -> [PenPoint; STEPS] {
         let mut p = [[0.0f32; 3]; STEPS];
         for (t, q) in p.iter_mut().enumerate() {

@@ -30,7 +30,11 @@ pub fn triplet_loss(
     ((dp - dn)? + margin)?.relu()?.mean_all()
 }
 
-fn masks(labels: &[u32], device: &Device, dtype: candle_core::DType) -> candle_core::Result<(Tensor, Tensor)> {
+fn masks(
+    labels: &[u32],
+    device: &Device,
+    dtype: candle_core::DType,
+) -> candle_core::Result<(Tensor, Tensor)> {
     let b = labels.len();
     let mut pos = vec![0.0f32; b * b];
     let mut neg = vec![0.0f32; b * b];
@@ -89,9 +93,15 @@ pub fn batch_all_triplet_loss(
     let t = (d.unsqueeze(2)?.broadcast_sub(&d.unsqueeze(1)?)? + margin)?.relu()?;
     let valid = pos.unsqueeze(2)?.broadcast_mul(&neg.unsqueeze(1)?)?;
     let t = (t * &valid)?;
-    let flat = t.flatten_all()?.to_dtype(candle_core::DType::F32)?.to_vec1::<f32>()?;
+    let flat = t
+        .flatten_all()?
+        .to_dtype(candle_core::DType::F32)?
+        .to_vec1::<f32>()?;
     let active = flat.iter().filter(|&&v| v > 1e-12).count();
-    let n_valid: f32 = valid.to_dtype(candle_core::DType::F32)?.sum_all()?.to_scalar()?;
+    let n_valid: f32 = valid
+        .to_dtype(candle_core::DType::F32)?
+        .sum_all()?
+        .to_scalar()?;
     let loss = (t.sum_all()? / (active.max(1) as f64))?;
     let _ = b;
     Ok((loss, active as f32 / n_valid.max(1.0)))

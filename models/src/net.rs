@@ -245,13 +245,19 @@ mod tests {
     fn conv_matches_loops() -> candle_core::Result<()> {
         let (l, c, o, k) = (7, 3, 2, 5);
         let mut rng = rand::rngs::StdRng::seed_from_u64(1);
-        let x: Vec<f64> = (0..2 * l * c).map(|_| rng.random_range(-1.0..1.0)).collect();
-        let w: Vec<f64> = (0..k * c * o).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let x: Vec<f64> = (0..2 * l * c)
+            .map(|_| rng.random_range(-1.0..1.0))
+            .collect();
+        let w: Vec<f64> = (0..k * c * o)
+            .map(|_| rng.random_range(-1.0..1.0))
+            .collect();
         let b: Vec<f64> = vec![0.3, -0.2];
         let xt = Tensor::from_vec(x.clone(), (2, l, c), &Device::Cpu)?;
         let wt = Tensor::from_vec(w.clone(), (k * c, o), &Device::Cpu)?;
         let bt = Tensor::from_vec(b.clone(), o, &Device::Cpu)?;
-        let got = conv1d_same(&xt, &wt, &bt, k)?.flatten_all()?.to_vec1::<f64>()?;
+        let got = conv1d_same(&xt, &wt, &bt, k)?
+            .flatten_all()?
+            .to_vec1::<f64>()?;
         for s in 0..2 {
             let want = conv_ref(&x[s * l * c..(s + 1) * l * c], l, c, &w, &b, k);
             for (g, w) in got[s * l * o..(s + 1) * l * o].iter().zip(&want) {
