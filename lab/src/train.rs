@@ -674,7 +674,7 @@ pub fn train(
     )?;
 
     // Fixed validation batches and episodes.
-    let mut vrng = StdRng::seed_from_u64(cfg.seed ^ 0x5eed_0f_7a11);
+    let mut vrng = StdRng::seed_from_u64(cfg.seed ^ 0x005e_ed0f_7a11);
     let val_batches: Vec<(Vec<usize>, Vec<u32>)> = (0..10)
         .map(|_| val_set.sample_pk(cfg.p_classes, cfg.k_samples, &mut vrng))
         .collect();

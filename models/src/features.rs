@@ -153,6 +153,8 @@ pub fn pen_features(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     fn straight_line(scale: f32, offset: f32) -> [PenPoint; STEPS] {
         let mut p = [[0.0f32; 3]; STEPS];
         for (t, q) in p.iter_mut().enumerate() {
