@@ -345,6 +345,9 @@ pub struct Args {
     /// `--model`).
     #[arg(long)]
     pub siamese_model: Option<PathBuf>,
+    /// Force test-time reverse averaging on (see `NetConfig::reverse_average`).
+    #[arg(long)]
+    pub reverse_average: bool,
     /// Print one JSON object (otherwise a short text summary).
     #[arg(long)]
     pub json: bool,
@@ -419,7 +422,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     use anyhow::Context as _;
     let data = Dataset::load(&args.dataset)?;
     let pool = Pool::new(&data, &args.alphabets)?;
-    let model = match (args.baseline, &args.model) {
+    let mut model = match (args.baseline, &args.model) {
         (Some(Baseline::Siamese), m) => {
             let path = match (&args.siamese_model, m) {
                 (Some(p), _) => p.clone(),
@@ -436,6 +439,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         (None, None) => anyhow::bail!("--model is required unless --baseline random|knn"),
         (Some(_), _) => None,
     };
+    if args.reverse_average {
+        if let Some(m) = model.as_mut() {
+            m.set_reverse_average(true);
+        }
+    }
     let spec = EpisodeSpec {
         way: args.way,
         shot: args.shot,

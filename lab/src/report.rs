@@ -46,6 +46,9 @@ pub struct Args {
     /// Seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Force test-time reverse averaging on for the models.
+    #[arg(long)]
+    pub reverse_average: bool,
 }
 
 const COLORS: [RGBColor; 4] = [

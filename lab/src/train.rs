@@ -171,6 +171,10 @@ pub struct Args {
     /// Validation episodes per epoch (5-way-1-shot).
     #[arg(long, default_value_t = 1000)]
     pub val_episodes: usize,
+    /// Store test-time reverse averaging in the saved models (inference only; training is
+    /// unaffected).
+    #[arg(long)]
+    pub reverse_average: bool,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -186,6 +190,7 @@ impl Args {
                 kernel: self.kernel,
                 embed_dim: guardian_models::embedder::EMBED_DIM,
                 l2_normalize: !self.no_l2,
+                reverse_average: self.reverse_average,
             },
             loss: self.loss,
             margin: self.margin,
@@ -604,10 +609,11 @@ pub fn train(
 
     let (net, mut state, opt_state) = if resume {
         let saved: TrainConfig = read_json(&config_path)?;
-        let comparable = TrainConfig {
+        let mut comparable = TrainConfig {
             max_epochs: cfg.max_epochs,
             ..saved.clone()
         };
+        comparable.net.reverse_average = cfg.net.reverse_average;
         if &comparable != cfg {
             return Err(TrainError::Setup(format!(
                 "--resume: {} differs from this run's configuration",
@@ -643,7 +649,11 @@ pub fn train(
         (net, state, None)
     };
     if state.finished {
-        let best = Embedder::load(&best_path)?;
+        let mut best = Embedder::load(&best_path)?;
+        if best.config().reverse_average != cfg.net.reverse_average {
+            best.set_reverse_average(cfg.net.reverse_average);
+            best.save(&best_path)?;
+        }
         return Ok(TrainSummary {
             epochs: state.epoch,
             best_val_loss: state.best_val_loss,

@@ -56,6 +56,7 @@ fn tiny_net() -> NetConfig {
         kernel: 5,
         embed_dim: guardian_models::embedder::EMBED_DIM,
         l2_normalize: true,
+        reverse_average: false,
     }
 }
 
