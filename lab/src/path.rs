@@ -40,6 +40,10 @@ pub struct Geometry {
     pub spacing: f64,
     /// Seed of the home-pose IK (the Franka ready pose).
     pub ready_pose: [f64; JOINTS],
+    /// IK acceptance: pen-tip position error (m).
+    pub ik_position_tolerance: f64,
+    /// IK acceptance: pen orientation error (rad).
+    pub ik_orientation_tolerance: f64,
 }
 
 impl Default for Geometry {
@@ -56,6 +60,8 @@ impl Default for Geometry {
             pen_yaw: guardian_models::kinematics::PEN_YAW,
             spacing: 0.0015,
             ready_pose: READY_POSE,
+            ik_position_tolerance: 1e-5,
+            ik_orientation_tolerance: 1e-4,
         }
     }
 }
@@ -202,7 +208,11 @@ impl PathSolver {
     pub fn new(geometry: &Geometry) -> Result<Self, SolvePathError> {
         let panda = geometry.panda();
         let rotation = geometry.tool_rotation();
-        let options = IkOptions::default();
+        let options = IkOptions {
+            position_tolerance: geometry.ik_position_tolerance,
+            orientation_tolerance: geometry.ik_orientation_tolerance,
+            ..IkOptions::default()
+        };
         let mut solver = Self {
             panda,
             rotation,
@@ -281,9 +291,8 @@ impl PathSolver {
         let mut max_fk_error = 0.0f64;
         let mut min_limit_margin = f64::INFINITY;
         for (index, point) in path.iter().enumerate() {
-            state = self
-                .panda
-                .ik_from(&self.target(point.position), &state, &self.options)
+            self.panda
+                .ik_from(&self.target(point.position), &mut state, &self.options)
                 .map_err(|source| SolvePathError::Ik {
                     index,
                     len: path.len(),
@@ -311,14 +320,20 @@ impl PathSolver {
     }
 
     /// Strokes -> dense Cartesian path (at the geometry's spacing, widened if needed so the
-    /// path fits in [`MAX_WAYPOINTS`]) -> dense joint path.
+    /// path fits in [`MAX_WAYPOINTS`]) -> dense joint path. A drawing with more raw points
+    /// than that keeps them all (the shared validation then rejects it).
     pub fn solve_strokes(
         &self,
         strokes: &[Stroke],
     ) -> Result<(Vec<PathPoint>, DensePath), SolvePathError> {
         let mut spacing = self.geometry.spacing;
         let mut path = cartesian_path(strokes, &self.geometry, spacing);
-        while path.len() > MAX_WAYPOINTS {
+        // The strokes' own points are always kept, so widening cannot shrink every path;
+        // give up after a few rounds and let validation report the count.
+        for _ in 0..8 {
+            if path.len() <= MAX_WAYPOINTS {
+                break;
+            }
             spacing *= path.len() as f64 / (MAX_WAYPOINTS as f64 * 0.95);
             path = cartesian_path(strokes, &self.geometry, spacing);
         }

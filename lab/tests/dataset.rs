@@ -4,11 +4,13 @@
 
 use std::path::{Path, PathBuf};
 
-use guardian_lab::dataset::{Dataset, LoadDatasetError, generate, generate_files};
-use guardian_lab::path::Geometry;
-use guardian_lab::strokes::{DrawingFile, Stroke, read_strokes, scan};
+use guardian_lab::dataset::{
+    ConvertError, Dataset, LoadDatasetError, convert_strokes, generate, generate_files,
+};
+use guardian_lab::path::{Geometry, PathSolver};
+use guardian_lab::strokes::{DrawingFile, Point, Stroke, read_strokes, scan};
 use guardian_models::preprocess::joints_of;
-use guardian_shared::trajectory::{CHANNELS, STEPS, TOOL};
+use guardian_shared::trajectory::{CHANNELS, InvalidKind, MAX_WAYPOINTS, STEPS, TOOL};
 use nalgebra::Vector3;
 
 /// `<workspace root>/../shared/omniglot/strokes`.
@@ -184,4 +186,36 @@ fn the_whole_shared_set_converts_without_ik_failure() {
     assert_eq!(ds.classes[0], "Balinese/character01");
     let files = scan(&[shared_strokes()]).expect("scan");
     check_samples(&ds, &files);
+}
+
+#[test]
+fn very_long_drawings_are_widened_or_rejected() {
+    let solver = PathSolver::new(&Geometry::default()).expect("home pose");
+    // 40 strokes across the canvas: about 4 m of pen path, more than MAX_WAYPOINTS points at
+    // the default spacing, so the spacing is widened.
+    let zigzag: Stroke = (0..=40)
+        .map(|i| Point {
+            x: if i % 2 == 0 { 10.0 } else { 90.0 },
+            y: -50.0,
+            t: 0.0,
+        })
+        .collect();
+    let c = convert_strokes(&solver, &[zigzag]).expect("widened path converts");
+    assert!(c.dense.waypoints.len() <= MAX_WAYPOINTS);
+    assert!(c.dense.waypoints.len() > MAX_WAYPOINTS / 2);
+    // More distinct raw points than MAX_WAYPOINTS: rejected by the shared validation.
+    let many: Stroke = (0..5000)
+        .map(|i| Point {
+            x: 10.0 + f64::from(i % 80),
+            y: -20.0 - f64::from(i / 80) * 0.5,
+            t: 0.0,
+        })
+        .collect();
+    match convert_strokes(&solver, &[many]) {
+        Err(ConvertError::Invalid(e)) => assert_eq!(e.kind, InvalidKind::TooManyWaypoints),
+        other => panic!(
+            "expected TooManyWaypoints, got {:?}",
+            other.map(|c| c.dense.waypoints.len())
+        ),
+    }
 }

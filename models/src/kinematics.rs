@@ -423,8 +423,9 @@ impl Panda {
         if seed.iter().any(|v| !v.is_finite()) {
             return Err(IkError::NonFinite);
         }
-        let state = self.ik_state(seed);
-        self.ik_from(target, &state, options).map(|s| s.q)
+        let mut state = self.ik_state(seed);
+        self.ik_from(target, &mut state, options)?;
+        Ok(state.q)
     }
 
     /// The IK state at `q` (clamped to the limits): pen-tip frame and Jacobian.
@@ -437,22 +438,22 @@ impl Panda {
         IkState { q, tip, jacobian }
     }
 
-    /// [`Panda::ik`] from a state whose frame and Jacobian are already known; returns the
-    /// state at the solution, so a path solver seeding each point with the previous
-    /// solution evaluates the Jacobian once per converged step instead of twice.
+    /// [`Panda::ik`] from a state whose frame and Jacobian are already known, updated in
+    /// place to the solution (on error it holds the last iterate), so a path solver seeding
+    /// each point with the previous solution evaluates the Jacobian once per converged step
+    /// instead of twice.
     pub fn ik_from(
         &self,
         target: &Frame,
-        seed: &IkState,
+        state: &mut IkState,
         options: &IkOptions,
-    ) -> Result<IkState, IkError> {
-        if seed.q.iter().any(|v| !v.is_finite())
+    ) -> Result<(), IkError> {
+        if state.q.iter().any(|v| !v.is_finite())
             || target.translation.iter().any(|v| !v.is_finite())
             || target.rotation.iter().any(|v| !v.is_finite())
         {
             return Err(IkError::NonFinite);
         }
-        let mut state = seed.clone();
         let lambda2 = options.damping * options.damping;
         let mut position_error = f64::INFINITY;
         let mut orientation_error = f64::INFINITY;
@@ -470,7 +471,7 @@ impl Panda {
             if position_error <= options.position_tolerance
                 && orientation_error <= options.orientation_tolerance
             {
-                return Ok(state);
+                return Ok(());
             }
             if iteration == options.max_iterations {
                 break;
