@@ -256,7 +256,7 @@ pub struct EpochMetrics {
     pub epoch: usize,
     /// Mean training loss.
     pub train_loss: f64,
-    /// Validation loss (fixed batches).
+    /// Validation loss (fixed batches; for batch-all, the mean over all valid triplets).
     pub val_loss: f64,
     /// Validation 5-way-1-shot accuracy (fixed episodes).
     pub val_acc_5way1shot: f64,
@@ -744,8 +744,15 @@ pub fn train(
         let mut dummy = StdRng::seed_from_u64(0);
         for (idx, labels) in &val_batches {
             let x = val_set.batch(idx, None)?;
-            let (l, _, _) = batch_loss(&net, &x, labels, cfg.loss, cfg.margin, &mut dummy)?;
-            val_loss += f64::from(l.to_scalar::<f32>()?);
+            let (l, active, _) = batch_loss(&net, &x, labels, cfg.loss, cfg.margin, &mut dummy)?;
+            let l = f64::from(l.to_scalar::<f32>()?);
+            // Batch-all trains on the mean over active triplets, which stays flat as fewer
+            // triplets stay active; validate on the mean over all valid triplets instead.
+            val_loss += if cfg.loss == LossKind::BatchAll {
+                l * f64::from(active)
+            } else {
+                l
+            };
         }
         val_loss /= val_batches.len() as f64;
         let embs = embed_all(&net, &val_set)?;
