@@ -558,8 +558,9 @@ impl AdamW {
             let upd = ((&m * c1)? / ((&v * c2)?.sqrt()? + eps)?)?;
             let next = ((theta.as_tensor() * (1.0 - lr * self.weight_decay))? - (upd * lr)?)?;
             theta.set(&next)?;
-            self.m[i] = m;
-            self.v[i] = v;
+            // Detach: the moments must not keep the autograd history of every step alive.
+            self.m[i] = m.detach();
+            self.v[i] = v.detach();
         }
         Ok(())
     }

@@ -544,6 +544,25 @@ mod tests {
     }
 
     #[test]
+    fn reverse_averaging_makes_drawing_direction_irrelevant() {
+        let mut e = Embedder::random(3);
+        let x = sample(0.3);
+        let mut rev = x;
+        rev.reverse();
+        let plain = e.embed_batch(&[x, rev]).unwrap();
+        assert!(sq_dist(&plain[0], &plain[1]) > 1e-6);
+        e.set_reverse_average(true);
+        let version = e.version().to_string();
+        let avg = e.embed_batch(&[x, rev]).unwrap();
+        assert!(sq_dist(&avg[0], &avg[1]) < 1e-8);
+        assert_eq!(e.version(), version);
+        // The option survives a save/load round trip.
+        let back = Embedder::from_bytes(&e.to_bytes().unwrap()).unwrap();
+        assert!(back.config().reverse_average);
+        assert_eq!(back.embed(&x).unwrap(), avg[0]);
+    }
+
+    #[test]
     fn corrupt_files_are_refused() {
         let e = Embedder::random(1);
         let bytes = e.to_bytes().unwrap();
