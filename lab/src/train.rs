@@ -48,6 +48,8 @@ pub enum FeatureArg {
     Pen,
     /// Scaled joint angles (the paper's input).
     Joints,
+    /// Pen-down strokes only, resampled (travel between strokes dropped).
+    PenStrokes,
 }
 
 impl From<FeatureArg> for FeatureKind {
@@ -55,6 +57,7 @@ impl From<FeatureArg> for FeatureKind {
         match f {
             FeatureArg::Pen => FeatureKind::Pen,
             FeatureArg::Joints => FeatureKind::Joints,
+            FeatureArg::PenStrokes => FeatureKind::PenStrokes,
         }
     }
 }
@@ -337,7 +340,7 @@ impl Prepared {
             raw.push(data.trajectories[i]);
             labels.push(c as u32);
         }
-        let pen = if kind == FeatureKind::Pen {
+        let pen = if kind != FeatureKind::Joints {
             raw.iter().map(features::pen_path).collect()
         } else {
             Vec::new()
@@ -375,15 +378,14 @@ impl Prepared {
         let c = self.kind.channels();
         let mut buf = vec![0.0f32; idx.len() * STEPS * c];
         for (&i, out) in idx.iter().zip(buf.chunks_exact_mut(STEPS * c)) {
-            match self.kind {
-                FeatureKind::Pen => {
-                    let aug = match rng.as_deref_mut() {
-                        Some(r) => random_augment(r),
-                        None => Augment::default(),
-                    };
-                    features::pen_features(&self.pen[i], &aug, out);
-                }
-                _ => features::compute(self.kind, &self.raw[i], out),
+            if self.kind == FeatureKind::Joints {
+                features::compute(self.kind, &self.raw[i], out);
+            } else {
+                let aug = match rng.as_deref_mut() {
+                    Some(r) => random_augment(r),
+                    None => Augment::default(),
+                };
+                features::path_features(self.kind, &self.pen[i], &aug, out);
             }
         }
         Tensor::from_vec(buf, (idx.len(), STEPS, c), &Device::Cpu)

@@ -398,7 +398,7 @@ impl Embedder {
         }
         let kind = self.net.config().features;
         let c = kind.channels();
-        let both = self.net.config().reverse_average && kind == FeatureKind::Pen;
+        let both = self.net.config().reverse_average && kind != FeatureKind::Joints;
         let copies = if both { 2 } else { 1 };
         let mut feats = vec![0.0f32; copies * xs.len() * STEPS * c];
         if both {
@@ -409,8 +409,8 @@ impl Embedder {
             for (x, out) in xs.iter().zip(feats.chunks_exact_mut(2 * STEPS * c)) {
                 let path = crate::features::pen_path(x);
                 let (fwd, bwd) = out.split_at_mut(STEPS * c);
-                crate::features::pen_features(&path, &Augment::default(), fwd);
-                crate::features::pen_features(&path, &reverse, bwd);
+                crate::features::path_features(kind, &path, &Augment::default(), fwd);
+                crate::features::path_features(kind, &path, &reverse, bwd);
             }
         } else {
             for (x, out) in xs.iter().zip(feats.chunks_exact_mut(STEPS * c)) {
