@@ -348,6 +348,9 @@ pub struct Args {
     /// Force test-time reverse averaging on (see `NetConfig::reverse_average`).
     #[arg(long)]
     pub reverse_average: bool,
+    /// Force test-time reverse averaging off.
+    #[arg(long, conflicts_with = "reverse_average")]
+    pub no_reverse_average: bool,
     /// Print one JSON object (otherwise a short text summary).
     #[arg(long)]
     pub json: bool,
@@ -439,10 +442,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         (None, None) => anyhow::bail!("--model is required unless --baseline random|knn"),
         (Some(_), _) => None,
     };
-    if args.reverse_average {
-        if let Some(m) = model.as_mut() {
-            m.set_reverse_average(true);
-        }
+    if let Some(m) = model
+        .as_mut()
+        .filter(|_| args.reverse_average || args.no_reverse_average)
+    {
+        m.set_reverse_average(args.reverse_average);
     }
     let spec = EpisodeSpec {
         way: args.way,
