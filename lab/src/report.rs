@@ -195,10 +195,16 @@ fn prf_plot(path: &Path, names: &[String], prf: &[(f64, f64, f64)]) -> anyhow::R
         .map_err(draw_err)?;
     chart
         .configure_mesh()
-        .x_labels(n)
+        .x_labels(4 * n)
         .x_label_formatter(&|x| {
-            let i = x.floor() as usize;
-            names.get(i).map(|s| short(s)).unwrap_or_default()
+            // One label per class, at the left edge of its group of bars.
+            if (x - x.round()).abs() > 1e-6 {
+                return String::new();
+            }
+            names
+                .get(x.round() as usize)
+                .map(|s| short(s))
+                .unwrap_or_default()
         })
         .disable_x_mesh()
         .draw()
