@@ -119,6 +119,10 @@ pub fn load_bank(
     Ok((bank, source))
 }
 
+/// How long the latency percentiles reported with every response may be stale (sorting
+/// the window on every request cost more than a check itself).
+const LATENCY_REFRESH: Duration = Duration::from_secs(1);
+
 /// Service times of the most recent requests.
 #[derive(Debug, Default)]
 struct Latencies(VecDeque<f32>);
@@ -162,6 +166,8 @@ pub struct Screen {
     started: Instant,
     counters: Counters,
     latencies: Latencies,
+    /// Percentiles of `latencies` and when they were computed.
+    latency_summary: ([f32; 4], Option<Instant>),
     /// Embedding of the check being handled, computed beforehand in a batch.
     batched: Option<Vec<f32>>,
 }
@@ -182,6 +188,7 @@ impl Screen {
             started: Instant::now(),
             counters: Counters::default(),
             latencies: Latencies::default(),
+            latency_summary: ([f32::NAN; 4], None),
             batched: None,
         }
     }
@@ -311,6 +318,14 @@ impl Screen {
         } else if r.verdict == VerdictCode::NoGo as u32 {
             self.counters.no_go += 1;
         }
+        // Status answers fresh percentiles; other responses carry ones at most a second old.
+        let stale = self
+            .latency_summary
+            .1
+            .is_none_or(|at| at.elapsed() >= LATENCY_REFRESH);
+        if stale || Op::from_u32(h.op) == Some(Op::Status) {
+            self.latency_summary = (self.latencies.percentiles(), Some(Instant::now()));
+        }
         self.fill_common(&mut r);
         (r, entries)
     }
@@ -324,7 +339,7 @@ impl Screen {
         r.errors = self.counters.errors;
         r.go = self.counters.go;
         r.no_go = self.counters.no_go;
-        let [p50, p90, p99, max] = self.latencies.percentiles();
+        let [p50, p90, p99, max] = self.latency_summary.0;
         r.latency_p50_us = p50;
         r.latency_p90_us = p90;
         r.latency_p99_us = p99;
