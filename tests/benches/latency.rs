@@ -315,6 +315,14 @@ impl Daemon {
     }
 }
 
+/// The daemon's own p50, p90, p99, max service time (us) of its recent requests.
+fn service_times(client: &Client) -> Result<[f32; 4]> {
+    let s = client
+        .status()
+        .map_err(|e| anyhow::anyhow!("status: {e}"))?;
+    Ok(s.latency_us.unwrap_or([f32::NAN; 4]))
+}
+
 fn check_ok(client: &Client, t: &Trajectory, class: &str) -> Result<Verdict> {
     client
         .check(t, class)
@@ -690,6 +698,7 @@ fn run(o: Opts) -> Result<()> {
         checks.len()
     );
     let rt_event = round_trips(&client, &checks, 200, n_rt)?;
+    let served_event = service_times(&client)?;
     let mut tput = Vec::new();
     for clients in [1, 4, 16] {
         tput.push(throughput(&dep, &checks, clients, 16, run_for)?);
@@ -709,6 +718,7 @@ fn run(o: Opts) -> Result<()> {
     // The planner polls for its answer too instead of sleeping on the notification.
     client.set_spin(Duration::from_millis(5));
     let rt_busy_spin = round_trips(&client, &checks, 200, n_rt)?;
+    let served_busy = service_times(&client)?;
     drop(client);
     daemon.stop()?;
 
@@ -759,6 +769,11 @@ fn run(o: Opts) -> Result<()> {
         print_row(name, s);
     }
     println!();
+    println!(
+        "guardiand's own service time per request (last 4096, from its status): \
+         event p50 {:.1} / p99 {:.1} us, busy-poll p50 {:.1} / p99 {:.1} us",
+        served_event[0], served_event[2], served_busy[0], served_busy[2]
+    );
     println!(
         "compute floor: {:.2} MFLOP per check / {:.1} GFLOP/s (gemm {m}x{n}x{kk}, 1 thread, \
          median; best {:.1}) = {:.1} us",
