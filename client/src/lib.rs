@@ -388,6 +388,7 @@ pub struct Client {
     notifier: iceoryx2::port::notifier::Notifier<ipc::Service>,
     listener: iceoryx2::port::listener::Listener<ipc::Service>,
     timeout: Duration,
+    spin: Duration,
     next_id: Cell<u64>,
     // Declared last: ports must drop before their node.
     _node: Node<ipc::Service>,
@@ -482,6 +483,7 @@ impl Client {
             notifier,
             listener,
             timeout: config.timeout,
+            spin: Duration::ZERO,
             next_id: Cell::new(seed | 1),
             _node: node,
         })
@@ -490,6 +492,14 @@ impl Client {
     /// The per-request timeout.
     pub fn timeout(&self) -> Duration {
         self.timeout
+    }
+
+    /// Poll for the response without sleeping for up to `spin` after each request, before
+    /// waiting on the daemon's notification (default: zero, sleep at once). Pairs with a
+    /// daemon in `busy-poll` mode when the planner can spare a core: it saves the wake-up
+    /// of the planner thread (see `docs/performance.md`).
+    pub fn set_spin(&mut self, spin: Duration) {
+        self.spin = spin;
     }
 
     /// Send one request and wait for the response with the same id.
@@ -517,6 +527,7 @@ impl Client {
         self.notifier
             .notify()
             .map_err(transport("notify guardiand"))?;
+        let spin_until = Instant::now() + self.spin;
         loop {
             while let Some(response) = pending.receive().map_err(transport("receive response"))? {
                 let h = *response.user_header();
@@ -545,6 +556,10 @@ impl Client {
                 return Err(CheckError::Timeout {
                     after: self.timeout,
                 });
+            }
+            if now < spin_until {
+                std::hint::spin_loop();
+                continue;
             }
             let wait = (deadline - now).min(Duration::from_millis(5));
             match self.listener.timed_wait(|_| {}, wait) {

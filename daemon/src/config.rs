@@ -76,6 +76,9 @@ pub struct Config {
     pub watchdog: bool,
     /// Largest number of concurrent client ports the service admits.
     pub max_clients: usize,
+    /// Micro-batching: when several checks are queued, up to this many are embedded in one
+    /// forward pass (1 = one at a time). Never waits for a batch to fill.
+    pub max_batch: usize,
     /// iceoryx2 isolation settings.
     pub iceoryx2: Iceoryx2Config,
 }
@@ -94,6 +97,7 @@ impl Default for Config {
             tick_ms: 100,
             watchdog: true,
             max_clients: 64,
+            max_batch: 16,
             iceoryx2: Iceoryx2Config::default(),
         }
     }
@@ -199,6 +203,9 @@ impl Config {
         }
         if self.max_clients == 0 {
             return Err("max-clients must be at least 1".into());
+        }
+        if self.max_batch == 0 {
+            return Err("max-batch must be at least 1".into());
         }
         if let Some(t) = self.default_threshold
             && !(t.is_finite() && t >= 0.0)

@@ -3,8 +3,8 @@
 
 use std::path::Path;
 
-use guardian_models::embedder::{EMBED_DIM, Embedder, LoadModelError};
-use guardian_shared::trajectory::{InvalidTrajectory, Waypoint};
+use guardian_models::embedder::{EMBED_DIM, Embedder, Embedding, LoadModelError};
+use guardian_shared::trajectory::{InvalidTrajectory, Resampled, Waypoint};
 
 /// Why a trajectory could not be embedded.
 #[derive(Debug)]
@@ -42,6 +42,11 @@ impl Engine {
     /// Embedding length.
     pub fn dim(&self) -> usize {
         EMBED_DIM
+    }
+
+    /// Embed already preprocessed trajectories in one forward pass (micro-batching).
+    pub fn embed_resampled(&self, xs: &[Resampled]) -> Result<Vec<Embedding>, String> {
+        self.embedder.embed_batch(xs).map_err(|e| e.to_string())
     }
 
     /// Validate, resample and embed raw waypoints.

@@ -119,6 +119,10 @@ pub fn load_bank(
     Ok((bank, source))
 }
 
+/// How long the latency percentiles reported with every response may be stale (sorting
+/// the window on every request cost more than a check itself).
+const LATENCY_REFRESH: Duration = Duration::from_secs(1);
+
 /// Service times of the most recent requests.
 #[derive(Debug, Default)]
 struct Latencies(VecDeque<f32>);
@@ -162,6 +166,10 @@ pub struct Screen {
     started: Instant,
     counters: Counters,
     latencies: Latencies,
+    /// Percentiles of `latencies` and when they were computed.
+    latency_summary: ([f32; 4], Option<Instant>),
+    /// Embedding of the check being handled, computed beforehand in a batch.
+    batched: Option<Vec<f32>>,
 }
 
 enum Fail {
@@ -180,6 +188,8 @@ impl Screen {
             started: Instant::now(),
             counters: Counters::default(),
             latencies: Latencies::default(),
+            latency_summary: ([f32::NAN; 4], None),
+            batched: None,
         }
     }
 
@@ -216,6 +226,48 @@ impl Screen {
             self.bank.generation(),
             self.engine.version()
         )
+    }
+
+    /// Answer several queued requests. Checks whose trajectory is valid are embedded in one
+    /// forward pass first; every request is then answered exactly as by [`Screen::handle`]
+    /// (a failed batch falls back to one-by-one embedding, so errors are reported per
+    /// request, never turned into a verdict).
+    pub fn handle_batch(
+        &mut self,
+        items: &[(RequestHeader, &[f32])],
+    ) -> Vec<(ResponseHeader, Vec<ClassEntry>)> {
+        let mut embedded: Vec<Option<Vec<f32>>> = vec![None; items.len()];
+        let mut which = Vec::new();
+        let mut xs = Vec::new();
+        for (i, (h, payload)) in items.iter().enumerate() {
+            if Op::from_u32(h.op) != Some(Op::Check) {
+                continue;
+            }
+            if let Ok(Ok(mut t)) = Self::trajectories(h, payload, 1)
+                && let Some(t) = t.pop()
+                && let Ok(x) = guardian_models::preprocess::preprocess(&t)
+            {
+                which.push(i);
+                xs.push(x);
+            }
+        }
+        if xs.len() >= 2
+            && let Ok(es) = self.engine.embed_resampled(&xs)
+        {
+            for (i, e) in which.into_iter().zip(es) {
+                embedded[i] = Some(e.to_vec());
+            }
+        }
+        items
+            .iter()
+            .zip(embedded)
+            .map(|((h, payload), e)| {
+                self.batched = e;
+                let answer = self.handle(h, payload);
+                self.batched = None;
+                answer
+            })
+            .collect()
     }
 
     /// Answer one request. Never panics on input; errors become error statuses.
@@ -266,6 +318,14 @@ impl Screen {
         } else if r.verdict == VerdictCode::NoGo as u32 {
             self.counters.no_go += 1;
         }
+        // Status answers fresh percentiles; other responses carry ones at most a second old.
+        let stale = self
+            .latency_summary
+            .1
+            .is_none_or(|at| at.elapsed() >= LATENCY_REFRESH);
+        if stale || Op::from_u32(h.op) == Some(Op::Status) {
+            self.latency_summary = (self.latencies.percentiles(), Some(Instant::now()));
+        }
         self.fill_common(&mut r);
         (r, entries)
     }
@@ -279,7 +339,7 @@ impl Screen {
         r.errors = self.counters.errors;
         r.go = self.counters.go;
         r.no_go = self.counters.no_go;
-        let [p50, p90, p99, max] = self.latencies.percentiles();
+        let [p50, p90, p99, max] = self.latency_summary.0;
         r.latency_p50_us = p50;
         r.latency_p90_us = p90;
         r.latency_p99_us = p99;
@@ -369,7 +429,8 @@ impl Screen {
             Err(other) => return Err(other),
         };
         let t = t.pop().unwrap_or_default();
-        let e = match self.embed(&t) {
+        let pre = self.batched.take().map(Ok);
+        let e = match pre.unwrap_or_else(|| self.embed(&t)) {
             Ok(e) => e,
             Err(Fail::Invalid(inv, _)) => {
                 r.verdict = VerdictCode::NoGo as u32;
@@ -487,5 +548,69 @@ impl Screen {
             examples: class.map_or(0, |c| u32::try_from(c.embeddings.len()).unwrap_or(u32::MAX)),
             calibrated: u32::from(class.is_some_and(|c| c.threshold.is_some())),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use guardian_client::samples::task;
+    use guardian_models::embedder::Embedder;
+    use guardian_shared::wire::encode_class_name;
+
+    fn request(op: Op, class: &str, t: &[Waypoint]) -> (RequestHeader, Vec<f32>) {
+        let mut h = RequestHeader::new(7, op);
+        h.channels = 8;
+        h.examples = 1;
+        h.waypoints[0] = t.len() as u32;
+        h.class_name = encode_class_name(class).unwrap();
+        (h, t.iter().flatten().copied().collect())
+    }
+
+    /// A batch answers every request exactly as one-by-one handling does: valid checks,
+    /// an invalid trajectory, an unknown class and a non-check op mixed together.
+    #[test]
+    fn batched_checks_answer_like_single_ones() {
+        let dir = tempfile::tempdir().unwrap();
+        let engine = Engine::from_embedder(Embedder::random(3));
+        let mut bank = ClassBank::new(engine.dim(), engine.version(), 0.8);
+        for c in 0..3 {
+            let es: Vec<Vec<f32>> = (0..4).map(|d| engine.embed(&task(c, d)).unwrap()).collect();
+            bank.enroll(&format!("task{c}"), &es).unwrap();
+        }
+        let mut screen = Screen::new(engine, bank, dir.path().join("bank.gcb"), 3);
+        let mut bad = task(1, 9);
+        bad[5][0] = 99.0;
+        let reqs = [
+            request(Op::Check, "task0", &task(0, 9)),
+            request(Op::Check, "task1", &task(2, 9)),
+            request(Op::Check, "task1", &bad),
+            request(Op::Identify, "any", &task(1, 8)),
+            request(Op::Check, "nope", &task(2, 8)),
+            request(Op::Check, "task2", &task(2, 10)),
+        ];
+        let items: Vec<(RequestHeader, &[f32])> =
+            reqs.iter().map(|(h, p)| (*h, p.as_slice())).collect();
+        let batched = screen.handle_batch(&items);
+        assert_eq!(batched.len(), reqs.len());
+        let mut go = 0;
+        for ((h, p), (rb, eb)) in reqs.iter().zip(&batched) {
+            let (r1, e1) = screen.handle(h, p);
+            assert_eq!(
+                (rb.status, rb.verdict, rb.reason),
+                (r1.status, r1.verdict, r1.reason)
+            );
+            go += usize::from(rb.verdict == VerdictCode::Go as u32);
+            let close = |a: f32, b: f32| (a.is_nan() && b.is_nan()) || (a - b).abs() <= 1e-5;
+            assert!(close(rb.claimed_distance, r1.claimed_distance));
+            assert_eq!(eb.len(), e1.len());
+            for (a, b) in eb.iter().zip(&e1) {
+                assert_eq!(a.name, b.name);
+                assert!(close(a.distance, b.distance));
+            }
+        }
+        assert!(go >= 1, "some checks should pass");
+        assert_eq!(batched[2].0.reason, ReasonCode::InvalidTrajectory as u32);
+        assert_eq!(batched[4].0.reason, ReasonCode::UnknownClass as u32);
     }
 }

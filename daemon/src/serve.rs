@@ -81,6 +81,14 @@ pub fn iceoryx2_config(config: &Config) -> Result<iceoryx2::config::Config, RunE
 /// How often the serving loop reclaims resources of dead planner processes.
 const DEAD_NODE_CLEANUP: Duration = Duration::from_secs(30);
 
+type ActiveRequest = iceoryx2::active_request::ActiveRequest<
+    ipc::Service,
+    [f32],
+    RequestHeader,
+    [ClassEntry],
+    ResponseHeader,
+>;
+
 type Rpc = RpcFactory<ipc::Service, [f32], RequestHeader, [ClassEntry], ResponseHeader>;
 
 /// Load model and bank, open the services and serve until `control.shutdown` is set.
@@ -190,7 +198,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
 
     loop {
         // Answer everything queued first, so that a stop answers in-flight requests.
-        let served = drain(&server, &notifier, &mut screen)?;
+        let served = drain(&server, &notifier, &mut screen, config.max_batch)?;
         if served > 0 {
             last_request = Instant::now();
         }
@@ -245,7 +253,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
 
     sd.stopping();
     tracing::info!("stopping: answering queued requests and flushing state");
-    let _ = drain(&server, &notifier, &mut screen)?;
+    let _ = drain(&server, &notifier, &mut screen, config.max_batch)?;
     screen.flush()?;
     tracing::info!("stopped");
     Ok(())
@@ -270,7 +278,8 @@ fn reload(config: &Config, screen: &mut Screen, sd: &SdNotify) {
     sd.status(&screen.summary());
 }
 
-/// Answer every queued request; returns how many.
+/// Answer every queued request, taking up to `max_batch` at a time so that queued checks
+/// are embedded in one forward pass; returns how many.
 fn drain(
     server: &iceoryx2::port::server::Server<
         ipc::Service,
@@ -281,49 +290,70 @@ fn drain(
     >,
     notifier: &iceoryx2::port::notifier::Notifier<ipc::Service>,
     screen: &mut Screen,
+    max_batch: usize,
 ) -> Result<usize, RunError> {
     let mut n = 0;
+    let mut batch: Vec<ActiveRequest> = Vec::new();
     loop {
-        let request = match server.receive() {
-            Ok(Some(r)) => r,
-            Ok(None) => break,
-            Err(e) => {
-                tracing::warn!(error = ?e, "receiving a request failed");
-                break;
-            }
-        };
-        let start = Instant::now();
-        let header = *request.user_header();
-        let span = tracing::debug_span!("request", id = header.request_id, op = header.op);
-        let _enter = span.enter();
-        let (response, entries) = screen.handle(&header, request.payload());
-        let sent = request
-            .loan_slice_uninit(entries.len())
-            .map(|mut r| {
-                *r.user_header_mut() = response;
-                r.write_from_slice(&entries)
-            })
-            .map_err(|e| format!("{e:?}"))
-            .and_then(|r| r.send().map_err(|e| format!("{e:?}")));
-        drop(request);
-        match sent {
-            Ok(()) => {
-                if let Err(e) = notifier.notify() {
-                    tracing::warn!(error = ?e, "cannot notify clients");
+        while batch.len() < max_batch {
+            match server.receive() {
+                Ok(Some(r)) => batch.push(r),
+                Ok(None) => break,
+                Err(e) => {
+                    tracing::warn!(error = ?e, "receiving a request failed");
+                    break;
                 }
             }
-            Err(e) => tracing::warn!(error = %e, "cannot send response (client gone?)"),
         }
-        let elapsed = start.elapsed();
-        screen.record_latency(elapsed);
-        tracing::debug!(
-            status = response.status,
-            verdict = response.verdict,
-            reason = response.reason,
-            micros = elapsed.as_micros() as u64,
-            "answered"
-        );
-        n += 1;
+        if batch.is_empty() {
+            break;
+        }
+        let start = Instant::now();
+        let answers = if batch.len() == 1 {
+            let r = &batch[0];
+            vec![screen.handle(r.user_header(), r.payload())]
+        } else {
+            let items: Vec<(RequestHeader, &[f32])> = batch
+                .iter()
+                .map(|r| (*r.user_header(), r.payload()))
+                .collect();
+            screen.handle_batch(&items)
+        };
+        let size = batch.len();
+        let mut any_sent = false;
+        for (request, (response, entries)) in batch.drain(..).zip(answers) {
+            let header = *request.user_header();
+            let span = tracing::debug_span!("request", id = header.request_id, op = header.op);
+            let _enter = span.enter();
+            let sent = request
+                .loan_slice_uninit(entries.len())
+                .map(|mut r| {
+                    *r.user_header_mut() = response;
+                    r.write_from_slice(&entries)
+                })
+                .map_err(|e| format!("{e:?}"))
+                .and_then(|r| r.send().map_err(|e| format!("{e:?}")));
+            drop(request);
+            match sent {
+                Ok(()) => any_sent = true,
+                Err(e) => tracing::warn!(error = %e, "cannot send response (client gone?)"),
+            }
+            let elapsed = start.elapsed();
+            screen.record_latency(elapsed);
+            tracing::debug!(
+                status = response.status,
+                verdict = response.verdict,
+                reason = response.reason,
+                batch = size,
+                micros = elapsed.as_micros() as u64,
+                "answered"
+            );
+            n += 1;
+        }
+        // One notification wakes every waiting client; each picks up its own response.
+        if any_sent && let Err(e) = notifier.notify() {
+            tracing::warn!(error = ?e, "cannot notify clients");
+        }
     }
     Ok(n)
 }

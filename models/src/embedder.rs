@@ -6,15 +6,18 @@
 //! name, shape, little-endian bytes). [`Embedder::load`] refuses a file whose format,
 //! shapes or checksum do not match.
 
+use std::cell::RefCell;
 use std::collections::HashMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use candle_core::{DType, Device, Tensor};
 use guardian_shared::trajectory::{CHANNELS, Resampled, STEPS};
 use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 use sha2::{Digest, Sha256};
 
+use crate::fast::{FastNet, FastNetError, Scratch};
 use crate::features::{Augment, FeatureKind};
 use crate::net::{Net, NetConfig};
 
@@ -98,6 +101,9 @@ pub enum LoadModelError {
     /// Building the network failed.
     #[error("building the network: {0}")]
     Candle(#[from] candle_core::Error),
+    /// Building the fast path failed.
+    #[error("building the fast path: {0}")]
+    Fast(#[from] FastNetError),
 }
 
 /// Saving a model file failed.
@@ -133,6 +139,17 @@ pub enum EmbedError {
         /// Index of the input in the batch.
         index: usize,
     },
+    /// The fast path refused the input or its buffers.
+    #[error("fast forward pass: {0}")]
+    Fast(#[from] FastNetError),
+    /// `out` does not have one slot per input.
+    #[error("output has {got} slots for {expected} inputs")]
+    OutputLength {
+        /// Inputs given.
+        expected: usize,
+        /// Output slots given.
+        got: usize,
+    },
     /// The network produced a non-finite embedding.
     #[error("embedding {index} is non-finite")]
     NonFiniteOutput {
@@ -145,6 +162,7 @@ pub enum EmbedError {
 #[derive(Debug, Clone)]
 pub struct Embedder {
     net: Net,
+    fast: Arc<FastNet>,
     version: String,
     checksum: String,
 }
@@ -258,7 +276,7 @@ impl Embedder {
             }
             tensors.push(Tensor::from_vec(data, shape, &Device::Cpu)?);
         }
-        Ok(Self::from_net(Net::new(config, tensors)?, got_sum))
+        Self::from_net(Net::new(config, tensors)?, got_sum)
     }
 
     /// A network with deterministic random weights (the default architecture) for tests.
@@ -306,15 +324,16 @@ impl Embedder {
             .into_iter()
             .map(|(_, shape, data)| Tensor::from_vec(data, shape, &Device::Cpu))
             .collect::<candle_core::Result<Vec<_>>>()?;
-        Ok(Self::from_net(Net::new(config, tensors)?, sum))
+        Self::from_net(Net::new(config, tensors)?, sum)
     }
 
-    fn from_net(net: Net, checksum: String) -> Self {
-        Self {
+    fn from_net(net: Net, checksum: String) -> Result<Self, LoadModelError> {
+        Ok(Self {
+            fast: Arc::new(FastNet::from_net(&net)?),
             net,
             version: checksum[..16].to_string(),
             checksum,
-        }
+        })
     }
 
     /// Write the model atomically: a temporary file beside `path`, fsync, rename.
@@ -380,27 +399,96 @@ impl Embedder {
             .map_err(|e| SaveModelError::Serialize(e.to_string()))
     }
 
-    /// Embed one resampled trajectory.
+    /// Embed one resampled trajectory (fast path, see [`crate::fast`]).
     pub fn embed(&self, x: &Resampled) -> Result<Embedding, EmbedError> {
-        let mut v = self.embed_batch(std::slice::from_ref(x))?;
-        Ok(v.pop().unwrap_or([0.0; EMBED_DIM]))
+        let mut out = [[0.0f32; EMBED_DIM]];
+        self.embed_into(std::slice::from_ref(x), &mut out)?;
+        Ok(out[0])
     }
 
-    /// Embed a batch of resampled trajectories.
+    /// Embed a batch of resampled trajectories (fast path, see [`crate::fast`]).
     pub fn embed_batch(&self, xs: &[Resampled]) -> Result<Vec<Embedding>, EmbedError> {
-        if xs.is_empty() {
-            return Ok(Vec::new());
+        let mut out = vec![[0.0f32; EMBED_DIM]; xs.len()];
+        self.embed_into(xs, &mut out)?;
+        Ok(out)
+    }
+
+    /// Embed `xs` into `out` (same length) with the fast path, using per-thread scratch
+    /// buffers: after the first call with the largest batch, no allocation.
+    pub fn embed_into(&self, xs: &[Resampled], out: &mut [Embedding]) -> Result<(), EmbedError> {
+        if out.len() != xs.len() {
+            return Err(EmbedError::OutputLength {
+                expected: xs.len(),
+                got: out.len(),
+            });
         }
-        for (index, x) in xs.iter().enumerate() {
-            if x.iter().flatten().any(|v| !v.is_finite()) {
-                return Err(EmbedError::NonFinite { index });
+        if xs.is_empty() {
+            return Ok(());
+        }
+        check_finite(xs)?;
+        SCRATCH.with(|cell| match cell.try_borrow_mut() {
+            Ok(mut s) => self.embed_fast(xs, out, &mut s),
+            // Re-entered on this thread (cannot happen today): use a fresh scratch.
+            Err(_) => self.embed_fast(xs, out, &mut EmbedScratch::default()),
+        })
+    }
+
+    fn embed_fast(
+        &self,
+        xs: &[Resampled],
+        out: &mut [Embedding],
+        s: &mut EmbedScratch,
+    ) -> Result<(), EmbedError> {
+        let copies = self.features_into(xs, &mut s.feats);
+        let rows = copies * xs.len();
+        let raw = if s.raw.len() < rows * EMBED_DIM {
+            s.raw.resize(rows * EMBED_DIM, 0.0);
+            &mut s.raw[..]
+        } else {
+            &mut s.raw[..rows * EMBED_DIM]
+        };
+        let c = self.net.config().features.channels();
+        self.fast
+            .forward(&s.feats[..rows * STEPS * c], rows, STEPS, &mut s.net, raw)?;
+        for (index, (o, r)) in out
+            .iter_mut()
+            .zip(raw.chunks_exact(copies * EMBED_DIM))
+            .enumerate()
+        {
+            if copies == 2 {
+                let (a, b) = r.split_at(EMBED_DIM);
+                for ((v, x), y) in o.iter_mut().zip(a).zip(b) {
+                    *v = (x + y) / 2.0;
+                }
+                if self.net.config().l2_normalize {
+                    let norm = (o.iter().map(|v| v * v).sum::<f32>() + 1e-12).sqrt();
+                    for v in o.iter_mut() {
+                        *v /= norm;
+                    }
+                }
+            } else {
+                o.copy_from_slice(r);
+            }
+            if o.iter().any(|v| !v.is_finite()) {
+                return Err(EmbedError::NonFiniteOutput { index });
             }
         }
+        Ok(())
+    }
+
+    /// Write the network input for `xs` into `feats` (grown as needed): per trajectory one
+    /// feature sequence, or two (forwards, then time-reversed) with reverse averaging.
+    /// Returns the number of sequences per trajectory.
+    fn features_into(&self, xs: &[Resampled], feats: &mut Vec<f32>) -> usize {
         let kind = self.net.config().features;
         let c = kind.channels();
         let both = self.net.config().reverse_average && kind != FeatureKind::Joints;
         let copies = if both { 2 } else { 1 };
-        let mut feats = vec![0.0f32; copies * xs.len() * STEPS * c];
+        let n = copies * xs.len() * STEPS * c;
+        if feats.len() < n {
+            feats.resize(n, 0.0);
+        }
+        let feats = &mut feats[..n];
         if both {
             let reverse = Augment {
                 reverse: true,
@@ -417,9 +505,22 @@ impl Embedder {
                 crate::features::compute(kind, x, out);
             }
         }
+        copies
+    }
+
+    /// Embed a batch with candle's forward pass — the reference the fast path is tested
+    /// against (and the path training uses).
+    pub fn embed_batch_reference(&self, xs: &[Resampled]) -> Result<Vec<Embedding>, EmbedError> {
+        if xs.is_empty() {
+            return Ok(Vec::new());
+        }
+        check_finite(xs)?;
+        let c = self.net.config().features.channels();
+        let mut feats = Vec::new();
+        let copies = self.features_into(xs, &mut feats);
         let input = Tensor::from_vec(feats, (copies * xs.len(), STEPS, c), &Device::Cpu)?;
         let mut e = self.net.forward(&input)?;
-        if both {
+        if copies == 2 {
             e = e.reshape((xs.len(), 2, EMBED_DIM))?.mean(1)?;
             if self.net.config().l2_normalize {
                 let norm = (e.sqr()?.sum_keepdim(1)? + 1e-12)?.sqrt()?;
@@ -437,6 +538,11 @@ impl Embedder {
             embs.push(e);
         }
         Ok(embs)
+    }
+
+    /// The fast-path network (same weights as [`Embedder::net`]).
+    pub fn fast(&self) -> &FastNet {
+        &self.fast
     }
 
     /// Stable id: the first 16 hex characters of the SHA-256 over the weights.
@@ -459,8 +565,11 @@ impl Embedder {
     pub fn set_reverse_average(&mut self, on: bool) {
         let mut config = self.net.config().clone();
         config.reverse_average = on;
-        if let Ok(net) = Net::new(config, self.net.params().to_vec()) {
+        if let Ok(net) = Net::new(config, self.net.params().to_vec())
+            && let Ok(fast) = FastNet::from_net(&net)
+        {
             self.net = net;
+            self.fast = Arc::new(fast);
         }
     }
 
@@ -468,6 +577,27 @@ impl Embedder {
     pub fn net(&self) -> &Net {
         &self.net
     }
+}
+
+fn check_finite(xs: &[Resampled]) -> Result<(), EmbedError> {
+    for (index, x) in xs.iter().enumerate() {
+        if x.iter().flatten().any(|v| !v.is_finite()) {
+            return Err(EmbedError::NonFinite { index });
+        }
+    }
+    Ok(())
+}
+
+/// Per-thread buffers of [`Embedder::embed_into`].
+#[derive(Debug, Default)]
+struct EmbedScratch {
+    feats: Vec<f32>,
+    raw: Vec<f32>,
+    net: Scratch,
+}
+
+thread_local! {
+    static SCRATCH: RefCell<EmbedScratch> = RefCell::new(EmbedScratch::default());
 }
 
 /// Squared Euclidean distance between two embeddings.

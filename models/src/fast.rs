@@ -1,0 +1,569 @@
+//! The inference fast path: the exact network of [`crate::net`] in plain Rust, with each
+//! convolution as im2col + one GEMM from the `gemm` crate (AVX-512 / AVX2 / SSE kernels
+//! chosen at run time, so the binary stays portable), ReLU fused into the pooling, and all
+//! intermediate buffers kept in a reusable [`Scratch`] (no allocation per call once the
+//! scratch has grown to the largest batch seen).
+//!
+//! candle stays the training and reference path: [`FastNet`] is built from a [`Net`]'s
+//! weights and a test checks both agree to 1e-5 relative error, on random inputs with random
+//! weights and with the shipped model.
+//!
+//! The one `unsafe` block in this crate is the call into `gemm::gemm`, which takes raw
+//! pointers; [`sgemm`] checks every slice length first. It is here because of a measured
+//! need: see `docs/performance.md`.
+
+use candle_core::DType;
+
+use crate::net::{Net, NetConfig};
+
+/// Building or running the fast path failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum FastNetError {
+    /// The configuration is not one the network supports.
+    #[error("unsupported network config: {0}")]
+    Config(String),
+    /// A parameter tensor has the wrong length.
+    #[error("parameter `{name}`: expected {expected} values, got {got}")]
+    ParamLength {
+        /// Parameter name.
+        name: String,
+        /// Expected number of values.
+        expected: usize,
+        /// Number given.
+        got: usize,
+    },
+    /// Reading the weights out of candle failed.
+    #[error("reading weights: {0}")]
+    Candle(#[from] candle_core::Error),
+    /// An input or output buffer does not match `batch`, the time length and the config.
+    #[error("{what}: expected {expected} values, got {got}")]
+    Shape {
+        /// Which buffer.
+        what: &'static str,
+        /// Expected length.
+        expected: usize,
+        /// Given length.
+        got: usize,
+    },
+    /// The time length is too short for the pooling layers.
+    #[error("time length {len} is too short for {pools} pooling layers")]
+    TooShort {
+        /// Time steps given.
+        len: usize,
+        /// Pooling layers of the network.
+        pools: usize,
+    },
+}
+
+/// One convolution layer: `w [k*c_in, c_out]` (row `j*c_in + c` = tap `j` of channel `c`).
+#[derive(Debug, Clone)]
+struct Conv {
+    c_in: usize,
+    c_out: usize,
+    w: Vec<f32>,
+    b: Vec<f32>,
+}
+
+/// The embedding network with its weights in plain `Vec<f32>`s.
+#[derive(Debug, Clone)]
+pub struct FastNet {
+    config: NetConfig,
+    kernel: usize,
+    convs: Vec<Conv>,
+    fc_w: Vec<f32>,
+    fc_b: Vec<f32>,
+}
+
+/// Reusable intermediate buffers. Grows to the largest batch seen, then never allocates.
+#[derive(Debug, Default, Clone)]
+pub struct Scratch {
+    cols: Vec<f32>,
+    act: Vec<f32>,
+    next: Vec<f32>,
+    pooled: Vec<f32>,
+}
+
+fn grow(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
+    if v.len() < n {
+        v.resize(n, 0.0);
+    }
+    &mut v[..n]
+}
+
+impl FastNet {
+    /// Copy the weights of a candle network.
+    pub fn from_net(net: &Net) -> Result<Self, FastNetError> {
+        let params = net
+            .params()
+            .iter()
+            .map(|t| t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>())
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        Self::from_params(net.config().clone(), params)
+    }
+
+    /// Build from flat parameters in [`NetConfig::param_shapes`] order.
+    pub fn from_params(config: NetConfig, params: Vec<Vec<f32>>) -> Result<Self, FastNetError> {
+        config.check().map_err(FastNetError::Config)?;
+        let shapes = config.param_shapes();
+        if shapes.len() != params.len() {
+            return Err(FastNetError::Config(format!(
+                "expected {} parameter tensors, got {}",
+                shapes.len(),
+                params.len()
+            )));
+        }
+        for ((name, shape), p) in shapes.iter().zip(&params) {
+            let expected: usize = shape.iter().product();
+            if p.len() != expected {
+                return Err(FastNetError::ParamLength {
+                    name: name.clone(),
+                    expected,
+                    got: p.len(),
+                });
+            }
+        }
+        let mut it = params.into_iter();
+        let mut convs = Vec::with_capacity(config.channels.len());
+        let mut c_in = config.in_channels();
+        for &c_out in &config.channels {
+            let (Some(w), Some(b)) = (it.next(), it.next()) else {
+                return Err(FastNetError::Config(
+                    "missing convolution parameters".into(),
+                ));
+            };
+            convs.push(Conv { c_in, c_out, w, b });
+            c_in = c_out;
+        }
+        let (Some(fc_w), Some(fc_b)) = (it.next(), it.next()) else {
+            return Err(FastNetError::Config("missing fc parameters".into()));
+        };
+        Ok(Self {
+            kernel: config.kernel,
+            config,
+            convs,
+            fc_w,
+            fc_b,
+        })
+    }
+
+    /// The architecture.
+    pub fn config(&self) -> &NetConfig {
+        &self.config
+    }
+
+    /// Floating-point operations (multiply and add counted separately) of one forward pass
+    /// of one sequence of `len` steps: convolutions and the output layer.
+    pub fn flops(&self, len: usize) -> u64 {
+        let mut l = len as u64;
+        let mut total = 0u64;
+        let n = self.convs.len();
+        for (i, c) in self.convs.iter().enumerate() {
+            total += 2 * l * (self.kernel * c.c_in) as u64 * c.c_out as u64;
+            if i + 1 < n {
+                l /= 2;
+            }
+        }
+        let last = self.convs.last().map_or(0, |c| c.c_out) as u64;
+        total + 2 * (2 * last) * self.config.embed_dim as u64
+    }
+
+    /// Embed `batch` feature sequences `x [batch, len, in_channels]` (row-major) into
+    /// `out [batch, embed_dim]`, exactly as [`Net::forward`] does.
+    pub fn forward(
+        &self,
+        x: &[f32],
+        batch: usize,
+        len: usize,
+        scratch: &mut Scratch,
+        out: &mut [f32],
+    ) -> Result<(), FastNetError> {
+        let f = self.config.in_channels();
+        let e = self.config.embed_dim;
+        if x.len() != batch * len * f {
+            return Err(FastNetError::Shape {
+                what: "input",
+                expected: batch * len * f,
+                got: x.len(),
+            });
+        }
+        if out.len() != batch * e {
+            return Err(FastNetError::Shape {
+                what: "output",
+                expected: batch * e,
+                got: out.len(),
+            });
+        }
+        let pools = self.convs.len() - 1;
+        if len >> pools == 0 {
+            return Err(FastNetError::TooShort { len, pools });
+        }
+        if batch == 0 {
+            return Ok(());
+        }
+        let k = self.kernel;
+        let pad = k / 2;
+        let Scratch {
+            cols,
+            act,
+            next,
+            pooled,
+        } = scratch;
+        let act_len = batch
+            * len
+            * self
+                .convs
+                .iter()
+                .map(|c| c.c_out.max(c.c_in))
+                .max()
+                .unwrap_or(0);
+        let act_buf = grow(act, act_len);
+        act_buf[..x.len()].copy_from_slice(x);
+        // `h` holds a layer's input (then its pooled output), `spare` its convolution output.
+        let h = act_buf;
+        let spare = grow(next, act_len);
+        let mut l = len;
+        let n_layers = self.convs.len();
+        for (i, conv) in self.convs.iter().enumerate() {
+            let (c, o) = (conv.c_in, conv.c_out);
+            let kc = k * c;
+            let rows = batch * l;
+            // im2col: row (b, t) holds taps t-pad..=t+pad of every channel, zero outside.
+            let colm = grow(cols, rows * kc);
+            for b in 0..batch {
+                let src = &h[b * l * c..(b + 1) * l * c];
+                for t in 0..l {
+                    let row = &mut colm[(b * l + t) * kc..(b * l + t + 1) * kc];
+                    for j in 0..k {
+                        let dst = &mut row[j * c..(j + 1) * c];
+                        let tt = t + j;
+                        if tt < pad || tt - pad >= l {
+                            dst.fill(0.0);
+                        } else {
+                            let s = tt - pad;
+                            dst.copy_from_slice(&src[s * c..(s + 1) * c]);
+                        }
+                    }
+                }
+            }
+            // y = bias + cols · W
+            let y = &mut spare[..rows * o];
+            for row in y.chunks_exact_mut(o) {
+                row.copy_from_slice(&conv.b);
+            }
+            sgemm(rows, o, kc, colm, &conv.w, y, true)?;
+            if i + 1 < n_layers {
+                // ReLU + max pool of 2 (a trailing odd step is dropped); relu(max) = max(relu).
+                let half = l / 2;
+                for b in 0..batch {
+                    for t in 0..half {
+                        let r0 = (b * l + 2 * t) * o;
+                        let r1 = r0 + o;
+                        let d = (b * half + t) * o;
+                        for ch in 0..o {
+                            h[d + ch] = y[r0 + ch].max(y[r1 + ch]).max(0.0);
+                        }
+                    }
+                }
+                l = half;
+            } else {
+                // ReLU, then mean and max over time, concatenated.
+                let p = grow(pooled, batch * 2 * o);
+                let inv = 1.0 / l as f32;
+                for b in 0..batch {
+                    let (mean, max) = p[b * 2 * o..(b + 1) * 2 * o].split_at_mut(o);
+                    mean.fill(0.0);
+                    max.fill(f32::NEG_INFINITY);
+                    for t in 0..l {
+                        let row = &y[(b * l + t) * o..(b * l + t + 1) * o];
+                        for ch in 0..o {
+                            let v = row[ch].max(0.0);
+                            mean[ch] += v;
+                            max[ch] = max[ch].max(v);
+                        }
+                    }
+                    for m in mean.iter_mut() {
+                        *m *= inv;
+                    }
+                }
+                for row in out.chunks_exact_mut(e) {
+                    row.copy_from_slice(&self.fc_b);
+                }
+                sgemm(batch, e, 2 * o, p, &self.fc_w, out, true)?;
+            }
+        }
+        if self.config.l2_normalize {
+            for row in out.chunks_exact_mut(e) {
+                let norm = (row.iter().map(|v| v * v).sum::<f32>() + 1e-12).sqrt();
+                for v in row.iter_mut() {
+                    *v /= norm;
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// `dst [m, n] (+)= a [m, k] · b [k, n]`, all row-major and contiguous; with `accumulate`
+/// the product is added to `dst`, otherwise it replaces it. Single-threaded (batch-1 serving
+/// is fastest on one core here).
+pub fn sgemm(
+    m: usize,
+    n: usize,
+    k: usize,
+    a: &[f32],
+    b: &[f32],
+    dst: &mut [f32],
+    accumulate: bool,
+) -> Result<(), FastNetError> {
+    let check = |what, expected: usize, got: usize| {
+        if got < expected {
+            Err(FastNetError::Shape {
+                what,
+                expected,
+                got,
+            })
+        } else {
+            Ok(())
+        }
+    };
+    check("gemm lhs", m * k, a.len())?;
+    check("gemm rhs", k * n, b.len())?;
+    check("gemm dst", m * n, dst.len())?;
+    if m == 0 || n == 0 {
+        return Ok(());
+    }
+    // SAFETY: `a` holds at least m*k values read with row stride k and column stride 1,
+    // `b` at least k*n with row stride n, `dst` at least m*n with row stride n (checked
+    // above); `dst` is borrowed mutably, so it aliases neither input. gemm neither keeps the
+    // pointers nor reads past those extents.
+    #[allow(unsafe_code)]
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            dst.as_mut_ptr(),
+            1,
+            n as isize,
+            accumulate,
+            a.as_ptr(),
+            1,
+            k as isize,
+            b.as_ptr(),
+            1,
+            n as isize,
+            1.0f32,
+            1.0f32,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::embedder::Embedder;
+    use crate::features::FeatureKind;
+    use candle_core::{Device, Tensor};
+    use guardian_shared::trajectory::{CHANNELS, Resampled, STEPS};
+    use rand::{Rng, SeedableRng};
+
+    /// `||a - b|| / ||b||` (L2 over the whole slices).
+    fn rel_err(a: &[f32], b: &[f32]) -> f64 {
+        assert_eq!(a.len(), b.len());
+        let num: f64 = a
+            .iter()
+            .zip(b)
+            .map(|(x, y)| (f64::from(*x) - f64::from(*y)).powi(2))
+            .sum();
+        let den: f64 = b.iter().map(|y| f64::from(*y).powi(2)).sum();
+        (num / den.max(1e-30)).sqrt()
+    }
+
+    /// Fast forward vs candle's `Net::forward` on random inputs, per sample.
+    fn compare(config: NetConfig, seed: u64, batch: usize, len: usize) -> f64 {
+        let net = Net::random(config.clone(), seed, DType::F32).expect("net");
+        let fast = FastNet::from_net(&net).expect("fast net");
+        let f = config.in_channels();
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed + 100);
+        let x: Vec<f32> = (0..batch * len * f)
+            .map(|_| rng.random_range(-1.5..1.5))
+            .collect();
+        let want = net
+            .forward(&Tensor::from_vec(x.clone(), (batch, len, f), &Device::Cpu).expect("t"))
+            .expect("candle forward")
+            .flatten_all()
+            .expect("flat")
+            .to_vec1::<f32>()
+            .expect("vec");
+        let mut got = vec![0.0f32; batch * config.embed_dim];
+        let mut scratch = Scratch::default();
+        fast.forward(&x, batch, len, &mut scratch, &mut got)
+            .expect("fast forward");
+        // Twice with the same scratch: reused buffers must not leak state between calls.
+        let mut again = vec![0.0f32; batch * config.embed_dim];
+        fast.forward(&x, batch, len, &mut scratch, &mut again)
+            .expect("fast forward");
+        assert_eq!(got, again);
+        got.chunks_exact(config.embed_dim)
+            .zip(want.chunks_exact(config.embed_dim))
+            .map(|(g, w)| rel_err(g, w))
+            .fold(0.0, f64::max)
+    }
+
+    #[test]
+    fn matches_candle_on_random_weights_and_inputs() {
+        let configs = [
+            NetConfig::default(),
+            NetConfig {
+                features: FeatureKind::Joints,
+                channels: vec![4, 5],
+                kernel: 3,
+                embed_dim: 6,
+                l2_normalize: true,
+                reverse_average: false,
+            },
+            NetConfig {
+                features: FeatureKind::PenStrokes,
+                channels: vec![32, 64, 64, 96],
+                kernel: 7,
+                embed_dim: 128,
+                l2_normalize: false,
+                reverse_average: false,
+            },
+            NetConfig {
+                features: FeatureKind::Pen,
+                channels: vec![16],
+                kernel: 1,
+                embed_dim: 20,
+                l2_normalize: true,
+                reverse_average: false,
+            },
+        ];
+        for (i, config) in configs.into_iter().enumerate() {
+            for (batch, len) in [(1, STEPS), (3, STEPS), (2, 37)] {
+                let e = compare(config.clone(), i as u64, batch, len);
+                assert!(
+                    e <= 1e-5,
+                    "config {i} batch {batch} len {len}: relative error {e:e}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn refuses_bad_shapes() {
+        let fast =
+            FastNet::from_net(&Net::random(NetConfig::default(), 1, DType::F32).unwrap()).unwrap();
+        let mut s = Scratch::default();
+        let mut out = vec![0.0; 128];
+        let err = fast
+            .forward(&[0.0; 10], 1, STEPS, &mut s, &mut out)
+            .unwrap_err();
+        assert!(
+            matches!(err, FastNetError::Shape { what: "input", .. }),
+            "{err}"
+        );
+        let x = vec![0.0; 2 * 7];
+        let err = fast.forward(&x, 1, 2, &mut s, &mut out).unwrap_err();
+        assert!(matches!(err, FastNetError::TooShort { .. }), "{err}");
+        let x = vec![0.0; STEPS * 7];
+        let err = fast
+            .forward(&x, 1, STEPS, &mut s, &mut out[..5])
+            .unwrap_err();
+        assert!(
+            matches!(err, FastNetError::Shape { what: "output", .. }),
+            "{err}"
+        );
+        let err = FastNet::from_params(NetConfig::default(), vec![vec![0.0; 3]]).unwrap_err();
+        assert!(matches!(err, FastNetError::Config(_)), "{err}");
+        let mut params: Vec<Vec<f32>> = NetConfig::default()
+            .init(0)
+            .into_iter()
+            .map(|(_, _, d)| d)
+            .collect();
+        params[1].pop();
+        let err = FastNet::from_params(NetConfig::default(), params).unwrap_err();
+        assert!(matches!(err, FastNetError::ParamLength { .. }), "{err}");
+    }
+
+    /// Random joint trajectories inside the limits with pen-down runs.
+    fn trajectories(n: usize, seed: u64) -> Vec<Resampled> {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        (0..n)
+            .map(|_| {
+                let phase: [f32; 7] = std::array::from_fn(|_| rng.random_range(0.0..6.0));
+                let amp: [f32; 7] = std::array::from_fn(|_| rng.random_range(0.0..0.3));
+                let mut x = [[0.0f32; CHANNELS]; STEPS];
+                let centre = [0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.78];
+                for (t, w) in x.iter_mut().enumerate() {
+                    let s = t as f32 / STEPS as f32;
+                    for j in 0..7 {
+                        w[j] = centre[j] + amp[j] * (6.0 * s + phase[j]).sin();
+                    }
+                    w[7] = if (t / 20) % 2 == 0 { 1.0 } else { 0.0 };
+                }
+                x
+            })
+            .collect()
+    }
+
+    /// The shipped model when it exists, else random weights of the default architecture.
+    fn shipped_or_random() -> Embedder {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("embedder.safetensors");
+        if path.exists() {
+            Embedder::load(&path).expect("the shipped model loads")
+        } else {
+            Embedder::random(11)
+        }
+    }
+
+    #[test]
+    fn embedder_fast_path_matches_candle_reference() {
+        let mut embedders = vec![shipped_or_random(), Embedder::random(4)];
+        let mut rev = Embedder::random(5);
+        rev.set_reverse_average(true);
+        embedders.push(rev);
+        for config in [
+            NetConfig {
+                features: FeatureKind::Joints,
+                ..NetConfig::default()
+            },
+            NetConfig {
+                features: FeatureKind::PenStrokes,
+                ..NetConfig::default()
+            },
+        ] {
+            embedders.push(Embedder::random_with(config, 9).unwrap());
+        }
+        let xs = trajectories(5, 2);
+        for (i, e) in embedders.iter().enumerate() {
+            let want = e.embed_batch_reference(&xs).unwrap();
+            let got = e.embed_batch(&xs).unwrap();
+            for (k, (g, w)) in got.iter().zip(&want).enumerate() {
+                let err = rel_err(g, w);
+                assert!(
+                    err <= 1e-5,
+                    "embedder {i} input {k}: relative error {err:e}"
+                );
+            }
+            // Batch 1 through `embed` gives the same as the batched fast path.
+            let one = e.embed(&xs[3]).unwrap();
+            assert!(rel_err(&one, &got[3]) <= 1e-6);
+        }
+    }
+
+    #[test]
+    fn flops_of_the_default_net() {
+        let fast =
+            FastNet::from_net(&Net::random(NetConfig::default(), 1, DType::F32).unwrap()).unwrap();
+        // 128x35x64 + 64x320x128 + 32x640x128 multiply-adds, fc 256x128.
+        let want = 2 * (128 * 35 * 64 + 64 * 320 * 128 + 32 * 640 * 128 + 256 * 128);
+        assert_eq!(fast.flops(STEPS), want);
+    }
+}

@@ -1,0 +1,870 @@
+//! Latency and throughput of the go/no-go screen, all figures from one run:
+//!
+//! - the embedding forward pass, batch 1: candle (the reference) and the fast path
+//!   (`guardian_models::fast`), plus features + forward and the daemon's whole per-check
+//!   computation (validation, pen-path resampling, features, forward, bank decision);
+//! - the compute floor: model FLOPs / the GEMM rate measured here on one core;
+//! - the round trip planner -> `guardiand` -> verdict over iceoryx2 with a spawned daemon,
+//!   in `event` and `busy-poll` serving mode;
+//! - a baseline in the same run: the same check served by the same screen code over a Unix
+//!   domain socket with JSON (newline-delimited) encoding, in a separate process;
+//! - throughput with 1, 4 and 16 concurrent planner clients.
+//!
+//! Run (see `docs/performance.md`):
+//! `RAYON_NUM_THREADS=1 cargo bench -p guardian-tests --bench latency`
+//! Options after `--`: `--model FILE` (default `models/embedder.safetensors`, else random
+//! weights), `--strokes DIR` (default `../shared/omniglot/strokes`), `--quick`.
+//! The bench builds `guardiand` with the bench's own profile before spawning it
+//! (`GUARDIAND_BIN` overrides the binary).
+
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::net::{UnixListener, UnixStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Barrier};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use guardian_client::{Client, ClientConfig, Trajectory, Verdict};
+use guardian_daemon::config::Config;
+use guardian_daemon::screen::{Screen, load_bank, load_engine};
+use guardian_lab::dataset::convert_strokes;
+use guardian_lab::path::{Geometry, PathSolver};
+use guardian_lab::strokes::read_strokes;
+use guardian_models::embedder::{EMBED_DIM, Embedder};
+use guardian_models::fast::{Scratch, sgemm};
+use guardian_shared::trajectory::{STEPS, Waypoint};
+use guardian_shared::wire::{
+    Op, ReasonCode, RequestHeader, VerdictCode, decode_text, encode_class_name,
+};
+use serde::{Deserialize, Serialize};
+
+/// Latin characters enrolled as task classes, drawers used to enroll, drawers checked.
+const CLASSES: u32 = 8;
+const ENROLL_DRAWERS: std::ops::RangeInclusive<u32> = 1..=4;
+const CHECK_DRAWERS: std::ops::RangeInclusive<u32> = 11..=14;
+
+struct Opts {
+    model: Option<PathBuf>,
+    strokes: PathBuf,
+    quick: bool,
+}
+
+fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn parse_opts() -> Result<Opts> {
+    let mut args = std::env::args().skip(1);
+    let mut o = Opts {
+        model: None,
+        strokes: workspace_root().join("../shared/omniglot/strokes"),
+        quick: false,
+    };
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--model" => o.model = Some(args.next().context("--model FILE")?.into()),
+            "--strokes" => o.strokes = args.next().context("--strokes DIR")?.into(),
+            "--quick" => o.quick = true,
+            // `cargo bench` passes `--bench`; ignore other harness flags too.
+            _ => {}
+        }
+    }
+    Ok(o)
+}
+
+fn main() -> Result<()> {
+    let args: Vec<String> = std::env::args().collect();
+    if let Some(i) = args.iter().position(|a| a == "--uds-server") {
+        let socket = args.get(i + 1).context("--uds-server SOCKET CONFIG")?;
+        let config = args.get(i + 2).context("--uds-server SOCKET CONFIG")?;
+        return uds_server(Path::new(socket), Path::new(config));
+    }
+    run(parse_opts()?)
+}
+
+// ---------------------------------------------------------------- statistics
+
+#[derive(Clone, Copy)]
+struct Stats {
+    n: usize,
+    p50: f64,
+    p99: f64,
+    p999: f64,
+    max: f64,
+}
+
+/// Percentiles (microseconds) of durations.
+fn stats(samples: &[Duration]) -> Stats {
+    let mut v: Vec<f64> = samples.iter().map(|d| d.as_secs_f64() * 1e6).collect();
+    v.sort_by(f64::total_cmp);
+    let q = |p: f64| {
+        let i = ((p * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1;
+        v[i]
+    };
+    Stats {
+        n: v.len(),
+        p50: q(0.5),
+        p99: q(0.99),
+        p999: q(0.999),
+        max: v[v.len() - 1],
+    }
+}
+
+fn print_header() {
+    println!(
+        "{:<46} {:>7} {:>9} {:>9} {:>9} {:>9}",
+        "path (batch 1)", "n", "p50 us", "p99 us", "p99.9 us", "max us"
+    );
+}
+
+fn print_row(name: &str, s: &Stats) {
+    println!(
+        "{:<46} {:>7} {:>9.1} {:>9.1} {:>9.1} {:>9.1}",
+        name, s.n, s.p50, s.p99, s.p999, s.max
+    );
+}
+
+/// Time `f` `n` times after `warm` untimed calls.
+fn time_n(warm: usize, n: usize, mut f: impl FnMut() -> Result<()>) -> Result<Vec<Duration>> {
+    for _ in 0..warm {
+        f()?;
+    }
+    let mut out = Vec::with_capacity(n);
+    for _ in 0..n {
+        let t = Instant::now();
+        f()?;
+        out.push(t.elapsed());
+    }
+    Ok(out)
+}
+
+fn loadavg() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "?".into())
+}
+
+// ---------------------------------------------------------------- data
+
+struct Drawings {
+    /// (class, examples) to enroll.
+    enroll: Vec<(String, Vec<Trajectory>)>,
+    /// (class, trajectory) to check, with its dense waypoints.
+    checks: Vec<(String, Vec<Waypoint>)>,
+}
+
+fn drawing(strokes: &Path, character: u32, drawer: u32) -> Result<PathBuf> {
+    let dir = strokes
+        .join("Latin")
+        .join(format!("character{character:02}"));
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .with_context(|| format!("reading {}", dir.display()))?
+        .map(|e| e.map(|e| e.path()))
+        .collect::<std::io::Result<_>>()?;
+    files.sort();
+    files
+        .get(drawer as usize - 1)
+        .cloned()
+        .with_context(|| format!("{}: no drawer {drawer}", dir.display()))
+}
+
+fn load_drawings(strokes: &Path) -> Result<Drawings> {
+    let solver = PathSolver::new(&Geometry::default())?;
+    let conv = |c: u32, d: u32| -> Result<Vec<Waypoint>> {
+        let s = read_strokes(&drawing(strokes, c, d)?)?;
+        Ok(convert_strokes(&solver, &s)?.dense.waypoints)
+    };
+    let mut enroll = Vec::new();
+    let mut checks = Vec::new();
+    for c in 1..=CLASSES {
+        let name = format!("latin{c:02}");
+        let ex = ENROLL_DRAWERS
+            .map(|d| conv(c, d).map(|w| Trajectory::from_waypoints(&w)))
+            .collect::<Result<Vec<_>>>()?;
+        enroll.push((name.clone(), ex));
+        for d in CHECK_DRAWERS {
+            checks.push((name.clone(), conv(c, d)?));
+        }
+    }
+    Ok(Drawings { enroll, checks })
+}
+
+// ---------------------------------------------------------------- guardiand
+
+/// The `guardiand` binary of this bench's profile (built on demand).
+fn guardiand_bin() -> Result<PathBuf> {
+    if let Some(p) = std::env::var_os("GUARDIAND_BIN") {
+        return Ok(p.into());
+    }
+    let exe = std::env::current_exe()?;
+    // target/<profile-dir>/deps/latency-<hash>
+    let profile_dir = exe
+        .parent()
+        .and_then(Path::parent)
+        .context("bench executable has no profile directory")?;
+    let dir_name = profile_dir
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let profile = match dir_name.as_str() {
+        "debug" => "dev".to_string(),
+        other => other.to_string(),
+    };
+    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+    let status = Command::new(cargo)
+        .args(["build", "-q", "-p", "guardian-daemon", "--bin", "guardiand"])
+        .args(["--profile", &profile])
+        .current_dir(workspace_root())
+        .status()
+        .context("running cargo build for guardiand")?;
+    if !status.success() {
+        bail!("building guardiand failed");
+    }
+    let bin = profile_dir.join("guardiand");
+    if !bin.exists() {
+        bail!("{} not found after the build", bin.display());
+    }
+    Ok(bin)
+}
+
+struct Deployment {
+    dir: PathBuf,
+    service: String,
+    prefix: String,
+    model: PathBuf,
+}
+
+impl Deployment {
+    fn config_text(&self, mode: &str, max_batch: usize) -> String {
+        format!(
+            "model = {:?}\ndefault-bank = \"\"\nstate-dir = {:?}\nservice-name = {:?}\n\
+             serving-mode = {mode:?}\nmax-batch = {max_batch}\nk-nearest = 3\n[iceoryx2]\nroot-path = {:?}\nprefix = {:?}\n",
+            self.model,
+            self.dir.join("state"),
+            self.service,
+            self.dir.join("iox"),
+            self.prefix
+        )
+    }
+
+    fn write_config(&self, mode: &str, max_batch: usize) -> Result<PathBuf> {
+        let p = self.dir.join(format!("guardiand-{mode}-{max_batch}.toml"));
+        std::fs::write(&p, self.config_text(mode, max_batch))?;
+        Ok(p)
+    }
+
+    fn client_config(&self) -> ClientConfig {
+        ClientConfig {
+            service_name: self.service.clone(),
+            timeout: Duration::from_secs(10),
+            iceoryx2_root_path: Some(self.dir.join("iox")),
+            iceoryx2_prefix: Some(self.prefix.clone()),
+        }
+    }
+}
+
+struct Daemon {
+    child: Child,
+}
+
+impl Daemon {
+    fn start(bin: &Path, dep: &Deployment, mode: &str, max_batch: usize) -> Result<Self> {
+        let config = dep.write_config(mode, max_batch)?;
+        let log = std::fs::File::create(dep.dir.join(format!("guardiand-{mode}-{max_batch}.log")))?;
+        let child = Command::new(bin)
+            .arg("--config")
+            .arg(&config)
+            .env("RUST_LOG", "warn")
+            .env_remove("NOTIFY_SOCKET")
+            .env_remove("WATCHDOG_USEC")
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()
+            .with_context(|| format!("spawning {}", bin.display()))?;
+        let d = Daemon { child };
+        let start = Instant::now();
+        loop {
+            if Client::connect(dep.client_config()).is_ok() {
+                return Ok(d);
+            }
+            if start.elapsed() > Duration::from_secs(60) {
+                bail!(
+                    "guardiand ({mode}) did not come up; see its log in {}",
+                    dep.dir.display()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// SIGTERM (so shared memory is released), wait, SIGKILL as a fallback.
+    fn stop(mut self) -> Result<()> {
+        let pid = self.child.id().to_string();
+        let _ = Command::new("kill").args(["-TERM", &pid]).status();
+        let start = Instant::now();
+        while start.elapsed() < Duration::from_secs(20) {
+            if self.child.try_wait()?.is_some() {
+                return Ok(());
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        self.child.kill()?;
+        self.child.wait()?;
+        bail!("guardiand did not stop on SIGTERM")
+    }
+}
+
+/// The daemon's own p50, p90, p99, max service time (us) of its recent requests.
+fn service_times(client: &Client) -> Result<[f32; 4]> {
+    let s = client
+        .status()
+        .map_err(|e| anyhow::anyhow!("status: {e}"))?;
+    Ok(s.latency_us.unwrap_or([f32::NAN; 4]))
+}
+
+fn check_ok(client: &Client, t: &Trajectory, class: &str) -> Result<Verdict> {
+    client
+        .check(t, class)
+        .map_err(|e| anyhow::anyhow!("check {class}: {e}"))
+}
+
+/// Round trips of one client, cycling through the check drawings.
+fn round_trips(
+    client: &Client,
+    checks: &[(String, Trajectory)],
+    warm: usize,
+    n: usize,
+) -> Result<Vec<Duration>> {
+    let mut i = 0usize;
+    time_n(warm, n, || {
+        let (class, t) = &checks[i % checks.len()];
+        i += 1;
+        check_ok(client, t, class).map(|_| ())
+    })
+}
+
+struct Throughput {
+    clients: usize,
+    max_batch: usize,
+    checks_per_s: f64,
+    lat: Stats,
+}
+
+/// `clients` threads, each with its own connection, checking for `run_for`.
+fn throughput(
+    dep: &Deployment,
+    checks: &Arc<Vec<(String, Trajectory)>>,
+    clients: usize,
+    max_batch: usize,
+    run_for: Duration,
+) -> Result<Throughput> {
+    let barrier = Arc::new(Barrier::new(clients + 1));
+    let mut handles = Vec::new();
+    for c in 0..clients {
+        let (barrier, checks, cfg) = (barrier.clone(), checks.clone(), dep.client_config());
+        handles.push(std::thread::spawn(move || -> Result<Vec<Duration>> {
+            let client = Client::connect(cfg).map_err(|e| anyhow::anyhow!("{e}"));
+            barrier.wait();
+            let client = client?;
+            let mut lat = Vec::new();
+            let start = Instant::now();
+            let mut i = c * 7;
+            while start.elapsed() < run_for {
+                let (class, t) = &checks[i % checks.len()];
+                i += 1;
+                let t0 = Instant::now();
+                check_ok(&client, t, class)?;
+                lat.push(t0.elapsed());
+            }
+            Ok(lat)
+        }));
+    }
+    barrier.wait();
+    let start = Instant::now();
+    let mut all = Vec::new();
+    for h in handles {
+        let lat = h
+            .join()
+            .map_err(|_| anyhow::anyhow!("client thread panicked"))??;
+        all.extend(lat);
+    }
+    let elapsed = start.elapsed().as_secs_f64();
+    Ok(Throughput {
+        clients,
+        max_batch,
+        checks_per_s: all.len() as f64 / elapsed,
+        lat: stats(&all),
+    })
+}
+
+// ---------------------------------------------------------------- UDS + JSON baseline
+
+#[derive(Serialize, Deserialize)]
+struct JsonRequest {
+    op: String,
+    class: String,
+    waypoints: Vec<Waypoint>,
+}
+
+#[derive(Serialize, Deserialize, Debug, PartialEq)]
+struct JsonNeighbour {
+    class: String,
+    distance: f32,
+}
+
+#[derive(Serialize, Deserialize, Debug)]
+struct JsonResponse {
+    status: u32,
+    verdict: String,
+    reason: String,
+    claimed_distance: Option<f32>,
+    threshold: Option<f32>,
+    nearest: Vec<JsonNeighbour>,
+    model_version: String,
+}
+
+/// The baseline server: the daemon's screen (same model, same bank, same code path for a
+/// check) behind a Unix socket speaking one JSON object per line.
+fn uds_server(socket: &Path, config: &Path) -> Result<()> {
+    let config = Config::from_file(config)?;
+    let engine = load_engine(&config)?;
+    let (bank, _) = load_bank(&config, &engine)?;
+    let mut screen = Screen::new(engine, bank, config.bank_path(), config.k_nearest);
+    let listener = UnixListener::bind(socket)?;
+    // One connection at a time, served until it closes; "quit" ends the server.
+    for stream in listener.incoming() {
+        let stream = stream?;
+        let mut reader = BufReader::new(stream.try_clone()?);
+        let mut writer = stream;
+        let mut line = String::new();
+        let mut id = 0u64;
+        loop {
+            line.clear();
+            if reader.read_line(&mut line)? == 0 {
+                break;
+            }
+            if line.trim() == "quit" {
+                return Ok(());
+            }
+            id += 1;
+            let req: JsonRequest = serde_json::from_str(&line)?;
+            if req.op != "check" {
+                bail!("baseline serves only checks");
+            }
+            let mut h = RequestHeader::new(id, Op::Check);
+            h.channels = 8;
+            h.examples = 1;
+            h.waypoints[0] = u32::try_from(req.waypoints.len())?;
+            h.class_name = encode_class_name(&req.class)?;
+            let payload: Vec<f32> = req.waypoints.iter().flatten().copied().collect();
+            let (r, entries) = screen.handle(&h, &payload);
+            let opt = |v: f32| if v.is_nan() { None } else { Some(v) };
+            let resp = JsonResponse {
+                status: r.status,
+                verdict: match VerdictCode::from_u32(r.verdict) {
+                    Some(VerdictCode::Go) => "go",
+                    Some(VerdictCode::NoGo) => "no-go",
+                    _ => "none",
+                }
+                .into(),
+                reason: format!("{:?}", ReasonCode::from_u32(r.reason)),
+                claimed_distance: opt(r.claimed_distance),
+                threshold: opt(r.threshold),
+                nearest: entries
+                    .iter()
+                    .map(|e| JsonNeighbour {
+                        class: decode_text(&e.name),
+                        distance: e.distance,
+                    })
+                    .collect(),
+                model_version: decode_text(&r.model_version),
+            };
+            let mut out = serde_json::to_vec(&resp)?;
+            out.push(b'\n');
+            writer.write_all(&out)?;
+        }
+    }
+    Ok(())
+}
+
+struct UdsClient {
+    reader: BufReader<UnixStream>,
+    writer: UnixStream,
+    line: String,
+}
+
+impl UdsClient {
+    fn connect(socket: &Path) -> Result<Self> {
+        let start = Instant::now();
+        let stream = loop {
+            match UnixStream::connect(socket) {
+                Ok(s) => break s,
+                Err(e) if start.elapsed() > Duration::from_secs(60) => {
+                    return Err(e).context("baseline server did not come up");
+                }
+                Err(_) => std::thread::sleep(Duration::from_millis(20)),
+            }
+        };
+        Ok(Self {
+            reader: BufReader::new(stream.try_clone()?),
+            writer: stream,
+            line: String::new(),
+        })
+    }
+
+    fn check(&mut self, waypoints: &[Waypoint], class: &str) -> Result<JsonResponse> {
+        let req = JsonRequest {
+            op: "check".into(),
+            class: class.into(),
+            waypoints: waypoints.to_vec(),
+        };
+        let mut out = serde_json::to_vec(&req)?;
+        out.push(b'\n');
+        self.writer.write_all(&out)?;
+        self.line.clear();
+        if self.reader.read_line(&mut self.line)? == 0 {
+            bail!("baseline server closed the connection");
+        }
+        Ok(serde_json::from_str(&self.line)?)
+    }
+}
+
+// ---------------------------------------------------------------- the run
+
+fn run(o: Opts) -> Result<()> {
+    let (n_fwd, n_rt, run_for) = if o.quick {
+        (300, 1_000, Duration::from_millis(500))
+    } else {
+        (3_000, 10_000, Duration::from_secs(3))
+    };
+    println!("guardian latency benchmark");
+    println!(
+        "  cpus {} | RAYON_NUM_THREADS={} | load average at start {}",
+        std::thread::available_parallelism().map_or(0, |n| n.get()),
+        std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "unset".into()),
+        loadavg()
+    );
+    let tmp = tempfile::tempdir()?;
+    let shipped = workspace_root().join("models/embedder.safetensors");
+    let model_path = match &o.model {
+        Some(p) => p.clone(),
+        None if shipped.exists() => shipped,
+        None => {
+            let p = tmp.path().join("random.safetensors");
+            Embedder::random(1).save(&p)?;
+            println!("  NOTE: models/embedder.safetensors not found; using RANDOM weights");
+            p
+        }
+    };
+    let embedder = Embedder::load(&model_path)?;
+    let cfg = embedder.config().clone();
+    println!(
+        "  model {} ({}), features {:?}, channels {:?}, kernel {}, reverse-average {}",
+        model_path.display(),
+        embedder.version(),
+        cfg.features,
+        cfg.channels,
+        cfg.kernel,
+        cfg.reverse_average
+    );
+    let t = Instant::now();
+    let drawings = load_drawings(&o.strokes)?;
+    let mean_wp = drawings.checks.iter().map(|c| c.1.len()).sum::<usize>() as f64
+        / drawings.checks.len() as f64;
+    println!(
+        "  data: {} classes (Latin), {} enrolment and {} check drawings, {:.0} waypoints \
+         ({:.1} KiB) per check on average, converted in {:.1} s",
+        drawings.enroll.len(),
+        drawings.enroll.iter().map(|e| e.1.len()).sum::<usize>(),
+        drawings.checks.len(),
+        mean_wp,
+        mean_wp * 32.0 / 1024.0,
+        t.elapsed().as_secs_f64()
+    );
+
+    // ---- forward passes, batch 1
+    let samples: Vec<_> = drawings
+        .checks
+        .iter()
+        .map(|(_, w)| guardian_models::preprocess::preprocess(w))
+        .collect::<Result<_, _>>()?;
+    let c = cfg.features.channels();
+    let copies =
+        if cfg.reverse_average && cfg.features != guardian_models::features::FeatureKind::Joints {
+            2
+        } else {
+            1
+        };
+    // Network input of the first check drawing (forward, and reversed when averaging).
+    let mut feats = vec![0.0f32; copies * STEPS * c];
+    {
+        let path = guardian_models::features::pen_path(&samples[0]);
+        let (fwd, bwd) = feats.split_at_mut(STEPS * c);
+        guardian_models::features::path_features(cfg.features, &path, &Default::default(), fwd);
+        if copies == 2 {
+            let rev = guardian_models::features::Augment {
+                reverse: true,
+                ..Default::default()
+            };
+            guardian_models::features::path_features(cfg.features, &path, &rev, bwd);
+        } else if cfg.features == guardian_models::features::FeatureKind::Joints {
+            guardian_models::features::compute(cfg.features, &samples[0], fwd);
+        }
+    }
+    let net = embedder.net();
+    let candle_fwd = time_n(50, n_fwd, || {
+        let x =
+            candle_core::Tensor::from_slice(&feats, (copies, STEPS, c), &candle_core::Device::Cpu)?;
+        let e = net.forward(&x)?.flatten_all()?.to_vec1::<f32>()?;
+        std::hint::black_box(e);
+        Ok(())
+    })?;
+    let fast = embedder.fast();
+    let mut scratch = Scratch::default();
+    let mut out = vec![0.0f32; copies * EMBED_DIM];
+    let fast_fwd = time_n(50, n_fwd, || {
+        fast.forward(&feats, copies, STEPS, &mut scratch, &mut out)?;
+        std::hint::black_box(&out);
+        Ok(())
+    })?;
+    let mut k = 0usize;
+    let embed = time_n(50, n_fwd, || {
+        k += 1;
+        std::hint::black_box(embedder.embed(&samples[k % samples.len()])?);
+        Ok(())
+    })?;
+    let mut k = 0usize;
+    let full = time_n(50, n_fwd, || {
+        k += 1;
+        let x = guardian_models::preprocess::preprocess(&drawings.checks[k % samples.len()].1)?;
+        std::hint::black_box(embedder.embed(&x)?);
+        Ok(())
+    })?;
+
+    // ---- compute floor
+    let flops = fast.flops(STEPS) * copies as u64;
+    let (m, n, kk) = (512usize, 512usize, 512usize);
+    let a = vec![0.5f32; m * kk];
+    let b = vec![0.25f32; kk * n];
+    let mut d = vec![0.0f32; m * n];
+    let gemm_t = time_n(3, if o.quick { 10 } else { 40 }, || {
+        sgemm(m, n, kk, &a, &b, &mut d, false)?;
+        std::hint::black_box(&d);
+        Ok(())
+    })?;
+    let gemm_flops = 2.0 * (m * n * kk) as f64;
+    let mut rates: Vec<f64> = gemm_t
+        .iter()
+        .map(|t| gemm_flops / t.as_secs_f64() / 1e9)
+        .collect();
+    rates.sort_by(f64::total_cmp);
+    let rate_med = rates[rates.len() / 2];
+    let rate_best = rates[rates.len() - 1];
+    let floor_us = flops as f64 / (rate_med * 1e9) * 1e6;
+
+    // ---- guardiand over iceoryx2
+    let bin = guardiand_bin()?;
+    let tag = format!("{}", std::process::id());
+    let dep = Deployment {
+        dir: tmp.path().to_path_buf(),
+        service: format!("guardian-bench/{tag}/v1/rpc"),
+        prefix: format!("gb{tag}_"),
+        model: model_path.clone(),
+    };
+    let checks: Arc<Vec<(String, Trajectory)>> = Arc::new(
+        drawings
+            .checks
+            .iter()
+            .map(|(c, w)| (c.clone(), Trajectory::from_waypoints(w)))
+            .collect(),
+    );
+    let daemon = Daemon::start(&bin, &dep, "event", 16)?;
+    let client = Client::connect(dep.client_config()).map_err(|e| anyhow::anyhow!("{e}"))?;
+    for (class, ex) in &drawings.enroll {
+        client
+            .enroll(class, ex)
+            .map_err(|e| anyhow::anyhow!("enroll {class}: {e}"))?;
+    }
+    let mut go = 0;
+    let mut verdicts = Vec::new();
+    for (class, t) in checks.iter() {
+        let v = check_ok(&client, t, class)?;
+        go += usize::from(v.is_go());
+        verdicts.push(v);
+    }
+    println!(
+        "  checks of unseen drawers against their true class: {go} of {} go",
+        checks.len()
+    );
+    let rt_event = round_trips(&client, &checks, 200, n_rt)?;
+    let served_event = service_times(&client)?;
+    let mut tput = Vec::new();
+    for clients in [1, 4, 16] {
+        tput.push(throughput(&dep, &checks, clients, 16, run_for)?);
+    }
+    drop(client);
+    daemon.stop()?;
+    // The same without micro-batching.
+    let daemon = Daemon::start(&bin, &dep, "event", 1)?;
+    for clients in [4, 16] {
+        tput.push(throughput(&dep, &checks, clients, 1, run_for)?);
+    }
+    daemon.stop()?;
+
+    let daemon = Daemon::start(&bin, &dep, "busy-poll", 16)?;
+    let mut client = Client::connect(dep.client_config()).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let rt_busy = round_trips(&client, &checks, 200, n_rt)?;
+    // The planner polls for its answer too instead of sleeping on the notification.
+    client.set_spin(Duration::from_millis(5));
+    let rt_busy_spin = round_trips(&client, &checks, 200, n_rt)?;
+    let served_busy = service_times(&client)?;
+    drop(client);
+    daemon.stop()?;
+
+    // ---- UDS + JSON baseline, same screen, same model, same bank
+    let socket = dep.dir.join("baseline.sock");
+    let config = dep.write_config("event", 16)?;
+    let mut server = Command::new(std::env::current_exe()?)
+        .arg("--uds-server")
+        .arg(&socket)
+        .arg(&config)
+        .stdout(Stdio::null())
+        .spawn()?;
+    let mut uds = UdsClient::connect(&socket)?;
+    for ((class, w), v) in drawings.checks.iter().zip(&verdicts) {
+        let r = uds.check(w, class)?;
+        let same = (r.verdict == "go") == v.is_go()
+            && r.claimed_distance
+                .zip(v.claimed_distance)
+                .is_none_or(|(a, b)| (a - b).abs() <= 1e-5 * b.abs().max(1.0));
+        if !same {
+            bail!("baseline and guardiand disagree on {class}: {r:?} vs {v:?}");
+        }
+    }
+    let mut i = 0usize;
+    let rt_uds = time_n(200, n_rt, || {
+        let (class, w) = &drawings.checks[i % drawings.checks.len()];
+        i += 1;
+        std::hint::black_box(uds.check(w, class)?);
+        Ok(())
+    })?;
+    uds.writer.write_all(b"quit\n")?;
+    server.wait()?;
+
+    // ---- report
+    println!();
+    print_header();
+    let rows = [
+        ("candle forward", stats(&candle_fwd)),
+        ("fast forward (im2col + gemm)", stats(&fast_fwd)),
+        ("embed: features + fast forward", stats(&embed)),
+        ("preprocess + embed (daemon's compute)", stats(&full)),
+        ("round trip iceoryx2, event mode", stats(&rt_event)),
+        ("round trip iceoryx2, busy-poll mode", stats(&rt_busy)),
+        ("  ... and the client spinning too", stats(&rt_busy_spin)),
+        ("round trip UDS + JSON baseline", stats(&rt_uds)),
+    ];
+    for (name, s) in &rows {
+        print_row(name, s);
+    }
+    println!();
+    println!(
+        "guardiand's own service time per request (last 4096, from its status): \
+         event p50 {:.1} / p99 {:.1} us, busy-poll p50 {:.1} / p99 {:.1} us",
+        served_event[0], served_event[2], served_busy[0], served_busy[2]
+    );
+    println!(
+        "compute floor: {:.2} MFLOP per check / {:.1} GFLOP/s (gemm {m}x{n}x{kk}, 1 thread, \
+         median; best {:.1}) = {:.1} us",
+        flops as f64 / 1e6,
+        rate_med,
+        rate_best,
+        floor_us
+    );
+    println!();
+    println!("throughput, event mode, each client checking back to back:");
+    println!(
+        "{:<8} {:>9} {:>10} {:>9} {:>9} {:>9} {:>9}",
+        "clients", "max-batch", "checks/s", "p50 us", "p99 us", "p99.9 us", "max us"
+    );
+    for t in &tput {
+        println!(
+            "{:<8} {:>9} {:>10.0} {:>9.1} {:>9.1} {:>9.1} {:>9.1}",
+            t.clients, t.max_batch, t.checks_per_s, t.lat.p50, t.lat.p99, t.lat.p999, t.lat.max
+        );
+    }
+    let [candle, fastf, _, _, ev, busy, spin, json] = rows.map(|r| r.1);
+    let busy = if spin.p50 < busy.p50 { spin } else { busy };
+    let fastest = candle.p50.min(fastf.p50);
+    println!();
+    println!("{:<52} {:>8} {:>8}  result", "ratio", "measured", "target");
+    let ratio = |name: &str, v: f64, target: f64, le: bool| {
+        let ok = if le { v <= target } else { v >= target };
+        println!(
+            "{:<52} {:>8.2} {:>3}{:>5.1}  {}",
+            name,
+            v,
+            if le { "<=" } else { ">=" },
+            target,
+            if ok { "met" } else { "MISSED" }
+        );
+    };
+    ratio(
+        "candle forward p50 / compute floor",
+        candle.p50 / floor_us,
+        1.5,
+        true,
+    );
+    ratio(
+        "fastest forward p50 / compute floor",
+        fastest / floor_us,
+        1.5,
+        true,
+    );
+    ratio(
+        "candle forward p50 / fast forward p50",
+        candle.p50 / fastf.p50,
+        1.0,
+        false,
+    );
+    ratio(
+        "round trip p50 (event) / fastest forward p50",
+        ev.p50 / fastest,
+        1.3,
+        true,
+    );
+    ratio(
+        "round trip p50 (busy-poll) / fastest forward p50",
+        busy.p50 / fastest,
+        1.3,
+        true,
+    );
+    ratio(
+        "UDS+JSON p50 / round trip p50 (event)",
+        json.p50 / ev.p50,
+        5.0,
+        false,
+    );
+    ratio(
+        "UDS+JSON p50 / round trip p50 (busy-poll)",
+        json.p50 / busy.p50,
+        5.0,
+        false,
+    );
+    ratio(
+        "busy-poll p99.9 / p50 (faster client variant)",
+        busy.p999 / busy.p50,
+        3.0,
+        true,
+    );
+    ratio(
+        "event p99.9 / p50 (no target)",
+        ev.p999 / ev.p50,
+        f64::INFINITY,
+        true,
+    );
+    println!();
+    println!("load average at end {}", loadavg());
+    Ok(())
+}
