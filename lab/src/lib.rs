@@ -5,9 +5,16 @@
 //! - [`path`]: canvas geometry, the Cartesian pen path and IK along it.
 //! - [`dataset`]: dataset generation and the safetensors file ([`dataset::Dataset`]).
 //! - [`plot`]: a drawing, its FK-reconstructed pen tip and its joint curves as a PNG.
+//! - [`train`]: training of the embedding network (triplet, or contrastive for the Siamese
+//!   baseline).
+//! - [`eval`]: N-way K-shot episodes for the model and the baselines.
+//! - [`report`]: the markdown + PNG report of a trained model.
 #![forbid(unsafe_code)]
 
 pub mod dataset;
+pub mod eval;
 pub mod path;
 pub mod plot;
+pub mod report;
 pub mod strokes;
+pub mod train;

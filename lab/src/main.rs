@@ -17,6 +17,12 @@ enum Command {
     Dataset(guardian_lab::dataset::Args),
     /// Plot one drawing of a dataset: strokes, FK pen tip, joint curves.
     Plot(guardian_lab::plot::Args),
+    /// Train the embedding network.
+    Train(guardian_lab::train::Args),
+    /// Few-shot evaluation of a model or a baseline.
+    Eval(guardian_lab::eval::Args),
+    /// Markdown + PNG report of a trained model.
+    Report(guardian_lab::report::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -28,5 +34,8 @@ fn main() -> anyhow::Result<()> {
     match &cli.command {
         Command::Dataset(args) => guardian_lab::dataset::run(args),
         Command::Plot(args) => guardian_lab::plot::run(args),
+        Command::Train(args) => guardian_lab::train::run(args),
+        Command::Eval(args) => guardian_lab::eval::run(args),
+        Command::Report(args) => guardian_lab::report::run(args),
     }
 }

@@ -15,6 +15,7 @@ use guardian_shared::trajectory::{CHANNELS, Resampled, STEPS};
 use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 use sha2::{Digest, Sha256};
 
+use crate::features::{Augment, FeatureKind};
 use crate::net::{Net, NetConfig};
 
 /// Embedding dimension.
@@ -397,12 +398,35 @@ impl Embedder {
         }
         let kind = self.net.config().features;
         let c = kind.channels();
-        let mut feats = vec![0.0f32; xs.len() * STEPS * c];
-        for (x, out) in xs.iter().zip(feats.chunks_exact_mut(STEPS * c)) {
-            crate::features::compute(kind, x, out);
+        let both = self.net.config().reverse_average && kind != FeatureKind::Joints;
+        let copies = if both { 2 } else { 1 };
+        let mut feats = vec![0.0f32; copies * xs.len() * STEPS * c];
+        if both {
+            let reverse = Augment {
+                reverse: true,
+                ..Augment::default()
+            };
+            for (x, out) in xs.iter().zip(feats.chunks_exact_mut(2 * STEPS * c)) {
+                let path = crate::features::pen_path(x);
+                let (fwd, bwd) = out.split_at_mut(STEPS * c);
+                crate::features::path_features(kind, &path, &Augment::default(), fwd);
+                crate::features::path_features(kind, &path, &reverse, bwd);
+            }
+        } else {
+            for (x, out) in xs.iter().zip(feats.chunks_exact_mut(STEPS * c)) {
+                crate::features::compute(kind, x, out);
+            }
         }
-        let input = Tensor::from_vec(feats, (xs.len(), STEPS, c), &Device::Cpu)?;
-        let out = self.net.forward(&input)?.flatten_all()?.to_vec1::<f32>()?;
+        let input = Tensor::from_vec(feats, (copies * xs.len(), STEPS, c), &Device::Cpu)?;
+        let mut e = self.net.forward(&input)?;
+        if both {
+            e = e.reshape((xs.len(), 2, EMBED_DIM))?.mean(1)?;
+            if self.net.config().l2_normalize {
+                let norm = (e.sqr()?.sum_keepdim(1)? + 1e-12)?.sqrt()?;
+                e = e.broadcast_div(&norm)?;
+            }
+        }
+        let out = e.flatten_all()?.to_vec1::<f32>()?;
         let mut embs = Vec::with_capacity(xs.len());
         for (index, chunk) in out.chunks_exact(EMBED_DIM).enumerate() {
             if chunk.iter().any(|v| !v.is_finite()) {
@@ -428,6 +452,16 @@ impl Embedder {
     /// The architecture.
     pub fn config(&self) -> &NetConfig {
         self.net.config()
+    }
+
+    /// Turn test-time reverse averaging on or off (see [`NetConfig::reverse_average`]); the
+    /// weights and the version are unchanged.
+    pub fn set_reverse_average(&mut self, on: bool) {
+        let mut config = self.net.config().clone();
+        config.reverse_average = on;
+        if let Ok(net) = Net::new(config, self.net.params().to_vec()) {
+            self.net = net;
+        }
     }
 
     /// The network (for training and analysis).
@@ -507,6 +541,25 @@ mod tests {
         assert_eq!(sq_dist(&a[0], &a[0]), 0.0);
         // No temporary file is left behind.
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn reverse_averaging_makes_drawing_direction_irrelevant() {
+        let mut e = Embedder::random(3);
+        let x = sample(0.3);
+        let mut rev = x;
+        rev.reverse();
+        let plain = e.embed_batch(&[x, rev]).unwrap();
+        assert!(sq_dist(&plain[0], &plain[1]) > 1e-6);
+        e.set_reverse_average(true);
+        let version = e.version().to_string();
+        let avg = e.embed_batch(&[x, rev]).unwrap();
+        assert!(sq_dist(&avg[0], &avg[1]) < 1e-8);
+        assert_eq!(e.version(), version);
+        // The option survives a save/load round trip.
+        let back = Embedder::from_bytes(&e.to_bytes().unwrap()).unwrap();
+        assert!(back.config().reverse_average);
+        assert_eq!(back.embed(&x).unwrap(), avg[0]);
     }
 
     #[test]

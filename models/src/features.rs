@@ -23,6 +23,11 @@ pub enum FeatureKind {
     Joints,
     /// Normalised pen-tip path features from forward kinematics (7 channels).
     Pen,
+    /// Like [`FeatureKind::Pen`], but only the pen-down strokes, resampled to [`STEPS`]
+    /// points uniform in pen-down length: the travel between strokes (which depends on the
+    /// order the strokes were drawn in) is dropped; channel 2 marks the first sample of each
+    /// stroke (7 channels).
+    PenStrokes,
 }
 
 impl FeatureKind {
@@ -30,7 +35,7 @@ impl FeatureKind {
     pub fn channels(self) -> usize {
         match self {
             Self::Joints => 8,
-            Self::Pen => PEN_CHANNELS,
+            Self::Pen | Self::PenStrokes => PEN_CHANNELS,
         }
     }
 }
@@ -71,13 +76,10 @@ impl Default for Augment {
 
 /// Pen-tip path of a resampled trajectory by forward kinematics.
 pub fn pen_path(x: &Resampled) -> [PenPoint; STEPS] {
+    let panda = crate::preprocess::default_panda();
     let mut out = [[0.0f32; 3]; STEPS];
     for (o, w) in out.iter_mut().zip(x.iter()) {
-        let mut q = [0.0f64; JOINTS];
-        for (qi, wi) in q.iter_mut().zip(w.iter()) {
-            *qi = f64::from(*wi);
-        }
-        let p = pen_tip(&q);
+        let p = panda.pen_tip_position(&crate::preprocess::joints_of(w));
         // Base +x is drawing "up", base -y is drawing "right".
         *o = [-p[1] as f32, p[0] as f32, w[TOOL]];
     }
@@ -90,6 +92,141 @@ pub fn compute(kind: FeatureKind, x: &Resampled, out: &mut [f32]) {
     match kind {
         FeatureKind::Joints => joint_features(x, out),
         FeatureKind::Pen => pen_features(&pen_path(x), &Augment::default(), out),
+        FeatureKind::PenStrokes => stroke_features(&pen_path(x), &Augment::default(), out),
+    }
+}
+
+/// Features of `kind` from a pen path after an augmentation (pen kinds only; joint
+/// features ignore the path and are written as zeros).
+pub fn path_features(kind: FeatureKind, path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
+    match kind {
+        FeatureKind::Pen => pen_features(path, aug, out),
+        FeatureKind::PenStrokes => stroke_features(path, aug, out),
+        FeatureKind::Joints => out.fill(0.0),
+    }
+}
+
+/// Rotate, shear, scale and optionally reverse a path (see [`Augment`]).
+fn augmented(path: &[PenPoint; STEPS], aug: &Augment) -> [PenPoint; STEPS] {
+    let mut p = *path;
+    if aug.reverse {
+        p.reverse();
+    }
+    let (cr, sr) = (aug.rotation.cos(), aug.rotation.sin());
+    for pt in p.iter_mut() {
+        let (x, y) = (pt[0], pt[1]);
+        let (x, y) = (cr * x - sr * y, sr * x + cr * y);
+        let x = x + aug.shear * y;
+        pt[0] = x * aug.scale_x;
+        pt[1] = y * aug.scale_y;
+    }
+    p
+}
+
+/// Pen-down-only features (see [`FeatureKind::PenStrokes`]).
+pub fn stroke_features(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
+    let c = PEN_CHANNELS;
+    let p = augmented(path, aug);
+    // Strokes: maximal runs of pen-down samples (the whole path if the pen never touches).
+    let mut strokes: Vec<Vec<[f32; 2]>> = Vec::new();
+    let mut prev_down = false;
+    for q in p.iter() {
+        let down = q[2] > 0.5;
+        if down {
+            if !prev_down {
+                strokes.push(Vec::new());
+            }
+            if let Some(s) = strokes.last_mut() {
+                s.push([q[0], q[1]]);
+            }
+        }
+        prev_down = down;
+    }
+    if strokes.is_empty() {
+        strokes.push(p.iter().map(|q| [q[0], q[1]]).collect());
+    }
+    let seg = |a: [f32; 2], b: [f32; 2]| ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
+    let lens: Vec<Vec<f32>> = strokes
+        .iter()
+        .map(|s| {
+            let mut acc = vec![0.0f32];
+            for w in s.windows(2) {
+                let l = acc[acc.len() - 1] + seg(w[0], w[1]);
+                acc.push(l);
+            }
+            acc
+        })
+        .collect();
+    let drawn: f32 = lens.iter().map(|l| l[l.len() - 1]).sum();
+    // Each stroke also gets a small fixed share so dots and short strokes keep samples.
+    let pad = (0.02 * drawn).max(1e-6);
+    let spans: Vec<f32> = lens.iter().map(|l| l[l.len() - 1] + pad).collect();
+    let total: f32 = spans.iter().sum();
+    let mut xy = [[0.0f32; 2]; STEPS];
+    let mut stroke_of = [0usize; STEPS];
+    let (mut si, mut start) = (0usize, 0.0f32);
+    for k in 0..STEPS {
+        let s = total * k as f32 / (STEPS - 1) as f32;
+        while si + 1 < strokes.len() && s > start + spans[si] {
+            start += spans[si];
+            si += 1;
+        }
+        let (pts, acc) = (&strokes[si], &lens[si]);
+        let u = ((s - start) - 0.5 * pad).clamp(0.0, acc[acc.len() - 1]);
+        let j = acc
+            .partition_point(|&a| a <= u)
+            .clamp(1, acc.len().max(2) - 1);
+        xy[k] = if pts.len() == 1 {
+            pts[0]
+        } else {
+            let (a, b) = (acc[j - 1], acc[j]);
+            let t = if b > a { (u - a) / (b - a) } else { 0.0 };
+            [
+                pts[j - 1][0] + t * (pts[j][0] - pts[j - 1][0]),
+                pts[j - 1][1] + t * (pts[j][1] - pts[j - 1][1]),
+            ]
+        };
+        stroke_of[k] = si;
+    }
+    let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
+    for q in &xy {
+        for d in 0..2 {
+            lo[d] = lo[d].min(q[d]);
+            hi[d] = hi[d].max(q[d]);
+        }
+    }
+    let centre = [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])];
+    let half = (0.5 * (hi[0] - lo[0]).max(hi[1] - lo[1])).max(2e-3);
+    for t in 0..STEPS {
+        let a = if t > 0 && stroke_of[t - 1] == stroke_of[t] {
+            t - 1
+        } else {
+            t
+        };
+        let b = if t + 1 < STEPS && stroke_of[t + 1] == stroke_of[t] {
+            t + 1
+        } else {
+            t
+        };
+        let (dx, dy) = (xy[b][0] - xy[a][0], xy[b][1] - xy[a][1]);
+        let len = (dx * dx + dy * dy).sqrt();
+        let (ux, uy) = if len > 1e-6 {
+            (dx / len, dy / len)
+        } else {
+            (0.0, 0.0)
+        };
+        let row = &mut out[t * c..(t + 1) * c];
+        row[0] = (xy[t][0] - centre[0]) / half;
+        row[1] = (xy[t][1] - centre[1]) / half;
+        row[2] = if t == 0 || stroke_of[t - 1] != stroke_of[t] {
+            1.0
+        } else {
+            0.0
+        };
+        row[3] = ux * ux - uy * uy;
+        row[4] = 2.0 * ux * uy;
+        row[5] = ux;
+        row[6] = uy;
     }
 }
 
@@ -109,19 +246,7 @@ fn joint_features(x: &Resampled, out: &mut [f32]) {
 /// Pen features of a pen path after an augmentation (see the module docs).
 pub fn pen_features(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
     let c = PEN_CHANNELS;
-    // Augment (about the path's mean, which normalisation removes anyway).
-    let mut p = *path;
-    if aug.reverse {
-        p.reverse();
-    }
-    let (cr, sr) = (aug.rotation.cos(), aug.rotation.sin());
-    for pt in p.iter_mut() {
-        let (x, y) = (pt[0], pt[1]);
-        let (x, y) = (cr * x - sr * y, sr * x + cr * y);
-        let x = x + aug.shear * y;
-        pt[0] = x * aug.scale_x;
-        pt[1] = y * aug.scale_y;
-    }
+    let p = augmented(path, aug);
     // Normalise by the bounding box of the pen-down part (all points if never down).
     let any_down = p.iter().any(|q| q[2] > 0.5);
     let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
@@ -154,70 +279,8 @@ pub fn pen_features(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
     }
 }
 
-/// Pen-tip position in the base frame (m) for joint angles `q` (Panda chain, flange, pen
-/// 0.15 m along flange z).
-fn pen_tip(q: &[f64; JOINTS]) -> [f64; 3] {
-    use std::f64::consts::FRAC_PI_2;
-    // (origin xyz, origin roll) of joints 1..7; every joint rotates about its z.
-    const CHAIN: [([f64; 3], f64); JOINTS] = [
-        ([0.0, 0.0, 0.333], 0.0),
-        ([0.0, 0.0, 0.0], -FRAC_PI_2),
-        ([0.0, -0.316, 0.0], FRAC_PI_2),
-        ([0.0825, 0.0, 0.0], FRAC_PI_2),
-        ([-0.0825, 0.384, 0.0], -FRAC_PI_2),
-        ([0.0, 0.0, 0.0], FRAC_PI_2),
-        ([0.088, 0.0, 0.0], FRAC_PI_2),
-    ];
-    const FLANGE_TO_PEN: f64 = 0.107 + 0.15;
-    let mut r = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0f64]];
-    let mut p = [0.0f64; 3];
-    let mul = |a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]| {
-        let mut m = [[0.0; 3]; 3];
-        for i in 0..3 {
-            for j in 0..3 {
-                m[i][j] = (0..3).map(|k| a[i][k] * b[k][j]).sum();
-            }
-        }
-        m
-    };
-    for (&(xyz, roll), &qi) in CHAIN.iter().zip(q.iter()) {
-        for i in 0..3 {
-            p[i] += r[i][0] * xyz[0] + r[i][1] * xyz[1] + r[i][2] * xyz[2];
-        }
-        let (cr, sr) = (roll.cos(), roll.sin());
-        let (cq, sq) = (qi.cos(), qi.sin());
-        // RotX(roll) * RotZ(q)
-        let rx = [[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]];
-        let rz = [[cq, -sq, 0.0], [sq, cq, 0.0], [0.0, 0.0, 1.0]];
-        r = mul(&r, &mul(&rx, &rz));
-    }
-    for i in 0..3 {
-        p[i] += r[i][2] * FLANGE_TO_PEN;
-    }
-    p
-}
-
 #[cfg(test)]
 mod tests {
-    #[test]
-    fn fk_matches_the_published_ready_pose() {
-        use std::f64::consts::PI;
-        let q = [
-            0.0,
-            -PI / 4.0,
-            0.0,
-            -3.0 * PI / 4.0,
-            0.0,
-            PI / 2.0,
-            PI / 4.0,
-        ];
-        let p = pen_tip(&q);
-        // Flange at (0.3069, 0, 0.5903), tool z straight down: pen 0.15 m lower.
-        assert!((p[0] - 0.3069).abs() < 2e-4, "{p:?}");
-        assert!(p[1].abs() < 1e-6, "{p:?}");
-        assert!((p[2] - (0.5903 - 0.15)).abs() < 2e-4, "{p:?}");
-    }
-
     use super::*;
 
     fn straight_line(scale: f32, offset: f32) -> [PenPoint; STEPS] {
@@ -227,6 +290,43 @@ mod tests {
             *q = [offset + scale * s, offset + 0.5 * scale * s, 1.0];
         }
         p
+    }
+
+    #[test]
+    fn stroke_features_drop_travel_and_keep_every_stroke() {
+        // Two strokes with a long pen-up travel between them, and a dot at the end.
+        let mut p = [[0.0f32, 0.0, 0.0]; STEPS];
+        for (t, q) in p.iter_mut().enumerate() {
+            *q = match t {
+                0..40 => [t as f32 * 1e-3, 0.0, 1.0],
+                40..100 => [0.04 + (t - 40) as f32 * 1e-3, 0.05, 0.0],
+                100..126 => [0.0, 0.01 + (t - 100) as f32 * 1e-3, 1.0],
+                126 => [0.03, 0.03, 0.0],
+                _ => [0.02, 0.02, 1.0],
+            };
+        }
+        let c = PEN_CHANNELS;
+        let mut f = vec![0.0; STEPS * c];
+        stroke_features(&p, &Augment::default(), &mut f);
+        let starts: Vec<usize> = (0..STEPS).filter(|&t| f[t * c + 2] == 1.0).collect();
+        assert_eq!(starts.len(), 3, "{starts:?}");
+        assert_eq!(starts[0], 0);
+        // Every sample lies inside the pen-down bounding box ([-1, 1] after normalisation).
+        for t in 0..STEPS {
+            assert!(f[t * c].abs() <= 1.0 + 1e-5 && f[t * c + 1].abs() <= 1.0 + 1e-5);
+        }
+        // Swapping the order of the two strokes moves only the stroke order, not the shape:
+        // the multiset of sampled points is nearly the same.
+        let mut swapped = p;
+        swapped[..26].copy_from_slice(&p[100..126]);
+        swapped[26..86].copy_from_slice(&p[40..100]);
+        swapped[86..126].copy_from_slice(&p[0..40]);
+        let mut g = vec![0.0; STEPS * c];
+        stroke_features(&swapped, &Augment::default(), &mut g);
+        let mean =
+            |v: &[f32], d: usize| (0..STEPS).map(|t| v[t * c + d]).sum::<f32>() / STEPS as f32;
+        assert!((mean(&f, 0) - mean(&g, 0)).abs() < 0.05);
+        assert!((mean(&f, 1) - mean(&g, 1)).abs() < 0.05);
     }
 
     #[test]

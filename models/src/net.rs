@@ -29,6 +29,11 @@ pub struct NetConfig {
     pub embed_dim: usize,
     /// L2-normalise the embedding (distances then lie in `[0, 4]`).
     pub l2_normalize: bool,
+    /// Inference only: embed the trajectory forwards and time-reversed and average the two
+    /// embeddings (re-normalised), so the direction a stroke was drawn in matters less.
+    /// Pen features only; ignored for joint features.
+    #[serde(default)]
+    pub reverse_average: bool,
 }
 
 impl Default for NetConfig {
@@ -39,6 +44,7 @@ impl Default for NetConfig {
             kernel: 5,
             embed_dim: crate::embedder::EMBED_DIM,
             l2_normalize: true,
+            reverse_average: false,
         }
     }
 }
@@ -215,6 +221,7 @@ mod tests {
             kernel: 3,
             embed_dim: 6,
             l2_normalize: true,
+            reverse_average: false,
         }
     }
 

@@ -1,0 +1,901 @@
+//! Training of the embedding network: class-balanced P x K batches from the training
+//! alphabets, feature-level augmentation, a triplet (or, for the Siamese baseline, a
+//! contrastive) loss, AdamW, ReduceLROnPlateau and early stopping on the validation loss,
+//! fixed seeds, a JSONL metrics log, checkpoints and `--resume`.
+//!
+//! Output directory:
+//! - `model.safetensors` — the best weights by validation loss (an [`Embedder`] file);
+//! - `last.safetensors`, `optimizer.safetensors`, `state.json` — the resumable checkpoint;
+//! - `metrics.jsonl` — one line per epoch; `train-config.json` — the full configuration.
+
+use std::collections::BTreeMap;
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor, Var};
+use guardian_models::embedder::Embedder;
+use guardian_models::features::{self, Augment, FeatureKind, PenPoint};
+use guardian_models::loss;
+use guardian_models::net::{Net, NetConfig};
+use guardian_shared::trajectory::{Resampled, STEPS};
+use rand::rngs::StdRng;
+use rand::seq::{IndexedRandom, SliceRandom};
+use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
+
+use crate::dataset::Dataset;
+use crate::eval::{self, EpisodeSpec};
+
+/// Which loss trains the network.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum LossKind {
+    /// Online batch-hard triplet loss (hardest positive and negative per anchor).
+    BatchHard,
+    /// Online batch-all triplet loss (mean over active triplets).
+    BatchAll,
+    /// The paper's loss on random explicit triplets (one per anchor).
+    Triplet,
+    /// Contrastive pair loss: the Siamese baseline.
+    Contrastive,
+}
+
+/// Feature choice on the command line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum FeatureArg {
+    /// Normalised pen-tip path from forward kinematics.
+    Pen,
+    /// Scaled joint angles (the paper's input).
+    Joints,
+    /// Pen-down strokes only, resampled (travel between strokes dropped).
+    PenStrokes,
+}
+
+impl From<FeatureArg> for FeatureKind {
+    fn from(f: FeatureArg) -> Self {
+        match f {
+            FeatureArg::Pen => FeatureKind::Pen,
+            FeatureArg::Joints => FeatureKind::Joints,
+            FeatureArg::PenStrokes => FeatureKind::PenStrokes,
+        }
+    }
+}
+
+/// Everything that determines a training run (written to `train-config.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub struct TrainConfig {
+    /// Network architecture.
+    pub net: NetConfig,
+    /// Loss.
+    pub loss: LossKind,
+    /// Triplet / contrastive margin.
+    pub margin: f64,
+    /// Training alphabets.
+    pub train_alphabets: Vec<String>,
+    /// Validation alphabets (early stopping, LR schedule).
+    pub val_alphabets: Vec<String>,
+    /// Classes per batch.
+    pub p_classes: usize,
+    /// Samples per class per batch.
+    pub k_samples: usize,
+    /// Optimiser steps per epoch.
+    pub steps_per_epoch: usize,
+    /// Most epochs.
+    pub max_epochs: usize,
+    /// Initial learning rate.
+    pub lr: f64,
+    /// AdamW weight decay.
+    pub weight_decay: f64,
+    /// ReduceLROnPlateau: epochs without improvement before the LR is multiplied by
+    /// `lr_factor`.
+    pub plateau_patience: usize,
+    /// ReduceLROnPlateau factor.
+    pub lr_factor: f64,
+    /// Smallest learning rate.
+    pub min_lr: f64,
+    /// Early stopping: epochs without validation-loss improvement.
+    pub early_stop_patience: usize,
+    /// Feature augmentation (rotation, shear, scale, time reversal).
+    pub augment: bool,
+    /// Seed of initialisation, batches and augmentation.
+    pub seed: u64,
+    /// Episodes of the per-epoch validation 5-way-1-shot accuracy.
+    pub val_episodes: usize,
+}
+
+/// `guardian-lab train`: train the embedding network.
+#[derive(Debug, Clone, clap::Args)]
+pub struct Args {
+    /// Dataset file (from `guardian-lab dataset`).
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// Training alphabets, comma-separated.
+    #[arg(long, value_delimiter = ',', required = true)]
+    pub train_alphabets: Vec<String>,
+    /// Validation alphabets, comma-separated.
+    #[arg(long, value_delimiter = ',', required = true)]
+    pub val_alphabets: Vec<String>,
+    /// Output directory.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Continue from the checkpoint in `--out`.
+    #[arg(long)]
+    pub resume: bool,
+    /// Input features.
+    #[arg(long, value_enum, default_value = "pen")]
+    pub features: FeatureArg,
+    /// Loss (`contrastive` trains the Siamese baseline).
+    #[arg(long, value_enum, default_value = "batch-all")]
+    pub loss: LossKind,
+    /// Margin of the loss.
+    #[arg(long, default_value_t = 0.2)]
+    pub margin: f64,
+    /// Convolution channels per layer, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "64,128,128")]
+    pub channels: Vec<usize>,
+    /// Convolution kernel size.
+    #[arg(long, default_value_t = 5)]
+    pub kernel: usize,
+    /// Do not L2-normalise embeddings.
+    #[arg(long)]
+    pub no_l2: bool,
+    /// Classes per batch.
+    #[arg(long, default_value_t = 16)]
+    pub p_classes: usize,
+    /// Samples per class per batch.
+    #[arg(long, default_value_t = 4)]
+    pub k_samples: usize,
+    /// Optimiser steps per epoch.
+    #[arg(long, default_value_t = 50)]
+    pub steps_per_epoch: usize,
+    /// Most epochs.
+    #[arg(long, default_value_t = 60)]
+    pub epochs: usize,
+    /// Learning rate.
+    #[arg(long, default_value_t = 2e-3)]
+    pub lr: f64,
+    /// AdamW weight decay.
+    #[arg(long, default_value_t = 1e-4)]
+    pub weight_decay: f64,
+    /// ReduceLROnPlateau patience (epochs).
+    #[arg(long, default_value_t = 3)]
+    pub plateau_patience: usize,
+    /// Early-stopping patience (epochs).
+    #[arg(long, default_value_t = 8)]
+    pub patience: usize,
+    /// No augmentation.
+    #[arg(long)]
+    pub no_augment: bool,
+    /// Seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Validation episodes per epoch (5-way-1-shot).
+    #[arg(long, default_value_t = 1000)]
+    pub val_episodes: usize,
+    /// Store test-time reverse averaging in the saved models (inference only; training is
+    /// unaffected).
+    #[arg(long)]
+    pub reverse_average: bool,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+impl Args {
+    /// The training configuration these arguments describe.
+    pub fn config(&self) -> TrainConfig {
+        TrainConfig {
+            net: NetConfig {
+                features: self.features.into(),
+                channels: self.channels.clone(),
+                kernel: self.kernel,
+                embed_dim: guardian_models::embedder::EMBED_DIM,
+                l2_normalize: !self.no_l2,
+                reverse_average: self.reverse_average,
+            },
+            loss: self.loss,
+            margin: self.margin,
+            train_alphabets: self.train_alphabets.clone(),
+            val_alphabets: self.val_alphabets.clone(),
+            p_classes: self.p_classes,
+            k_samples: self.k_samples,
+            steps_per_epoch: self.steps_per_epoch,
+            max_epochs: self.epochs,
+            lr: self.lr,
+            weight_decay: self.weight_decay,
+            plateau_patience: self.plateau_patience,
+            lr_factor: 0.5,
+            min_lr: 1e-5,
+            early_stop_patience: self.patience,
+            augment: !self.no_augment,
+            seed: self.seed,
+            val_episodes: self.val_episodes,
+        }
+    }
+}
+
+/// Training failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum TrainError {
+    /// A tensor operation failed.
+    #[error("tensor operation: {0}")]
+    Candle(#[from] candle_core::Error),
+    /// The configuration or data cannot be used.
+    #[error("invalid training setup: {0}")]
+    Setup(String),
+    /// Reading or writing a file failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The error.
+        source: std::io::Error,
+    },
+    /// Saving the model failed.
+    #[error("saving model: {0}")]
+    Save(#[from] guardian_models::embedder::SaveModelError),
+    /// Loading a checkpoint failed.
+    #[error("loading checkpoint: {0}")]
+    Load(#[from] guardian_models::embedder::LoadModelError),
+    /// Evaluating failed.
+    #[error("validation: {0}")]
+    Eval(#[from] eval::EvalError),
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
+    move |source| TrainError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// One epoch's metrics (one JSONL line).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct EpochMetrics {
+    /// Epoch (1-based).
+    pub epoch: usize,
+    /// Mean training loss.
+    pub train_loss: f64,
+    /// Validation loss (fixed batches; for batch-all, the mean over all valid triplets).
+    pub val_loss: f64,
+    /// Validation 5-way-1-shot accuracy (fixed episodes).
+    pub val_acc_5way1shot: f64,
+    /// Learning rate used in this epoch.
+    pub lr: f64,
+    /// Fraction of active (non-zero) triplets or anchors in training.
+    pub active_fraction: f64,
+    /// Samples embedded per second in training (forward + backward).
+    pub samples_per_s: f64,
+    /// Mined triplets per second (one per anchor for batch-hard / triplet).
+    pub triplets_per_s: f64,
+    /// Wall-clock seconds of the epoch including validation.
+    pub seconds: f64,
+}
+
+/// The resumable state (`state.json`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct State {
+    epoch: usize,
+    lr: f64,
+    best_val_loss: f64,
+    epochs_since_best: usize,
+    epochs_since_lr_change: usize,
+    adam_step: usize,
+    train_seconds: f64,
+    finished: bool,
+}
+
+/// What a finished run reports.
+#[derive(Debug, Clone, Serialize)]
+pub struct TrainSummary {
+    /// Epochs run in total.
+    pub epochs: usize,
+    /// Best validation loss.
+    pub best_val_loss: f64,
+    /// Wall-clock seconds of training (all sessions of a resumed run).
+    pub seconds: f64,
+    /// Version of the best model.
+    pub model_version: String,
+    /// Why training stopped.
+    pub stopped: String,
+}
+
+/// The training data in the form the batch sampler needs.
+pub struct Prepared {
+    kind: FeatureKind,
+    /// Pen paths (pen features) or raw inputs (joint features), per sample.
+    pen: Vec<[PenPoint; STEPS]>,
+    raw: Vec<Resampled>,
+    /// Sample indices per class.
+    by_class: Vec<Vec<usize>>,
+    /// Class label per sample (dense, 0..by_class.len()).
+    labels: Vec<u32>,
+}
+
+impl Prepared {
+    /// Select the samples of `alphabets` from `data`.
+    pub fn new(
+        data: &Dataset,
+        alphabets: &[String],
+        kind: FeatureKind,
+    ) -> Result<Self, TrainError> {
+        let ids = alphabet_ids(data, alphabets)?;
+        let mut class_map: BTreeMap<i64, usize> = BTreeMap::new();
+        let mut by_class: Vec<Vec<usize>> = Vec::new();
+        let mut raw = Vec::new();
+        let mut labels = Vec::new();
+        for i in 0..data.len() {
+            if !ids.contains(&data.alphabet_ids[i]) {
+                continue;
+            }
+            let next = class_map.len();
+            let c = *class_map.entry(data.labels[i]).or_insert(next);
+            if c == by_class.len() {
+                by_class.push(Vec::new());
+            }
+            by_class[c].push(raw.len());
+            raw.push(data.trajectories[i]);
+            labels.push(c as u32);
+        }
+        let pen = if kind != FeatureKind::Joints {
+            raw.iter().map(features::pen_path).collect()
+        } else {
+            Vec::new()
+        };
+        Ok(Self {
+            kind,
+            pen,
+            raw,
+            by_class,
+            labels,
+        })
+    }
+
+    /// Number of classes.
+    pub fn classes(&self) -> usize {
+        self.by_class.len()
+    }
+
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        self.raw.len()
+    }
+
+    /// True if there are no samples.
+    pub fn is_empty(&self) -> bool {
+        self.raw.is_empty()
+    }
+
+    /// Feature tensor `[B, STEPS, F]` of samples `idx`, augmented when `rng` is given.
+    pub fn batch(
+        &self,
+        idx: &[usize],
+        mut rng: Option<&mut StdRng>,
+    ) -> candle_core::Result<Tensor> {
+        let c = self.kind.channels();
+        let mut buf = vec![0.0f32; idx.len() * STEPS * c];
+        for (&i, out) in idx.iter().zip(buf.chunks_exact_mut(STEPS * c)) {
+            if self.kind == FeatureKind::Joints {
+                features::compute(self.kind, &self.raw[i], out);
+            } else {
+                let aug = match rng.as_deref_mut() {
+                    Some(r) => random_augment(r),
+                    None => Augment::default(),
+                };
+                features::path_features(self.kind, &self.pen[i], &aug, out);
+            }
+        }
+        Tensor::from_vec(buf, (idx.len(), STEPS, c), &Device::Cpu)
+    }
+
+    /// A class-balanced batch: `p` classes, `k` samples each (fewer if a class is small).
+    pub fn sample_pk(&self, p: usize, k: usize, rng: &mut StdRng) -> (Vec<usize>, Vec<u32>) {
+        let mut classes: Vec<usize> = (0..self.by_class.len()).collect();
+        classes.shuffle(rng);
+        let mut idx = Vec::with_capacity(p * k);
+        let mut labels = Vec::with_capacity(p * k);
+        for &c in classes.iter().take(p) {
+            let mut members = self.by_class[c].clone();
+            members.shuffle(rng);
+            for &m in members.iter().take(k) {
+                idx.push(m);
+                labels.push(self.labels[m]);
+            }
+        }
+        (idx, labels)
+    }
+
+    /// The raw inputs.
+    pub fn raw(&self) -> &[Resampled] {
+        &self.raw
+    }
+
+    /// Dense class label per sample.
+    pub fn labels(&self) -> &[u32] {
+        &self.labels
+    }
+}
+
+fn random_augment(rng: &mut StdRng) -> Augment {
+    Augment {
+        rotation: rng.random_range(-0.2..0.2),
+        shear: rng.random_range(-0.2..0.2),
+        scale_x: rng.random_range(0.85..1.15),
+        scale_y: rng.random_range(0.85..1.15),
+        reverse: rng.random_bool(0.5),
+    }
+}
+
+/// Indices of the named alphabets in `data` (error if one is unknown).
+pub fn alphabet_ids(data: &Dataset, names: &[String]) -> Result<Vec<i64>, TrainError> {
+    names
+        .iter()
+        .map(|n| {
+            data.alphabets
+                .iter()
+                .position(|a| a == n)
+                .map(|p| p as i64)
+                .ok_or_else(|| {
+                    TrainError::Setup(format!(
+                        "alphabet {n:?} is not in the dataset (has {:?})",
+                        data.alphabets
+                    ))
+                })
+        })
+        .collect()
+}
+
+/// The loss of one batch. Returns `(loss, active fraction, mined triplets)`.
+pub fn batch_loss(
+    net: &Net,
+    x: &Tensor,
+    labels: &[u32],
+    kind: LossKind,
+    margin: f64,
+    rng: &mut StdRng,
+) -> candle_core::Result<(Tensor, f32, usize)> {
+    let e = net.forward(x)?;
+    match kind {
+        LossKind::BatchHard => {
+            let (l, a) = loss::batch_hard_triplet_loss(&e, labels, margin)?;
+            Ok((l, a, labels.len()))
+        }
+        LossKind::BatchAll => {
+            let (l, a) = loss::batch_all_triplet_loss(&e, labels, margin)?;
+            let n = labels.len();
+            let mut valid = 0;
+            for i in 0..n {
+                let pos = labels
+                    .iter()
+                    .enumerate()
+                    .filter(|&(j, &l)| j != i && l == labels[i])
+                    .count();
+                valid += pos * labels.iter().filter(|&&l| l != labels[i]).count();
+            }
+            Ok((l, a, valid))
+        }
+        LossKind::Triplet => {
+            // One random (positive, negative) per anchor.
+            let n = labels.len();
+            let (mut ai, mut pi, mut ni) = (Vec::new(), Vec::new(), Vec::new());
+            for a in 0..n {
+                let pos: Vec<u32> = (0..n as u32)
+                    .filter(|&j| j as usize != a && labels[j as usize] == labels[a])
+                    .collect();
+                let neg: Vec<u32> = (0..n as u32)
+                    .filter(|&j| labels[j as usize] != labels[a])
+                    .collect();
+                if let (Some(&p), Some(&q)) = (pos.choose(rng), neg.choose(rng)) {
+                    ai.push(a as u32);
+                    pi.push(p);
+                    ni.push(q);
+                }
+            }
+            let m = ai.len();
+            let sel = |v: Vec<u32>| -> candle_core::Result<Tensor> {
+                e.index_select(&Tensor::from_vec(v, m, &Device::Cpu)?, 0)
+            };
+            let (a, p, q) = (sel(ai)?, sel(pi)?, sel(ni)?);
+            let l = loss::triplet_loss(&a, &p, &q, margin)?;
+            let dp = (&a - &p)?.sqr()?.sum(1)?;
+            let dn = (&a - &q)?.sqr()?.sum(1)?;
+            let act = ((dp - dn)? + margin)?.relu()?.to_vec1::<f32>()?;
+            let frac = act.iter().filter(|&&v| v > 0.0).count() as f32 / m.max(1) as f32;
+            Ok((l, frac, m))
+        }
+        LossKind::Contrastive => {
+            let l = loss::contrastive_loss(&e, labels, margin)?;
+            let n = labels.len();
+            Ok((l, 1.0, n * (n - 1) / 2))
+        }
+    }
+}
+
+/// AdamW with decoupled weight decay whose moments can be saved (for exact `--resume`).
+pub struct AdamW {
+    vars: Vec<Var>,
+    m: Vec<Tensor>,
+    v: Vec<Tensor>,
+    step: usize,
+    weight_decay: f64,
+}
+
+impl AdamW {
+    /// Fresh optimiser for `vars`.
+    pub fn new(vars: Vec<Var>, weight_decay: f64) -> candle_core::Result<Self> {
+        let m = vars
+            .iter()
+            .map(|v| v.as_tensor().zeros_like())
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        let v = m.clone();
+        Ok(Self {
+            vars,
+            m,
+            v,
+            step: 0,
+            weight_decay,
+        })
+    }
+
+    /// One update with learning rate `lr`.
+    pub fn step(
+        &mut self,
+        grads: &candle_core::backprop::GradStore,
+        lr: f64,
+    ) -> candle_core::Result<()> {
+        let (b1, b2, eps) = (0.9, 0.999, 1e-8);
+        self.step += 1;
+        let c1 = 1.0 / (1.0 - f64::powi(b1, self.step as i32));
+        let c2 = 1.0 / (1.0 - f64::powi(b2, self.step as i32));
+        for i in 0..self.vars.len() {
+            let theta = &self.vars[i];
+            let Some(g) = grads.get(theta.as_tensor()) else {
+                continue;
+            };
+            let m = ((&self.m[i] * b1)? + (g * (1.0 - b1))?)?;
+            let v = ((&self.v[i] * b2)? + (g.sqr()? * (1.0 - b2))?)?;
+            let upd = ((&m * c1)? / ((&v * c2)?.sqrt()? + eps)?)?;
+            let next = ((theta.as_tensor() * (1.0 - lr * self.weight_decay))? - (upd * lr)?)?;
+            theta.set(&next)?;
+            // Detach: the moments must not keep the autograd history of every step alive.
+            self.m[i] = m.detach();
+            self.v[i] = v.detach();
+        }
+        Ok(())
+    }
+}
+
+/// Train as configured, writing into `out`. With `resume`, continue from the checkpoint
+/// there (the configuration must match).
+pub fn train(
+    data: &Dataset,
+    cfg: &TrainConfig,
+    out: &Path,
+    resume: bool,
+    quiet: bool,
+) -> Result<TrainSummary, TrainError> {
+    cfg.net
+        .check()
+        .map_err(|e| TrainError::Setup(format!("network config: {e}")))?;
+    if cfg.p_classes < 2 || cfg.k_samples < 2 {
+        return Err(TrainError::Setup(
+            "need p-classes >= 2 and k-samples >= 2".into(),
+        ));
+    }
+    for a in &cfg.val_alphabets {
+        if cfg.train_alphabets.contains(a) {
+            return Err(TrainError::Setup(format!(
+                "alphabet {a} is in both train and val"
+            )));
+        }
+    }
+    std::fs::create_dir_all(out).map_err(io_err(out))?;
+    let train_set = Prepared::new(data, &cfg.train_alphabets, cfg.net.features)?;
+    let val_set = Prepared::new(data, &cfg.val_alphabets, cfg.net.features)?;
+    if train_set.classes() < cfg.p_classes.min(2) || val_set.classes() < 5 {
+        return Err(TrainError::Setup(format!(
+            "too few classes: train {}, val {} (val needs >= 5)",
+            train_set.classes(),
+            val_set.classes()
+        )));
+    }
+
+    let config_path = out.join("train-config.json");
+    let state_path = out.join("state.json");
+    let last_path = out.join("last.safetensors");
+    let opt_path = out.join("optimizer.safetensors");
+    let best_path = out.join("model.safetensors");
+    let metrics_path = out.join("metrics.jsonl");
+
+    let (net, mut state, opt_state) = if resume {
+        let saved: TrainConfig = read_json(&config_path)?;
+        let mut comparable = TrainConfig {
+            max_epochs: cfg.max_epochs,
+            ..saved.clone()
+        };
+        comparable.net.reverse_average = cfg.net.reverse_average;
+        if &comparable != cfg {
+            return Err(TrainError::Setup(format!(
+                "--resume: {} differs from this run's configuration",
+                config_path.display()
+            )));
+        }
+        let mut state: State = read_json(&state_path)?;
+        // A resumed run may extend the epoch budget.
+        if state.finished
+            && state.epoch < cfg.max_epochs
+            && state.epochs_since_best < cfg.early_stop_patience
+        {
+            state.finished = false;
+        }
+        write_json(&config_path, cfg)?;
+        let last = Embedder::load(&last_path)?;
+        let opt = load_opt(&opt_path)?;
+        (last.net().clone(), state, Some(opt))
+    } else {
+        write_json(&config_path, cfg)?;
+        let _ = std::fs::remove_file(&metrics_path);
+        let net = Net::random(cfg.net.clone(), cfg.seed, DType::F32)?;
+        let state = State {
+            epoch: 0,
+            lr: cfg.lr,
+            best_val_loss: f64::INFINITY,
+            epochs_since_best: 0,
+            epochs_since_lr_change: 0,
+            adam_step: 0,
+            train_seconds: 0.0,
+            finished: false,
+        };
+        (net, state, None)
+    };
+    if state.finished {
+        let mut best = Embedder::load(&best_path)?;
+        if best.config().reverse_average != cfg.net.reverse_average {
+            best.set_reverse_average(cfg.net.reverse_average);
+            best.save(&best_path)?;
+        }
+        return Ok(TrainSummary {
+            epochs: state.epoch,
+            best_val_loss: state.best_val_loss,
+            seconds: state.train_seconds,
+            model_version: best.version().to_string(),
+            stopped: "already finished".into(),
+        });
+    }
+    let vars = net
+        .params()
+        .iter()
+        .map(Var::from_tensor)
+        .collect::<candle_core::Result<Vec<_>>>()?;
+    let mut opt = AdamW::new(vars.clone(), cfg.weight_decay)?;
+    if let Some((m, v)) = opt_state {
+        if m.len() != opt.m.len() {
+            return Err(TrainError::Setup(
+                "optimizer checkpoint does not match".into(),
+            ));
+        }
+        opt.m = m;
+        opt.v = v;
+        opt.step = state.adam_step;
+    }
+    let net = Net::new(
+        cfg.net.clone(),
+        vars.iter().map(|v| v.as_tensor().clone()).collect(),
+    )?;
+
+    // Fixed validation batches and episodes.
+    let mut vrng = StdRng::seed_from_u64(cfg.seed ^ 0x005e_ed0f_7a11);
+    let val_batches: Vec<(Vec<usize>, Vec<u32>)> = (0..10)
+        .map(|_| val_set.sample_pk(cfg.p_classes, cfg.k_samples, &mut vrng))
+        .collect();
+    let val_labels: Vec<u32> = val_set.labels().to_vec();
+    let val_spec = EpisodeSpec {
+        way: 5,
+        shot: 1,
+        episodes: cfg.val_episodes,
+        seed: cfg.seed,
+    };
+
+    let bar = if quiet {
+        indicatif::ProgressBar::hidden()
+    } else {
+        indicatif::ProgressBar::new((cfg.max_epochs * cfg.steps_per_epoch) as u64)
+    };
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:30}] {pos}/{len} steps ({per_sec}, eta {eta}) {msg}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+        .progress_chars("=> "),
+    );
+    bar.set_position((state.epoch * cfg.steps_per_epoch) as u64);
+
+    let mut metrics_file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&metrics_path)
+        .map_err(io_err(&metrics_path))?;
+    let mut stopped = "max epochs".to_string();
+    while state.epoch < cfg.max_epochs {
+        let epoch = state.epoch + 1;
+        let t0 = Instant::now();
+        // Per-epoch RNG: a resumed run draws the same batches as an uninterrupted one.
+        let mut rng =
+            StdRng::seed_from_u64(cfg.seed.wrapping_mul(1_000_003).wrapping_add(epoch as u64));
+        let (mut loss_sum, mut active_sum, mut samples, mut triplets) = (0.0, 0.0, 0usize, 0usize);
+        for _ in 0..cfg.steps_per_epoch {
+            let (idx, labels) = train_set.sample_pk(cfg.p_classes, cfg.k_samples, &mut rng);
+            let x = train_set.batch(&idx, cfg.augment.then_some(&mut rng))?;
+            let (l, active, n_trip) =
+                batch_loss(&net, &x, &labels, cfg.loss, cfg.margin, &mut rng)?;
+            let grads = l.backward()?;
+            opt.step(&grads, state.lr)?;
+            loss_sum += f64::from(l.to_scalar::<f32>()?);
+            active_sum += f64::from(active);
+            samples += idx.len();
+            triplets += n_trip;
+            bar.inc(1);
+        }
+        let train_secs = t0.elapsed().as_secs_f64();
+        let train_loss = loss_sum / cfg.steps_per_epoch as f64;
+
+        // Validation.
+        let mut val_loss = 0.0;
+        let mut dummy = StdRng::seed_from_u64(0);
+        for (idx, labels) in &val_batches {
+            let x = val_set.batch(idx, None)?;
+            let (l, active, _) = batch_loss(&net, &x, labels, cfg.loss, cfg.margin, &mut dummy)?;
+            let l = f64::from(l.to_scalar::<f32>()?);
+            // Batch-all trains on the mean over active triplets, which stays flat as fewer
+            // triplets stay active; validate on the mean over all valid triplets instead.
+            val_loss += if cfg.loss == LossKind::BatchAll {
+                l * f64::from(active)
+            } else {
+                l
+            };
+        }
+        val_loss /= val_batches.len() as f64;
+        let embs = embed_all(&net, &val_set)?;
+        let val_acc =
+            eval::run_episodes(&val_labels, &val_spec, &mut eval::Scorer::Prototype(&embs))?
+                .accuracy;
+
+        let m = EpochMetrics {
+            epoch,
+            train_loss,
+            val_loss,
+            val_acc_5way1shot: val_acc,
+            lr: state.lr,
+            active_fraction: active_sum / cfg.steps_per_epoch as f64,
+            samples_per_s: samples as f64 / train_secs,
+            triplets_per_s: triplets as f64 / train_secs,
+            seconds: t0.elapsed().as_secs_f64(),
+        };
+        let line = serde_json::to_string(&m).map_err(|e| TrainError::Setup(e.to_string()))?;
+        writeln!(metrics_file, "{line}").map_err(io_err(&metrics_path))?;
+        bar.set_message(format!(
+            "epoch {epoch} train {train_loss:.4} val {val_loss:.4} acc5 {val_acc:.3} lr {:.1e}",
+            state.lr
+        ));
+        if quiet {
+            eprintln!("{line}");
+        }
+
+        // Best model, schedule, early stopping.
+        let current = Embedder::from_trained(&net)?;
+        if val_loss < state.best_val_loss {
+            state.best_val_loss = val_loss;
+            state.epochs_since_best = 0;
+            current.save(&best_path)?;
+        } else {
+            state.epochs_since_best += 1;
+        }
+        state.epochs_since_lr_change += 1;
+        if state.epochs_since_best > 0
+            && state.epochs_since_lr_change > cfg.plateau_patience
+            && state.epochs_since_best > cfg.plateau_patience
+        {
+            state.lr = (state.lr * cfg.lr_factor).max(cfg.min_lr);
+            state.epochs_since_lr_change = 0;
+        }
+        state.epoch = epoch;
+        state.adam_step = opt.step;
+        state.train_seconds += t0.elapsed().as_secs_f64();
+        let stop = state.epochs_since_best >= cfg.early_stop_patience;
+        if stop {
+            stopped = format!(
+                "early stopping after {} epochs without improvement",
+                state.epochs_since_best
+            );
+        }
+        state.finished = stop || state.epoch >= cfg.max_epochs;
+        current.save(&last_path)?;
+        save_opt(&opt_path, &opt)?;
+        write_json(&state_path, &state)?;
+        if stop {
+            break;
+        }
+    }
+    bar.finish_and_clear();
+    let best = Embedder::load(&best_path)?;
+    Ok(TrainSummary {
+        epochs: state.epoch,
+        best_val_loss: state.best_val_loss,
+        seconds: state.train_seconds,
+        model_version: best.version().to_string(),
+        stopped,
+    })
+}
+
+/// Embeddings of every sample of a prepared set (no augmentation), in order.
+pub fn embed_all(net: &Net, set: &Prepared) -> candle_core::Result<Vec<Vec<f32>>> {
+    let mut out = Vec::with_capacity(set.len());
+    let idx: Vec<usize> = (0..set.len()).collect();
+    for chunk in idx.chunks(256) {
+        let x = set.batch(chunk, None)?;
+        let e = net.forward(&x)?.to_vec2::<f32>()?;
+        out.extend(e);
+    }
+    Ok(out)
+}
+
+fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, TrainError> {
+    let text = std::fs::read_to_string(path).map_err(io_err(path))?;
+    serde_json::from_str(&text).map_err(|e| TrainError::Setup(format!("{}: {e}", path.display())))
+}
+
+fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), TrainError> {
+    let text = serde_json::to_string_pretty(value).map_err(|e| TrainError::Setup(e.to_string()))?;
+    let tmp = path.with_extension("json.tmp");
+    std::fs::write(&tmp, text).map_err(io_err(&tmp))?;
+    std::fs::rename(&tmp, path).map_err(io_err(path))
+}
+
+fn save_opt(path: &Path, opt: &AdamW) -> Result<(), TrainError> {
+    let mut map = std::collections::HashMap::new();
+    for (i, (m, v)) in opt.m.iter().zip(&opt.v).enumerate() {
+        map.insert(format!("m{i}"), m.clone());
+        map.insert(format!("v{i}"), v.clone());
+    }
+    let tmp = path.with_extension("tmp");
+    candle_core::safetensors::save(&map, &tmp)?;
+    std::fs::rename(&tmp, path).map_err(io_err(path))
+}
+
+type Moments = (Vec<Tensor>, Vec<Tensor>);
+
+fn load_opt(path: &Path) -> Result<Moments, TrainError> {
+    let bytes = std::fs::read(path).map_err(io_err(path))?;
+    let map = candle_core::safetensors::load_buffer(&bytes, &Device::Cpu)?;
+    let n = map.len() / 2;
+    let mut m = Vec::with_capacity(n);
+    let mut v = Vec::with_capacity(n);
+    for i in 0..n {
+        let get = |k: String| {
+            map.get(&k)
+                .cloned()
+                .ok_or_else(|| TrainError::Setup(format!("{}: missing {k}", path.display())))
+        };
+        m.push(get(format!("m{i}"))?);
+        v.push(get(format!("v{i}"))?);
+    }
+    Ok((m, v))
+}
+
+/// Run `guardian-lab train`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let data = Dataset::load(&args.dataset)?;
+    let cfg = args.config();
+    eprintln!(
+        "training on {:?}, validating on {:?}; {} rayon threads",
+        cfg.train_alphabets,
+        cfg.val_alphabets,
+        rayon::current_num_threads()
+    );
+    let summary = train(&data, &cfg, &args.out, args.resume, args.quiet)?;
+    println!("{}", serde_json::to_string_pretty(&summary)?);
+    Ok(())
+}
