@@ -9,8 +9,10 @@
 //!   baseline).
 //! - [`eval`]: N-way K-shot episodes for the model and the baselines.
 //! - [`report`]: the markdown + PNG report of a trained model.
+//! - [`calibrate`]: threshold calibration and the default class bank.
 #![forbid(unsafe_code)]
 
+pub mod calibrate;
 pub mod dataset;
 pub mod eval;
 pub mod path;

@@ -23,6 +23,8 @@ enum Command {
     Eval(guardian_lab::eval::Args),
     /// Markdown + PNG report of a trained model.
     Report(guardian_lab::report::Args),
+    /// Calibrate thresholds on validation alphabets and build a class bank.
+    Bank(guardian_lab::calibrate::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -37,5 +39,6 @@ fn main() -> anyhow::Result<()> {
         Command::Train(args) => guardian_lab::train::run(args),
         Command::Eval(args) => guardian_lab::eval::run(args),
         Command::Report(args) => guardian_lab::report::run(args),
+        Command::Bank(args) => guardian_lab::calibrate::run(args),
     }
 }
