@@ -58,6 +58,22 @@ const COLORS: [RGBColor; 4] = [
     RGBColor(150, 150, 150),
 ];
 
+/// A longer palette for plots with many series (ROC curves of every fault).
+const MANY_COLORS: [RGBColor; 12] = [
+    RGBColor(31, 119, 180),
+    RGBColor(255, 127, 14),
+    RGBColor(44, 160, 44),
+    RGBColor(214, 39, 40),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+    RGBColor(127, 127, 127),
+    RGBColor(188, 189, 34),
+    RGBColor(23, 190, 207),
+    RGBColor(0, 0, 0),
+    RGBColor(255, 200, 0),
+];
+
 fn draw_err<E: std::fmt::Debug>(e: E) -> anyhow::Error {
     anyhow::anyhow!("drawing: {e:?}")
 }
@@ -93,7 +109,11 @@ fn line_plot(
         .draw()
         .map_err(draw_err)?;
     for (i, (name, pts)) in series.iter().enumerate() {
-        let c = COLORS[i % COLORS.len()];
+        let c = if series.len() > COLORS.len() {
+            MANY_COLORS[i % MANY_COLORS.len()]
+        } else {
+            COLORS[i % COLORS.len()]
+        };
         chart
             .draw_series(LineSeries::new(pts.iter().copied(), c.stroke_width(2)))
             .map_err(draw_err)?
