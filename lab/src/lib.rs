@@ -9,10 +9,16 @@
 //!   baseline).
 //! - [`eval`]: N-way K-shot episodes for the model and the baselines.
 //! - [`report`]: the markdown + PNG report of a trained model.
+//! - [`calibrate`]: threshold calibration and the default class bank.
+//! - [`faults`]: faulty-plan generators (corruptions of a genuine plan).
+//! - [`outliers`]: go / no-go metrics on faulty and genuine plans.
 #![forbid(unsafe_code)]
 
+pub mod calibrate;
 pub mod dataset;
 pub mod eval;
+pub mod faults;
+pub mod outliers;
 pub mod path;
 pub mod plot;
 pub mod report;

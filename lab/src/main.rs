@@ -23,6 +23,10 @@ enum Command {
     Eval(guardian_lab::eval::Args),
     /// Markdown + PNG report of a trained model.
     Report(guardian_lab::report::Args),
+    /// Calibrate thresholds on validation alphabets and build a class bank.
+    Bank(guardian_lab::calibrate::Args),
+    /// Faulty-plan detection metrics (AUROC, TPR at 1% FPR, detection, false rejects).
+    Outliers(guardian_lab::outliers::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -37,5 +41,7 @@ fn main() -> anyhow::Result<()> {
         Command::Train(args) => guardian_lab::train::run(args),
         Command::Eval(args) => guardian_lab::eval::run(args),
         Command::Report(args) => guardian_lab::report::run(args),
+        Command::Bank(args) => guardian_lab::calibrate::run(args),
+        Command::Outliers(args) => guardian_lab::outliers::run(args),
     }
 }

@@ -58,6 +58,22 @@ const COLORS: [RGBColor; 4] = [
     RGBColor(150, 150, 150),
 ];
 
+/// A longer palette for plots with many series (ROC curves of every fault).
+const MANY_COLORS: [RGBColor; 12] = [
+    RGBColor(31, 119, 180),
+    RGBColor(255, 127, 14),
+    RGBColor(44, 160, 44),
+    RGBColor(214, 39, 40),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+    RGBColor(127, 127, 127),
+    RGBColor(188, 189, 34),
+    RGBColor(23, 190, 207),
+    RGBColor(0, 0, 0),
+    RGBColor(255, 200, 0),
+];
+
 fn draw_err<E: std::fmt::Debug>(e: E) -> anyhow::Error {
     anyhow::anyhow!("drawing: {e:?}")
 }
@@ -93,7 +109,11 @@ fn line_plot(
         .draw()
         .map_err(draw_err)?;
     for (i, (name, pts)) in series.iter().enumerate() {
-        let c = COLORS[i % COLORS.len()];
+        let c = if series.len() > COLORS.len() {
+            MANY_COLORS[i % MANY_COLORS.len()]
+        } else {
+            COLORS[i % COLORS.len()]
+        };
         chart
             .draw_series(LineSeries::new(pts.iter().copied(), c.stroke_width(2)))
             .map_err(draw_err)?
@@ -116,7 +136,24 @@ fn line_plot(
 
 /// Histograms of same-class vs different-class distances, one panel per method.
 fn distance_plot(path: &Path, panels: &[(String, Vec<f64>, Vec<f64>)]) -> anyhow::Result<()> {
-    let root = BitMapBackend::new(path, (1200, 420)).into_drawing_area();
+    histogram_plot(
+        path,
+        panels,
+        "squared distance",
+        ["same class", "different class"],
+        (1200, 420),
+    )
+}
+
+/// Histograms of two score sets per panel.
+fn histogram_plot(
+    path: &Path,
+    panels: &[(String, Vec<f64>, Vec<f64>)],
+    xlabel: &str,
+    labels: [&str; 2],
+    size: (u32, u32),
+) -> anyhow::Result<()> {
+    let root = BitMapBackend::new(path, size).into_drawing_area();
     root.fill(&WHITE).map_err(draw_err)?;
     let areas = root.split_evenly((1, panels.len()));
     for (area, (name, intra, inter)) in areas.iter().zip(panels) {
@@ -145,14 +182,11 @@ fn distance_plot(path: &Path, panels: &[(String, Vec<f64>, Vec<f64>)]) -> anyhow
             .map_err(draw_err)?;
         chart
             .configure_mesh()
-            .x_desc("squared distance")
-            .y_desc("fraction of pairs")
+            .x_desc(xlabel)
+            .y_desc("fraction")
             .draw()
             .map_err(draw_err)?;
-        for (h, c, label) in [
-            (&hi, COLORS[0], "same class"),
-            (&hx, COLORS[1], "different class"),
-        ] {
+        for (h, c, label) in [(&hi, COLORS[0], labels[0]), (&hx, COLORS[1], labels[1])] {
             let w = max / bins as f64;
             chart
                 .draw_series(h.iter().enumerate().map(|(i, &y)| {
@@ -175,6 +209,54 @@ fn distance_plot(path: &Path, panels: &[(String, Vec<f64>, Vec<f64>)]) -> anyhow
             .map_err(draw_err)?;
     }
     root.present().map_err(draw_err)?;
+    Ok(())
+}
+
+/// ROC curves (one plot per method, every fault at moderate severity) and score
+/// histograms (genuine vs faulty, one panel per fault at moderate severity, scores clipped
+/// at 3; the calibrated threshold is 1) from `guardian-lab outliers` scores.
+pub fn outlier_plots(
+    dir: &Path,
+    raw: &std::collections::BTreeMap<String, crate::outliers::Scores>,
+) -> anyhow::Result<()> {
+    for (method, sc) in raw {
+        let mut series = Vec::new();
+        let mut panels = Vec::new();
+        for (key, v) in &sc.faulty {
+            if !key.ends_with("@50") {
+                continue;
+            }
+            let name = key.trim_end_matches("@50").to_owned();
+            let roc = crate::outliers::roc_curve(&sc.genuine, v);
+            let step = (roc.len() / 150).max(1);
+            let mut pts: Vec<(f64, f64)> = roc.iter().step_by(step).copied().collect();
+            pts.push((1.0, 1.0));
+            series.push((name.clone(), pts));
+            let clip = |x: &f32| f64::from(*x).min(3.0);
+            panels.push((
+                name,
+                sc.genuine.iter().map(clip).collect(),
+                v.iter().map(clip).collect(),
+            ));
+        }
+        line_plot(
+            &dir.join(format!("roc-{method}.png")),
+            &format!("{method}: ROC, moderate severity"),
+            "false-positive rate (genuine rejected)",
+            "true-positive rate (faulty caught)",
+            &series,
+            0.0..1.0,
+        )?;
+        for (i, chunk) in panels.chunks(4).enumerate() {
+            histogram_plot(
+                &dir.join(format!("scores-{method}-{i}.png")),
+                chunk,
+                "score (no-go above 1)",
+                ["genuine", "faulty"],
+                (1400, 380),
+            )?;
+        }
+    }
     Ok(())
 }
 

@@ -5,13 +5,20 @@
 //! it, so serving and evaluation share one decision rule ([`ClassBank::decide`]):
 //!
 //! 1. the claimed class is not enrolled → [`Outcome::UnknownClass`];
-//! 2. another class is strictly nearer than the claimed one → [`Outcome::WrongTask`];
+//! 2. another class is nearer than the claimed one by more than the bank's wrong-task
+//!    tolerance (0 unless calibrated) → [`Outcome::WrongTask`];
 //! 3. the distance to the claimed prototype exceeds the class threshold → [`Outcome::Outlier`];
 //! 4. otherwise [`Outcome::Go`].
 //!
 //! Distances are Euclidean between embeddings; a prototype is the mean of a class's enrolled
 //! embeddings. A class uses its own calibrated threshold when it has one, else the bank's
-//! global default ([`DEFAULT_THRESHOLD`] unless the bank says otherwise). The margin is
+//! global default ([`DEFAULT_THRESHOLD`] unless the bank says otherwise).
+//!
+//! Calibration ([`calibrate`], [`ClassBank::apply_calibration`]) picks, from genuine plans of
+//! validation classes, the global threshold, the wrong-task tolerance and a scale for
+//! per-class thresholds (`scale * class_spread`, for classes with at least
+//! [`MIN_CLASS_CALIBRATION`] examples) so that a target share of genuine plans is rejected.
+//! The bank keeps the calibration record and applies the scale to classes enrolled later. The margin is
 //! `threshold - d_claimed` (positive = inside) and the gap `d_nearest_other - d_claimed`
 //! (positive = the claimed class is the nearest).
 //!
@@ -47,7 +54,12 @@ pub fn distance(a: &[f32], b: &[f32]) -> f32 {
         .sqrt()
 }
 
-/// How a threshold was calibrated (room for the calibration issue; free-form today).
+/// How a threshold was calibrated.
+///
+/// The bank-level record (see [`ClassBank::apply_calibration`]) also carries the numbers
+/// that derive thresholds for classes enrolled later: `class_scale` (a class with at least
+/// [`MIN_CLASS_CALIBRATION`] examples gets `class_scale * class_spread`) and
+/// `wrong_task_tolerance` (how much nearer another class must be to call a wrong task).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Calibration {
@@ -59,6 +71,129 @@ pub struct Calibration {
     pub target_rate: Option<f32>,
     /// Free text: data set, date, model version.
     pub note: String,
+    /// Global threshold chosen by the calibration (bank-level record).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub global_threshold: Option<f32>,
+    /// Per-class threshold = `class_scale * class_spread(embeddings)` (bank-level record).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub class_scale: Option<f32>,
+    /// Wrong-task tolerance chosen by the calibration (bank-level record).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub wrong_task_tolerance: Option<f32>,
+    /// False-reject rate measured on the calibration data with the chosen numbers.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub measured_rate: Option<f32>,
+}
+
+/// A class needs at least this many enrolled examples for its own (spread-scaled)
+/// threshold; below it uses the bank's global threshold.
+pub const MIN_CLASS_CALIBRATION: usize = 3;
+
+/// Spread of a class: root mean square of the leave-one-out distances (each example to the
+/// mean of the others). `None` below [`MIN_CLASS_CALIBRATION`] examples.
+pub fn class_spread(embeddings: &[Vec<f32>]) -> Option<f32> {
+    let n = embeddings.len();
+    if n < MIN_CLASS_CALIBRATION {
+        return None;
+    }
+    let dim = embeddings[0].len();
+    let sum = embeddings.iter().fold(vec![0.0f64; dim], |mut acc, e| {
+        for (a, &v) in acc.iter_mut().zip(e) {
+            *a += f64::from(v);
+        }
+        acc
+    });
+    let mut sq = 0.0f64;
+    for e in embeddings {
+        let d2: f64 = e
+            .iter()
+            .zip(&sum)
+            .map(|(&v, &s)| {
+                let rest = (s - f64::from(v)) / (n - 1) as f64;
+                (f64::from(v) - rest).powi(2)
+            })
+            .sum();
+        sq += d2;
+    }
+    Some(((sq / n as f64).sqrt()) as f32)
+}
+
+/// The smallest score `t` among `scores` such that at most `allowed` scores exceed it
+/// (`None` for no scores; 0 if every score may be rejected).
+pub fn threshold_allowing(scores: &[f32], allowed: usize) -> Option<f32> {
+    if scores.is_empty() {
+        return None;
+    }
+    if allowed >= scores.len() {
+        return Some(0.0);
+    }
+    let mut s: Vec<f32> = scores.to_vec();
+    s.sort_by(f32::total_cmp);
+    Some(s[s.len() - 1 - allowed])
+}
+
+/// One genuine plan scored against a bank it belongs to: distance to its own class, to the
+/// nearest other class, and the spread of its class.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GenuineScore {
+    /// Distance to the claimed (true) class prototype.
+    pub claimed: f32,
+    /// Distance to the nearest other prototype, if any.
+    pub nearest_other: Option<f32>,
+    /// [`class_spread`] of the claimed class, if it has enough examples.
+    pub spread: Option<f32>,
+}
+
+/// Choose the wrong-task tolerance, the global threshold and the per-class scale so that at
+/// most `target_rate` of the genuine plans are rejected by [`ClassBank::decide`].
+///
+/// Half of the budget goes to wrong-task rejections (tolerance = the `1 - target/2`
+/// quantile of `claimed - nearest_other`, at least 0); what is left of the budget after
+/// the wrong-task rejections goes to the distance threshold (global: on `claimed`; per
+/// class: on `claimed / spread`). `None` if there are no scores or the rate is not in
+/// `[0, 1)`.
+pub fn calibrate(scores: &[GenuineScore], target_rate: f32, note: &str) -> Option<Calibration> {
+    if scores.is_empty() || !(0.0..1.0).contains(&target_rate) {
+        return None;
+    }
+    let n = scores.len();
+    let budget = (f64::from(target_rate) * n as f64).floor() as usize;
+    let gaps: Vec<f32> = scores
+        .iter()
+        .filter_map(|s| s.nearest_other.map(|o| s.claimed - o))
+        .collect();
+    let tol = threshold_allowing(&gaps, budget / 2)
+        .unwrap_or(0.0)
+        .max(0.0);
+    let wrong = |s: &GenuineScore| s.nearest_other.is_some_and(|o| o + tol < s.claimed);
+    let wrong_n = scores.iter().filter(|s| wrong(s)).count();
+    let left = budget.saturating_sub(wrong_n);
+    let kept: Vec<&GenuineScore> = scores.iter().filter(|s| !wrong(s)).collect();
+    let d: Vec<f32> = kept.iter().map(|s| s.claimed).collect();
+    let global = threshold_allowing(&d, left).unwrap_or(DEFAULT_THRESHOLD);
+    let ratios: Vec<f32> = kept
+        .iter()
+        .filter_map(|s| s.spread.filter(|&v| v > 0.0).map(|v| s.claimed / v))
+        .collect();
+    let with_spread = scores.iter().filter(|s| s.spread.is_some()).count();
+    let class_scale = if ratios.is_empty() {
+        None
+    } else {
+        let b = (f64::from(target_rate) * with_spread as f64).floor() as usize;
+        let w = with_spread - ratios.len();
+        threshold_allowing(&ratios, b.saturating_sub(w))
+    };
+    let rejected = wrong_n + d.iter().filter(|&&v| v > global).count();
+    Some(Calibration {
+        method: "genuine-quantile".into(),
+        samples: u32::try_from(n).unwrap_or(u32::MAX),
+        target_rate: Some(target_rate),
+        note: note.to_owned(),
+        global_threshold: Some(global),
+        class_scale,
+        wrong_task_tolerance: Some(tol),
+        measured_rate: Some(rejected as f32 / n as f32),
+    })
 }
 
 /// One enrolled class.
@@ -213,6 +348,8 @@ pub struct ClassBank {
     generation: u64,
     default_threshold: f32,
     calibration: Option<Calibration>,
+    #[serde(default)]
+    wrong_task_tolerance: f32,
     classes: BTreeMap<String, Class>,
 }
 
@@ -225,6 +362,7 @@ impl ClassBank {
             generation: 0,
             default_threshold,
             calibration: None,
+            wrong_task_tolerance: 0.0,
             classes: BTreeMap::new(),
         }
     }
@@ -253,6 +391,54 @@ impl ClassBank {
     /// Bank-level calibration record.
     pub fn calibration(&self) -> Option<&Calibration> {
         self.calibration.as_ref()
+    }
+    /// How much nearer (Euclidean) another class must be than the claimed one for a
+    /// [`Outcome::WrongTask`]; 0 = any strictly nearer class.
+    pub fn wrong_task_tolerance(&self) -> f32 {
+        self.wrong_task_tolerance
+    }
+    /// Apply a calibration: its global threshold (if any) as the default, the wrong-task
+    /// tolerance and, if the record has a `class_scale`, a threshold for every class with at
+    /// least [`MIN_CLASS_CALIBRATION`] examples (also for classes enrolled later).
+    pub fn apply_calibration(&mut self, calibration: Calibration) {
+        if let Some(g) = calibration.global_threshold.filter(|g| g.is_finite()) {
+            self.default_threshold = g;
+        }
+        self.wrong_task_tolerance = calibration.wrong_task_tolerance.unwrap_or(0.0).max(0.0);
+        self.calibration = Some(calibration);
+        let names: Vec<String> = self.classes.keys().cloned().collect();
+        for n in names {
+            self.recalibrate_class(&n);
+        }
+        self.generation += 1;
+    }
+    /// The class threshold the bank's calibration gives `name` (`None`: uses the global one).
+    fn recalibrate_class(&mut self, name: &str) {
+        let Some(scale) = self.calibration.as_ref().and_then(|c| c.class_scale) else {
+            return;
+        };
+        let target_rate = self.calibration.as_ref().and_then(|c| c.target_rate);
+        if let Some(c) = self.classes.get_mut(name) {
+            match class_spread(&c.embeddings) {
+                Some(spread) => {
+                    c.threshold = Some(scale * spread);
+                    c.calibration = Some(Calibration {
+                        method: "class-spread".into(),
+                        samples: u32::try_from(c.embeddings.len()).unwrap_or(u32::MAX),
+                        target_rate,
+                        note: format!("class_scale {scale} x spread {spread}"),
+                        global_threshold: None,
+                        class_scale: None,
+                        wrong_task_tolerance: None,
+                        measured_rate: None,
+                    });
+                }
+                None => {
+                    c.threshold = None;
+                    c.calibration = None;
+                }
+            }
+        }
     }
     /// Set a class's calibrated threshold; `false` if the class is unknown.
     pub fn set_class_threshold(
@@ -323,8 +509,9 @@ impl ClassBank {
             });
         class.embeddings.extend(embeddings.iter().cloned());
         class.prototype = mean(&class.embeddings, dim);
+        self.recalibrate_class(name);
         self.generation += 1;
-        Ok(class)
+        Ok(&self.classes[name])
     }
 
     /// Remove a class; returns it if it was enrolled.
@@ -375,7 +562,7 @@ impl ClassBank {
         let threshold = class.threshold.unwrap_or(self.default_threshold);
         let other = ranked.iter().find(|n| n.name != claimed);
         let outcome = match other {
-            Some(o) if o.distance < d => Outcome::WrongTask {
+            Some(o) if o.distance + self.wrong_task_tolerance < d => Outcome::WrongTask {
                 nearest: o.name.clone(),
             },
             _ if d.is_nan() || d > threshold => Outcome::Outlier,
@@ -443,6 +630,9 @@ impl ClassBank {
         let inconsistent = |detail: String| Err(LoadBankError::Inconsistent { detail });
         if !self.default_threshold.is_finite() {
             return inconsistent("default threshold is not finite".into());
+        }
+        if !(self.wrong_task_tolerance.is_finite() && self.wrong_task_tolerance >= 0.0) {
+            return inconsistent("wrong-task tolerance is not finite and >= 0".into());
         }
         for (name, c) in &self.classes {
             if c.prototype.len() != self.dim {
@@ -632,5 +822,77 @@ mod tests {
             ClassBank::load(&dir.path().join("missing")),
             Err(LoadBankError::Io { .. })
         ));
+    }
+
+    #[test]
+    fn calibration_meets_the_target_false_reject_rate() {
+        // 1000 genuine plans: claimed distances 0.001..1.0, nearest other always farther
+        // except for 30 confusions.
+        let scores: Vec<GenuineScore> = (1..=1000)
+            .map(|i| GenuineScore {
+                claimed: i as f32 / 1000.0,
+                nearest_other: Some(if i % 33 == 0 { 0.0 } else { 2.0 }),
+                spread: Some(0.5),
+            })
+            .collect();
+        let c = calibrate(&scores, 0.05, "synthetic").unwrap();
+        let tol = c.wrong_task_tolerance.unwrap();
+        assert!(tol >= 0.0);
+        let rate = c.measured_rate.unwrap();
+        assert!((0.04..=0.05).contains(&rate), "{c:?}");
+        // Rebuild the decision by hand at the chosen numbers.
+        let global = c.global_threshold.unwrap();
+        let rejected = scores
+            .iter()
+            .filter(|s| s.nearest_other.unwrap() + tol < s.claimed || s.claimed > global)
+            .count();
+        assert!(rejected <= 50, "{rejected}");
+        // The per-class scale gives the same budget on claimed / spread.
+        let scale = c.class_scale.unwrap();
+        let rejected = scores
+            .iter()
+            .filter(|s| s.nearest_other.unwrap() + tol < s.claimed || s.claimed / 0.5 > scale)
+            .count();
+        assert!((40..=50).contains(&rejected), "{rejected}");
+        // A 0 target rejects none of them.
+        let c = calibrate(&scores, 0.0, "").unwrap();
+        assert_eq!(c.measured_rate, Some(0.0));
+        assert!(calibrate(&[], 0.01, "").is_none());
+        assert!(calibrate(&scores, 1.5, "").is_none());
+        assert_eq!(threshold_allowing(&[3.0, 1.0, 2.0], 1), Some(2.0));
+        assert_eq!(threshold_allowing(&[3.0, 1.0, 2.0], 0), Some(3.0));
+    }
+
+    #[test]
+    fn calibrated_bank_sets_class_thresholds_on_enroll() {
+        let mut b = ClassBank::new(2, "m", 1.0);
+        b.enroll("a", &[vec![0.0, 0.0], vec![0.0, 2.0]]).unwrap();
+        let cal = Calibration {
+            method: "genuine-quantile".into(),
+            samples: 10,
+            target_rate: Some(0.01),
+            note: String::new(),
+            global_threshold: Some(0.7),
+            class_scale: Some(2.0),
+            wrong_task_tolerance: Some(0.25),
+            measured_rate: None,
+        };
+        b.apply_calibration(cal);
+        assert_eq!(b.threshold("a"), Some(0.7)); // two examples: global threshold
+        assert_eq!(b.wrong_task_tolerance(), 0.25);
+        b.enroll("a", &[vec![2.0, 0.0]]).unwrap();
+        let spread = class_spread(&b.class("a").unwrap().embeddings).unwrap();
+        assert!((b.threshold("a").unwrap() - 2.0 * spread).abs() < 1e-6);
+        // The tolerance: another class nearer by less than 0.25 is not a wrong task.
+        b.enroll("b", &[vec![10.0, 10.0]]).unwrap();
+        let pa = b.class("a").unwrap().prototype.clone();
+        let q = [pa[0] + 0.1, pa[1]];
+        assert_eq!(b.decide(&q, "a", 2).outcome, Outcome::Go);
+        let bytes = b.to_bytes().unwrap();
+        assert_eq!(ClassBank::from_bytes(&bytes).unwrap(), b);
+        // Leave-one-out spread of three collinear points 0, 1, 2.
+        let s = class_spread(&[vec![0.0], vec![1.0], vec![2.0]]).unwrap();
+        assert!((s - (4.5f32 / 3.0).sqrt()).abs() < 1e-6, "{s}");
+        assert_eq!(class_spread(&[vec![0.0], vec![1.0]]), None);
     }
 }

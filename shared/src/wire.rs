@@ -149,7 +149,8 @@ impl VerdictCode {
 pub enum ReasonCode {
     /// No reason (go, or not a check).
     None = 0,
-    /// Another class is nearer than the claimed one; it is `entries[0]`.
+    /// Another class is nearer than the claimed one (by more than the bank's wrong-task
+    /// tolerance); it is `entries[0]`.
     WrongTask = 1,
     /// The claimed class is the nearest but farther than its threshold.
     Outlier = 2,

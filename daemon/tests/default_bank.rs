@@ -1,0 +1,34 @@
+//! The shipped default bank (`models/default-bank.gcb`, built by `guardian-lab bank`) loads
+//! with the shipped model and carries the calibrated thresholds the decision uses.
+
+use guardian_daemon::config::Config;
+use guardian_daemon::engine::Engine;
+use guardian_daemon::screen::{BankSource, load_bank};
+use guardian_models::bank::MIN_CLASS_CALIBRATION;
+
+#[test]
+fn shipped_default_bank_matches_the_shipped_model_and_is_calibrated() {
+    let state = tempfile::tempdir().unwrap();
+    let config = Config {
+        state_dir: Some(state.path().to_owned()),
+        ..Config::default()
+    };
+    let engine = Engine::load(&config.model_path()).unwrap();
+    let (bank, source) = load_bank(&config, &engine).unwrap();
+    assert!(matches!(source, BankSource::Default(_)), "{source}");
+    assert!(!bank.is_empty());
+    let cal = bank.calibration().expect("the default bank is calibrated");
+    assert_eq!(cal.global_threshold, Some(bank.default_threshold()));
+    assert!(cal.class_scale.is_some_and(|s| s > 0.0));
+    assert_eq!(cal.wrong_task_tolerance, Some(bank.wrong_task_tolerance()));
+    for (name, class) in bank.classes() {
+        if class.embeddings.len() >= MIN_CLASS_CALIBRATION {
+            let t = class.threshold.expect("per-class threshold");
+            assert!(t > 0.0 && t.is_finite(), "{name}: {t}");
+            assert_eq!(bank.threshold(name), Some(t));
+            // The decision uses the class's own threshold: its prototype itself is a go.
+            let d = bank.decide(&class.prototype, name, 3);
+            assert_eq!(d.threshold, Some(t));
+        }
+    }
+}

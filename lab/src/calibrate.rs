@@ -1,0 +1,258 @@
+//! Threshold calibration and the shipped default bank (`guardian-lab bank`).
+//!
+//! Calibration data: the classes of the calibration (validation) alphabets. In each of
+//! `reps` rounds every class gets `shots` randomly drawn enrolled drawings; every other
+//! drawing of the class is a genuine plan scored against that bank (distance to its class,
+//! to the nearest other class, and its class's spread). [`guardian_models::bank::calibrate`]
+//! turns those scores into the global threshold, the wrong-task tolerance and the
+//! per-class scale for a target false-reject rate; the bank of the enrolled alphabets is
+//! then built with them.
+
+use std::path::PathBuf;
+
+use anyhow::Context as _;
+use guardian_models::bank::{self, Calibration, ClassBank, GenuineScore};
+use guardian_models::embedder::Embedder;
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+use rand::seq::SliceRandom;
+use serde::Serialize;
+
+use crate::dataset::Dataset;
+use crate::eval::Pool;
+
+/// Indices of each dense label, in pool order.
+pub fn by_class(labels: &[u32]) -> Vec<Vec<usize>> {
+    let n = labels.iter().map(|&l| l as usize + 1).max().unwrap_or(0);
+    let mut out = vec![Vec::new(); n];
+    for (i, &l) in labels.iter().enumerate() {
+        out[l as usize].push(i);
+    }
+    out
+}
+
+/// One random enrollment: `shots` support indices per class (classes with fewer than
+/// `shots + 1` drawings are left out) and the remaining indices as queries.
+pub fn split(labels: &[u32], shots: usize, rng: &mut StdRng) -> (Vec<Vec<usize>>, Vec<usize>) {
+    let mut support = Vec::new();
+    let mut queries = Vec::new();
+    for mut idx in by_class(labels) {
+        if idx.len() <= shots {
+            support.push(Vec::new());
+            continue;
+        }
+        idx.shuffle(rng);
+        queries.extend_from_slice(&idx[shots..]);
+        idx.truncate(shots);
+        support.push(idx);
+    }
+    (support, queries)
+}
+
+/// A bank of the classes in `support` (dense label -> indices into `emb`), named by `names`.
+pub fn bank_of(
+    emb: &[Vec<f32>],
+    support: &[Vec<usize>],
+    names: &[String],
+    model_version: &str,
+) -> anyhow::Result<ClassBank> {
+    let dim = emb.first().map_or(0, Vec::len);
+    let mut b = ClassBank::new(dim, model_version, bank::DEFAULT_THRESHOLD);
+    for (l, idx) in support.iter().enumerate() {
+        if idx.is_empty() {
+            continue;
+        }
+        let rows: Vec<Vec<f32>> = idx.iter().map(|&i| emb[i].clone()).collect();
+        let name = names.get(l).cloned().unwrap_or_else(|| format!("class{l}"));
+        b.enroll(&name, &rows)?;
+    }
+    Ok(b)
+}
+
+/// Genuine scores of every non-enrolled drawing over `reps` random enrollments.
+pub fn genuine_scores(
+    emb: &[Vec<f32>],
+    labels: &[u32],
+    names: &[String],
+    shots: usize,
+    reps: usize,
+    seed: u64,
+) -> anyhow::Result<Vec<GenuineScore>> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut out = Vec::new();
+    for _ in 0..reps {
+        let (support, queries) = split(labels, shots, &mut rng);
+        let b = bank_of(emb, &support, names, "calibration")?;
+        for q in queries {
+            let l = labels[q] as usize;
+            let name = names.get(l).cloned().unwrap_or_else(|| format!("class{l}"));
+            let Some(class) = b.class(&name) else {
+                continue;
+            };
+            let ranked = b.ranked(&emb[q]);
+            let claimed = bank::distance(&emb[q], &class.prototype);
+            let nearest_other = ranked.iter().find(|n| n.name != name).map(|n| n.distance);
+            out.push(GenuineScore {
+                claimed,
+                nearest_other,
+                spread: bank::class_spread(&class.embeddings),
+            });
+        }
+    }
+    Ok(out)
+}
+
+/// Calibrate on the pool's embeddings for `target_rate`.
+pub fn calibrate_pool(
+    emb: &[Vec<f32>],
+    pool: &Pool,
+    shots: usize,
+    reps: usize,
+    target_rate: f32,
+    seed: u64,
+    note: &str,
+) -> anyhow::Result<Calibration> {
+    let scores = genuine_scores(emb, &pool.labels, &pool.class_names, shots, reps, seed)?;
+    bank::calibrate(&scores, target_rate, note).with_context(|| {
+        format!(
+            "cannot calibrate: {} scores, target {target_rate}",
+            scores.len()
+        )
+    })
+}
+
+/// `guardian-lab bank`: calibrate on the validation alphabets and build a class bank.
+#[derive(Debug, Clone, clap::Args)]
+pub struct Args {
+    /// Embedder.
+    #[arg(long, default_value = "models/embedder.safetensors")]
+    pub model: PathBuf,
+    /// Dataset file.
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// Alphabets to calibrate on (validation; never the enrolled ones).
+    #[arg(long, value_delimiter = ',', default_value = "Latin")]
+    pub calib_alphabets: Vec<String>,
+    /// Alphabets whose classes are enrolled into the bank.
+    #[arg(long, value_delimiter = ',', default_value = "Greek,Korean")]
+    pub alphabets: Vec<String>,
+    /// Enrolled drawings per class (calibration uses the same number).
+    #[arg(long, default_value_t = 5)]
+    pub shots: usize,
+    /// Target false-reject rate on genuine plans.
+    #[arg(long, default_value_t = 0.01)]
+    pub target_frr: f32,
+    /// Random enrollments of the calibration alphabets.
+    #[arg(long, default_value_t = 20)]
+    pub reps: usize,
+    /// Seed (calibration enrollments and the enrolled drawings).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Output bank file.
+    #[arg(long, default_value = "models/default-bank.gcb")]
+    pub out: PathBuf,
+}
+
+/// What `guardian-lab bank` did.
+#[derive(Debug, Clone, Serialize)]
+pub struct BankSummary {
+    /// Model version.
+    pub model_version: String,
+    /// Classes enrolled.
+    pub classes: usize,
+    /// The calibration record stored in the bank.
+    pub calibration: Calibration,
+    /// Output file.
+    pub out: PathBuf,
+}
+
+/// Run `guardian-lab bank`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let data = Dataset::load(&args.dataset)?;
+    let model =
+        Embedder::load(&args.model).with_context(|| format!("loading {}", args.model.display()))?;
+    if args
+        .calib_alphabets
+        .iter()
+        .any(|a| args.alphabets.contains(a))
+    {
+        anyhow::bail!("calibration and enrolled alphabets overlap");
+    }
+    let cpool = Pool::new(&data, &args.calib_alphabets)?;
+    let cemb = cpool.embed(&model)?;
+    let note = format!(
+        "{}-shot, {} reps on {}; model {}",
+        args.shots,
+        args.reps,
+        args.calib_alphabets.join(","),
+        model.version()
+    );
+    let cal = calibrate_pool(
+        &cemb,
+        &cpool,
+        args.shots,
+        args.reps,
+        args.target_frr,
+        args.seed,
+        &note,
+    )?;
+    let pool = Pool::new(&data, &args.alphabets)?;
+    let emb = pool.embed(&model)?;
+    let mut rng = StdRng::seed_from_u64(args.seed ^ 0x5eed);
+    let (support, _) = split(&pool.labels, args.shots, &mut rng);
+    let mut b = bank_of(&emb, &support, &pool.class_names, model.version())?;
+    b.apply_calibration(cal.clone());
+    b.save(&args.out)?;
+    let summary = BankSummary {
+        model_version: model.version().to_owned(),
+        classes: b.len(),
+        calibration: cal,
+        out: args.out.clone(),
+    };
+    println!("{}", serde_json::to_string_pretty(&summary)?);
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn split_keeps_shots_and_queries_apart() {
+        let labels: Vec<u32> = (0..30).map(|i| i / 10).collect();
+        let mut rng = StdRng::seed_from_u64(1);
+        let (support, queries) = split(&labels, 3, &mut rng);
+        assert_eq!(support.len(), 3);
+        assert!(support.iter().all(|s| s.len() == 3));
+        assert_eq!(queries.len(), 21);
+        for (l, s) in support.iter().enumerate() {
+            assert!(
+                s.iter()
+                    .all(|&i| labels[i] as usize == l && !queries.contains(&i))
+            );
+        }
+    }
+
+    #[test]
+    fn genuine_scores_of_separated_classes_calibrate_to_the_target() {
+        // Three tight, far-apart clusters: every genuine plan is nearest its own class.
+        let labels: Vec<u32> = (0..60).map(|i| i / 20).collect();
+        let emb: Vec<Vec<f32>> = labels
+            .iter()
+            .enumerate()
+            .map(|(i, &l)| {
+                vec![
+                    l as f32 * 10.0 + (i % 7) as f32 * 0.01,
+                    (i % 5) as f32 * 0.01,
+                ]
+            })
+            .collect();
+        let names: Vec<String> = (0..3).map(|i| format!("c{i}")).collect();
+        let s = genuine_scores(&emb, &labels, &names, 5, 4, 0).unwrap();
+        assert_eq!(s.len(), 4 * 3 * 15);
+        assert!(s.iter().all(|g| g.nearest_other.unwrap() > g.claimed));
+        let c = bank::calibrate(&s, 0.05, "").unwrap();
+        assert!(c.measured_rate.unwrap() <= 0.05);
+        assert!(c.global_threshold.unwrap() < 1.0);
+    }
+}

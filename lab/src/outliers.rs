@@ -1,0 +1,711 @@
+//! `guardian-lab outliers`: how well go / no-go catches faulty plans and lets genuine ones
+//! through, for guardian and the raw 1-NN and Siamese baselines.
+//!
+//! Protocol. Calibration: every method is calibrated on the calibration (validation)
+//! alphabets exactly like the shipped bank ([`crate::calibrate`], target false-reject rate
+//! `--target-frr`). Test, on `--alphabets` only, `--reps` rounds: a random quarter of the
+//! classes is never enrolled (the unknown tasks); every other class enrolls `--shots`
+//! random drawings; its other drawings are the genuine plans. Faulty plans:
+//! - wrong task: a genuine plan of an enrolled class claiming another enrolled class —
+//!   severity 0.25 the class whose prototype is nearest to the true class's prototype (in
+//!   the method's own space), 0.5 a random class of the same alphabet, 1 any random class;
+//! - unknown task: a plan of a never-enrolled class claiming an enrolled class (same
+//!   severities: nearest enrolled prototype, same alphabet, any);
+//! - every [`Fault`] at every severity in [`SEVERITIES`], applied to `--sources` random
+//!   test drawings (re-solved through the IK once; a round skips a source enrolled in it)
+//!   and claiming the drawing's own class.
+//!
+//! Score of a plan claiming class c (higher = more suspicious): `max(d_c / t_c, d_c / (d_o +
+//! tol))`, with `d_c` the distance to class c, `d_o` to the nearest other class, `t_c` the
+//! calibrated threshold and `tol` the wrong-task tolerance; the score exceeds 1 exactly when
+//! the bank's decision rule says no-go. Reported per fault and severity: AUROC of faulty vs
+//! genuine scores, TPR at 1 % FPR (threshold at the genuine scores' 99th percentile),
+//! detection rate at the calibrated threshold (score > 1); and the genuine false-reject
+//! rate at the calibrated threshold.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use anyhow::Context as _;
+use guardian_models::bank::{self, Calibration, GenuineScore};
+use guardian_models::embedder::Embedder;
+use guardian_shared::trajectory::Resampled;
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+use rand::seq::{IndexedRandom, SliceRandom};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::calibrate::split;
+use crate::dataset::Dataset;
+use crate::eval::{Pool, standardised_raw};
+use crate::faults::{self, Fault, SEVERITIES};
+use crate::path::PathSolver;
+use crate::strokes;
+
+/// Area under the ROC curve of `pos` (faulty) vs `neg` (genuine) scores, higher = faulty;
+/// ties count one half. `NaN` if either set is empty.
+pub fn auroc(neg: &[f32], pos: &[f32]) -> f64 {
+    if neg.is_empty() || pos.is_empty() {
+        return f64::NAN;
+    }
+    let mut all: Vec<(f32, bool)> = neg
+        .iter()
+        .map(|&v| (v, false))
+        .chain(pos.iter().map(|&v| (v, true)))
+        .collect();
+    all.sort_by(|a, b| a.0.total_cmp(&b.0));
+    // Rank sum of the positives with mid-ranks for ties.
+    let mut rank_sum = 0.0f64;
+    let mut i = 0;
+    while i < all.len() {
+        let mut j = i;
+        while j + 1 < all.len() && all[j + 1].0 == all[i].0 {
+            j += 1;
+        }
+        let mid = (i + j) as f64 / 2.0 + 1.0;
+        rank_sum += mid * all[i..=j].iter().filter(|x| x.1).count() as f64;
+        i = j + 1;
+    }
+    let (np, nn) = (pos.len() as f64, neg.len() as f64);
+    (rank_sum - np * (np + 1.0) / 2.0) / (np * nn)
+}
+
+/// True-positive rate at false-positive rate `fpr`: the threshold lets at most
+/// `floor(fpr * |neg|)` genuine scores exceed it.
+pub fn tpr_at_fpr(neg: &[f32], pos: &[f32], fpr: f64) -> f64 {
+    let allowed = (fpr * neg.len() as f64).floor() as usize;
+    let Some(t) = bank::threshold_allowing(neg, allowed) else {
+        return f64::NAN;
+    };
+    share_above(pos, t)
+}
+
+fn share_above(v: &[f32], t: f32) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.iter().filter(|&&x| x > t).count() as f64 / v.len() as f64
+}
+
+/// ROC curve points (FPR, TPR) at every distinct score, from (0, 0) to (1, 1).
+pub fn roc_curve(neg: &[f32], pos: &[f32]) -> Vec<(f64, f64)> {
+    let mut t: Vec<f32> = neg.iter().chain(pos).copied().collect();
+    t.sort_by(|a, b| b.total_cmp(a));
+    t.dedup();
+    let mut out = vec![(0.0, 0.0)];
+    for th in t {
+        out.push((share_above_eq(neg, th), share_above_eq(pos, th)));
+    }
+    out.push((1.0, 1.0));
+    out
+}
+
+fn share_above_eq(v: &[f32], t: f32) -> f64 {
+    v.iter().filter(|&&x| x >= t).count() as f64 / v.len().max(1) as f64
+}
+
+/// How a method measures a query against a class.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// The shipped embedder, prototypes, calibrated per-class thresholds.
+    Guardian,
+    /// The Siamese baseline network, prototypes, calibrated the same way.
+    Siamese,
+    /// 1-NN on standardised raw trajectories (smallest L2 to a class's enrolled drawings),
+    /// global calibrated threshold.
+    Knn,
+}
+
+impl Method {
+    fn prototypes(self) -> bool {
+        !matches!(self, Method::Knn)
+    }
+}
+
+/// A method's vectors for a set of samples.
+struct Space<'a> {
+    method: Method,
+    vecs: &'a [Vec<f32>],
+}
+
+/// Per-class state of one enrollment.
+struct Enrolled {
+    /// Prototype (prototype methods) per class; empty if the class is not enrolled.
+    protos: Vec<Vec<f32>>,
+    /// Support vectors per class.
+    support: Vec<Vec<Vec<f32>>>,
+    spread: Vec<Option<f32>>,
+}
+
+impl Space<'_> {
+    fn enroll(&self, support: &[Vec<usize>]) -> Enrolled {
+        let mut e = Enrolled {
+            protos: Vec::new(),
+            support: Vec::new(),
+            spread: Vec::new(),
+        };
+        for idx in support {
+            let rows: Vec<Vec<f32>> = idx.iter().map(|&i| self.vecs[i].clone()).collect();
+            let dim = self.vecs.first().map_or(0, Vec::len);
+            let proto = if rows.is_empty() {
+                Vec::new()
+            } else {
+                let mut m = vec![0.0f32; dim];
+                for r in &rows {
+                    for (a, v) in m.iter_mut().zip(r) {
+                        *a += v / rows.len() as f32;
+                    }
+                }
+                m
+            };
+            e.spread.push(if self.method.prototypes() {
+                bank::class_spread(&rows)
+            } else {
+                None
+            });
+            e.protos.push(proto);
+            e.support.push(rows);
+        }
+        e
+    }
+}
+
+impl Enrolled {
+    /// Distance of `q` to every class (infinite for classes not enrolled).
+    fn distances(&self, method: Method, q: &[f32]) -> Vec<f32> {
+        (0..self.protos.len())
+            .map(|c| {
+                if self.support[c].is_empty() {
+                    f32::INFINITY
+                } else if method.prototypes() {
+                    bank::distance(q, &self.protos[c])
+                } else {
+                    self.support[c]
+                        .iter()
+                        .map(|s| bank::distance(q, s))
+                        .fold(f32::INFINITY, f32::min)
+                }
+            })
+            .collect()
+    }
+
+    fn genuine(&self, d: &[f32], c: usize) -> GenuineScore {
+        let other = d
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| *i != c)
+            .map(|(_, &v)| v)
+            .fold(f32::INFINITY, f32::min);
+        GenuineScore {
+            claimed: d[c],
+            nearest_other: other.is_finite().then_some(other),
+            spread: self.spread[c],
+        }
+    }
+}
+
+/// The score of a plan (see the module docs); > 1 = no-go.
+pub fn score(g: &GenuineScore, cal: &Calibration) -> f32 {
+    let global = cal.global_threshold.unwrap_or(bank::DEFAULT_THRESHOLD);
+    let t = match (cal.class_scale, g.spread) {
+        (Some(k), Some(s)) => k * s,
+        _ => global,
+    };
+    let tol = cal.wrong_task_tolerance.unwrap_or(0.0);
+    let a = g.claimed / t.max(1e-12);
+    let b = g
+        .nearest_other
+        .map_or(0.0, |o| g.claimed / (o + tol).max(1e-12));
+    a.max(b)
+}
+
+/// Arguments of `guardian-lab outliers`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct Args {
+    /// Embedder.
+    #[arg(long, default_value = "models/embedder.safetensors")]
+    pub model: PathBuf,
+    /// Dataset file.
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// Omniglot stroke root (for the Cartesian corruptions).
+    #[arg(long, default_value = "../shared/omniglot/strokes")]
+    pub strokes: PathBuf,
+    /// Test alphabets (never used in training or calibration).
+    #[arg(long, value_delimiter = ',', default_value = "Greek,Korean")]
+    pub alphabets: Vec<String>,
+    /// Calibration alphabets.
+    #[arg(long, value_delimiter = ',', default_value = "Latin")]
+    pub calib_alphabets: Vec<String>,
+    /// Enrolled drawings per class.
+    #[arg(long, default_value_t = 5)]
+    pub shots: usize,
+    /// Target genuine false-reject rate of the calibration.
+    #[arg(long, default_value_t = 0.01)]
+    pub target_frr: f32,
+    /// Calibration rounds.
+    #[arg(long, default_value_t = 20)]
+    pub calib_reps: usize,
+    /// Test rounds (random enrollments).
+    #[arg(long, default_value_t = 5)]
+    pub reps: usize,
+    /// Test drawings corrupted by every fault and severity.
+    #[arg(long, default_value_t = 120)]
+    pub sources: usize,
+    /// Siamese baseline model (skipped if absent).
+    #[arg(long)]
+    pub siamese_model: Option<PathBuf>,
+    /// Seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Directory for ROC curves and score histograms (PNG) and the raw scores (JSON).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Print one JSON object (otherwise a markdown table).
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Figures of one fault at one severity.
+#[derive(Debug, Clone, Serialize)]
+pub struct FaultFigures {
+    /// `wrong-task`, `unknown-task` or a [`Fault`] name.
+    pub fault: String,
+    /// Severity.
+    pub severity: f64,
+    /// Faulty plans scored.
+    pub n: usize,
+    /// AUROC faulty vs genuine.
+    pub auroc: f64,
+    /// TPR at 1 % FPR.
+    pub tpr_at_1pct_fpr: f64,
+    /// Share of faulty plans with a no-go at the calibrated threshold.
+    pub detection: f64,
+}
+
+/// One method's results.
+#[derive(Debug, Clone, Serialize)]
+pub struct MethodReport {
+    /// Method.
+    pub method: Method,
+    /// Its calibration (on the calibration alphabets).
+    pub calibration: Calibration,
+    /// Genuine plans scored.
+    pub genuine: usize,
+    /// Share of genuine plans with a no-go at the calibrated threshold.
+    pub genuine_false_reject: f64,
+    /// Per fault and severity.
+    pub faults: Vec<FaultFigures>,
+}
+
+/// The whole report.
+#[derive(Debug, Clone, Serialize)]
+pub struct OutliersReport {
+    /// Shipped model version.
+    pub model_version: String,
+    /// Test alphabets.
+    pub alphabets: Vec<String>,
+    /// Calibration alphabets.
+    pub calib_alphabets: Vec<String>,
+    /// Shots.
+    pub shots: usize,
+    /// Test rounds.
+    pub reps: usize,
+    /// Corrupted sources that solved for every fault / severity, per fault.
+    pub sources: BTreeMap<String, usize>,
+    /// Per method.
+    pub methods: Vec<MethodReport>,
+}
+
+type Key = (String, u32); // (fault name, severity x 100)
+
+/// Raw scores of one method: genuine and per fault key.
+#[derive(Debug, Default, Clone, Serialize)]
+pub struct Scores {
+    /// Genuine plan scores.
+    pub genuine: Vec<f32>,
+    /// Faulty plan scores per `fault@severity`.
+    pub faulty: BTreeMap<String, Vec<f32>>,
+}
+
+fn pool_data_indices(data: &Dataset, alphabets: &[String]) -> anyhow::Result<Vec<usize>> {
+    let ids = crate::train::alphabet_ids(data, alphabets)?;
+    Ok((0..data.len())
+        .filter(|&i| ids.contains(&data.alphabet_ids[i]))
+        .collect())
+}
+
+/// Run `guardian-lab outliers`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let data = Dataset::load(&args.dataset)?;
+    let model =
+        Embedder::load(&args.model).with_context(|| format!("loading {}", args.model.display()))?;
+    if args
+        .calib_alphabets
+        .iter()
+        .any(|a| args.alphabets.contains(a))
+    {
+        anyhow::bail!("calibration and test alphabets overlap");
+    }
+    let cpool = Pool::new(&data, &args.calib_alphabets)?;
+    let pool = Pool::new(&data, &args.alphabets)?;
+    let didx = pool_data_indices(&data, &args.alphabets)?;
+    anyhow::ensure!(didx.len() == pool.xs.len(), "pool index mismatch");
+
+    // Corruption sources.
+    let files = strokes::scan(std::slice::from_ref(&args.strokes))?;
+    let by_key: BTreeMap<(String, i64), PathBuf> = files
+        .into_iter()
+        .map(|f| ((f.class_name(), i64::from(f.drawer)), f.path))
+        .collect();
+    let mut rng = StdRng::seed_from_u64(args.seed);
+    let mut order: Vec<usize> = (0..pool.xs.len()).collect();
+    order.shuffle(&mut rng);
+    order.truncate(args.sources);
+    let solver = PathSolver::new(&data.geometry)?;
+    let mut jobs = Vec::new();
+    for (si, &p) in order.iter().enumerate() {
+        for f in Fault::ALL {
+            for (k, &s) in SEVERITIES.iter().enumerate() {
+                jobs.push((
+                    si,
+                    p,
+                    f,
+                    s,
+                    args.seed ^ ((si as u64) << 16 | (k as u64) << 8),
+                ));
+            }
+        }
+    }
+    let source_strokes: Vec<Option<Vec<strokes::Stroke>>> = order
+        .iter()
+        .map(|&p| {
+            let i = didx[p];
+            let class = usize::try_from(data.labels[i])
+                .ok()
+                .and_then(|c| data.classes.get(c))?;
+            let path = by_key.get(&(class.clone(), data.drawer_ids[i]))?;
+            strokes::read_strokes(path).ok()
+        })
+        .collect();
+    let t0 = std::time::Instant::now();
+    let made: Vec<(usize, usize, Fault, f64, Option<Resampled>)> = jobs
+        .par_iter()
+        .map(|&(si, p, f, s, seed)| {
+            let mut r = StdRng::seed_from_u64(seed ^ f as u64);
+            let x = source_strokes[si]
+                .as_ref()
+                .and_then(|st| faults::corrupt(&solver, f, s, st, &mut r).ok());
+            (si, p, f, s, x)
+        })
+        .collect();
+    let mut sources: BTreeMap<String, usize> = BTreeMap::new();
+    for (_, _, f, s, x) in &made {
+        if x.is_some() && *s == faults::MODERATE {
+            *sources.entry(f.name().to_owned()).or_default() += 1;
+        }
+    }
+    eprintln!(
+        "{} faulty plans solved of {} in {:.1} s",
+        made.iter().filter(|m| m.4.is_some()).count(),
+        made.len(),
+        t0.elapsed().as_secs_f64()
+    );
+    let faulty: Vec<(usize, Key, Resampled)> = made
+        .into_iter()
+        .filter_map(|(_, p, f, s, x)| {
+            x.map(|x| (p, (f.name().to_owned(), (s * 100.0).round() as u32), x))
+        })
+        .collect();
+    let fxs: Vec<Resampled> = faulty.iter().map(|f| f.2).collect();
+
+    // Vectors per method: calibration pool, test pool, faulty plans.
+    // (method, calibration vectors, test vectors, faulty-plan vectors)
+    type Vectors = Vec<Vec<f32>>;
+    let mut methods: Vec<(Method, Vectors, Vectors, Vectors)> = Vec::new();
+    let embed = |m: &Embedder, xs: &[Resampled]| -> anyhow::Result<Vec<Vec<f32>>> {
+        let mut out = Vec::with_capacity(xs.len());
+        for c in xs.chunks(256) {
+            out.extend(m.embed_batch(c)?.into_iter().map(|e| e.to_vec()));
+        }
+        Ok(out)
+    };
+    methods.push((
+        Method::Guardian,
+        embed(&model, &cpool.xs)?,
+        embed(&model, &pool.xs)?,
+        embed(&model, &fxs)?,
+    ));
+    if let Some(p) = &args.siamese_model {
+        let s = Embedder::load(p).with_context(|| format!("loading {}", p.display()))?;
+        methods.push((
+            Method::Siamese,
+            embed(&s, &cpool.xs)?,
+            embed(&s, &pool.xs)?,
+            embed(&s, &fxs)?,
+        ));
+    }
+    {
+        let all: Vec<Resampled> = cpool
+            .xs
+            .iter()
+            .chain(&pool.xs)
+            .chain(&fxs)
+            .copied()
+            .collect();
+        let mut v = standardised_raw(&all);
+        let f = v.split_off(cpool.xs.len() + pool.xs.len());
+        let t = v.split_off(cpool.xs.len());
+        methods.push((Method::Knn, v, t, f));
+    }
+
+    let alphabet_of: Vec<&str> = pool
+        .class_names
+        .iter()
+        .map(|n| n.split('/').next().unwrap_or(""))
+        .collect();
+    let nclass = pool.class_names.len();
+    let mut reports = Vec::new();
+    let mut raw: BTreeMap<String, Scores> = BTreeMap::new();
+    for (method, cv, tv, fv) in &methods {
+        // Calibration.
+        let cspace = Space {
+            method: *method,
+            vecs: cv,
+        };
+        let mut crng = StdRng::seed_from_u64(args.seed);
+        let mut gs = Vec::new();
+        for _ in 0..args.calib_reps {
+            let (support, queries) = split(&cpool.labels, args.shots, &mut crng);
+            let e = cspace.enroll(&support);
+            for q in queries {
+                let d = e.distances(*method, &cv[q]);
+                gs.push(e.genuine(&d, cpool.labels[q] as usize));
+            }
+        }
+        let cal = bank::calibrate(&gs, args.target_frr, &format!("{method:?}"))
+            .context("calibration failed")?;
+        // Test rounds.
+        let tspace = Space {
+            method: *method,
+            vecs: tv,
+        };
+        let mut sc = Scores::default();
+        let mut trng = StdRng::seed_from_u64(args.seed.wrapping_add(1));
+        for _ in 0..args.reps {
+            let (mut support, queries) = split(&pool.labels, args.shots, &mut trng);
+            let mut classes: Vec<usize> = (0..nclass).collect();
+            classes.shuffle(&mut trng);
+            let unknown: Vec<usize> = classes[..nclass / 4].to_vec();
+            for &u in &unknown {
+                support[u].clear();
+            }
+            let e = tspace.enroll(&support);
+            let enrolled: Vec<usize> = (0..nclass).filter(|c| !support[*c].is_empty()).collect();
+            // Nearest enrolled prototype of each class (in this method's space), by the
+            // mean of all its drawings for never-enrolled classes.
+            let centre = |c: usize| -> Vec<f32> {
+                let rows: Vec<&Vec<f32>> = (0..tv.len())
+                    .filter(|&i| pool.labels[i] as usize == c)
+                    .map(|i| &tv[i])
+                    .collect();
+                let dim = rows.first().map_or(0, |r| r.len());
+                let mut m = vec![0.0f32; dim];
+                for r in &rows {
+                    for (a, v) in m.iter_mut().zip(r.iter()) {
+                        *a += v / rows.len() as f32;
+                    }
+                }
+                m
+            };
+            let centres: Vec<Vec<f32>> = (0..nclass).map(centre).collect();
+            let nearest_other = |c: usize| -> usize {
+                enrolled
+                    .iter()
+                    .copied()
+                    .filter(|&o| o != c)
+                    .min_by(|&a, &b| {
+                        bank::distance(&centres[c], &centres[a])
+                            .total_cmp(&bank::distance(&centres[c], &centres[b]))
+                    })
+                    .unwrap_or(c)
+            };
+            let pick = |c: usize, sev: u32, r: &mut StdRng| -> usize {
+                let others: Vec<usize> = match sev {
+                    25 => vec![nearest_other(c)],
+                    50 => enrolled
+                        .iter()
+                        .copied()
+                        .filter(|&o| o != c && alphabet_of[o] == alphabet_of[c])
+                        .collect(),
+                    _ => enrolled.iter().copied().filter(|&o| o != c).collect(),
+                };
+                others.choose(r).copied().unwrap_or(c)
+            };
+            let supports: std::collections::HashSet<usize> =
+                support.iter().flatten().copied().collect();
+            for &q in &queries {
+                let c = pool.labels[q] as usize;
+                let d = e.distances(*method, &tv[q]);
+                if unknown.contains(&c) {
+                    for sev in [25u32, 50, 100] {
+                        let claim = pick(c, sev, &mut trng);
+                        let g = e.genuine(&d, claim);
+                        sc.faulty
+                            .entry(format!("unknown-task@{sev}"))
+                            .or_default()
+                            .push(score(&g, &cal));
+                    }
+                    continue;
+                }
+                sc.genuine.push(score(&e.genuine(&d, c), &cal));
+                for sev in [25u32, 50, 100] {
+                    let claim = pick(c, sev, &mut trng);
+                    if claim == c {
+                        continue;
+                    }
+                    let g = e.genuine(&d, claim);
+                    sc.faulty
+                        .entry(format!("wrong-task@{sev}"))
+                        .or_default()
+                        .push(score(&g, &cal));
+                }
+            }
+            for (k, (p, key, _)) in faulty.iter().enumerate() {
+                let c = pool.labels[*p] as usize;
+                if supports.contains(p) || support[c].is_empty() {
+                    continue;
+                }
+                let d = e.distances(*method, &fv[k]);
+                sc.faulty
+                    .entry(format!("{}@{}", key.0, key.1))
+                    .or_default()
+                    .push(score(&e.genuine(&d, c), &cal));
+            }
+        }
+        let mut figs = Vec::new();
+        for (k, v) in &sc.faulty {
+            let (name, sev) = k.split_once('@').unwrap_or((k, "0"));
+            figs.push(FaultFigures {
+                fault: name.to_owned(),
+                severity: sev.parse::<f64>().unwrap_or(0.0) / 100.0,
+                n: v.len(),
+                auroc: auroc(&sc.genuine, v),
+                tpr_at_1pct_fpr: tpr_at_fpr(&sc.genuine, v, 0.01),
+                detection: share_above(v, 1.0),
+            });
+        }
+        figs.sort_by(|a, b| {
+            a.fault
+                .cmp(&b.fault)
+                .then(a.severity.total_cmp(&b.severity))
+        });
+        reports.push(MethodReport {
+            method: *method,
+            calibration: cal,
+            genuine: sc.genuine.len(),
+            genuine_false_reject: share_above(&sc.genuine, 1.0),
+            faults: figs,
+        });
+        raw.insert(format!("{method:?}").to_lowercase(), sc);
+    }
+    let report = OutliersReport {
+        model_version: model.version().to_owned(),
+        alphabets: args.alphabets.clone(),
+        calib_alphabets: args.calib_alphabets.clone(),
+        shots: args.shots,
+        reps: args.reps,
+        sources,
+        methods: reports,
+    };
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir)?;
+        std::fs::write(dir.join("scores.json"), serde_json::to_vec(&raw)?)?;
+        std::fs::write(
+            dir.join("outliers.json"),
+            serde_json::to_vec_pretty(&report)?,
+        )?;
+        crate::report::outlier_plots(dir, &raw)?;
+    }
+    if args.json {
+        println!("{}", serde_json::to_string(&report)?);
+    } else {
+        print!("{}", markdown(&report));
+    }
+    Ok(())
+}
+
+/// The report as markdown tables (one per method).
+pub fn markdown(r: &OutliersReport) -> String {
+    let mut s = String::new();
+    for m in &r.methods {
+        s.push_str(&format!(
+            "\n### {:?} (genuine false-reject {:.4} of {}; calibration target {:?}, measured on calibration {:?})\n\n",
+            m.method,
+            m.genuine_false_reject,
+            m.genuine,
+            m.calibration.target_rate,
+            m.calibration.measured_rate
+        ));
+        s.push_str(
+            "| fault | severity | n | AUROC | TPR@1%FPR | detection |\n|---|---|---|---|---|---|\n",
+        );
+        for f in &m.faults {
+            s.push_str(&format!(
+                "| {} | {} | {} | {:.4} | {:.4} | {:.4} |\n",
+                f.fault, f.severity, f.n, f.auroc, f.tpr_at_1pct_fpr, f.detection
+            ));
+        }
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::Rng;
+
+    #[test]
+    fn auroc_of_perfect_random_and_inverted_scorers() {
+        let neg: Vec<f32> = (0..500).map(|i| i as f32 / 1000.0).collect();
+        let pos: Vec<f32> = (0..500).map(|i| 1.0 + i as f32 / 1000.0).collect();
+        assert_eq!(auroc(&neg, &pos), 1.0);
+        assert_eq!(auroc(&pos, &neg), 0.0);
+        assert_eq!(tpr_at_fpr(&neg, &pos, 0.01), 1.0);
+        let mut r = StdRng::seed_from_u64(5);
+        let a: Vec<f32> = (0..20_000).map(|_| r.random()).collect();
+        let b: Vec<f32> = (0..20_000).map(|_| r.random()).collect();
+        let x = auroc(&a, &b);
+        assert!((x - 0.5).abs() < 0.01, "{x}");
+        // All tied: exactly one half.
+        assert_eq!(auroc(&[1.0; 10], &[1.0; 7]), 0.5);
+        let roc = roc_curve(&neg, &pos);
+        assert_eq!(roc.first(), Some(&(0.0, 0.0)));
+        assert_eq!(roc.last(), Some(&(1.0, 1.0)));
+    }
+
+    #[test]
+    fn score_above_one_is_the_bank_decision() {
+        let cal = Calibration {
+            method: "t".into(),
+            samples: 1,
+            target_rate: None,
+            note: String::new(),
+            global_threshold: Some(0.5),
+            class_scale: None,
+            wrong_task_tolerance: Some(0.1),
+            measured_rate: None,
+        };
+        let g = |c, o| GenuineScore {
+            claimed: c,
+            nearest_other: Some(o),
+            spread: None,
+        };
+        assert!(score(&g(0.4, 1.0), &cal) <= 1.0);
+        assert!(score(&g(0.6, 1.0), &cal) > 1.0);
+        assert!(score(&g(0.4, 0.25), &cal) > 1.0);
+        assert!(score(&g(0.4, 0.35), &cal) <= 1.0);
+    }
+}
