@@ -420,10 +420,7 @@ impl Screen {
         let mut t = match Self::trajectories(h, payload, 1)? {
             Ok(t) => t,
             Err(Fail::Invalid(inv, _)) => {
-                r.verdict = VerdictCode::NoGo as u32;
-                r.reason = ReasonCode::InvalidTrajectory as u32;
-                r.invalid_kind = inv.kind as u32;
-                r.invalid_index = inv.index;
+                no_go_invalid(r, inv);
                 return Ok(Vec::new());
             }
             Err(other) => return Err(other),
@@ -433,10 +430,7 @@ impl Screen {
         let e = match pre.unwrap_or_else(|| self.embed(&t)) {
             Ok(e) => e,
             Err(Fail::Invalid(inv, _)) => {
-                r.verdict = VerdictCode::NoGo as u32;
-                r.reason = ReasonCode::InvalidTrajectory as u32;
-                r.invalid_kind = inv.kind as u32;
-                r.invalid_index = inv.index;
+                no_go_invalid(r, inv);
                 return Ok(Vec::new());
             }
             Err(other) => return Err(other),
@@ -549,6 +543,14 @@ impl Screen {
             calibrated: u32::from(class.is_some_and(|c| c.threshold.is_some())),
         }
     }
+}
+
+/// A check whose trajectory failed validation: no-go with the typed reason and its index.
+fn no_go_invalid(r: &mut ResponseHeader, inv: InvalidTrajectory) {
+    r.verdict = VerdictCode::NoGo as u32;
+    r.reason = ReasonCode::InvalidTrajectory as u32;
+    r.invalid_kind = inv.kind as u32;
+    r.invalid_index = inv.index;
 }
 
 #[cfg(test)]
