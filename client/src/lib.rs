@@ -16,7 +16,7 @@
 //! A [`Client`] owns iceoryx2 `ipc::Service` ports, which are single-threaded: `Client` is
 //! neither `Send` nor `Sync`. Give every planner thread (or process) its own `Client` — each
 //! `connect` creates its own iceoryx2 node and ports, and the daemon serves them all; see
-//! `daemon/tests/e2e.rs` (`eight_concurrent_clients_get_their_own_answers`). The daemon admits
+//! `tests/tests/e2e.rs` (`eight_concurrent_clients_get_their_own_answers`). The daemon admits
 //! `max-clients` (default 64) client ports at once.
 //!
 //! # Errors and timeouts

@@ -2,3 +2,5 @@
 //! separate processes over iceoryx2 shared memory, fault injection, and the latency
 //! benchmarks (`harness = false`).
 #![forbid(unsafe_code)]
+
+pub mod harness;

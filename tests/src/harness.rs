@@ -1,13 +1,12 @@
-//! Test harness: a real `guardiand` process with its own service name, iceoryx2 prefix,
+//! Test harness for end-to-end tests: a real `guardiand` process with its own service name, iceoryx2 prefix,
 //! state directory, model file and `NOTIFY_SOCKET`, killed on drop.
-#![allow(dead_code)]
 
 use std::io::Read;
 use std::os::unix::net::UnixDatagram;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicU32, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use guardian_client::{Client, ClientConfig, Trajectory};
@@ -86,8 +85,44 @@ pub struct Daemon {
     pub stderr: Arc<Mutex<String>>,
 }
 
-pub fn bin() -> &'static str {
-    env!("CARGO_BIN_EXE_guardiand")
+/// The `guardiand` binary under test: `$GUARDIAND_BIN` if set, otherwise built (once per
+/// process) with the profile of the running test or bench executable, so it is never stale.
+pub fn bin() -> &'static Path {
+    static BIN: OnceLock<PathBuf> = OnceLock::new();
+    BIN.get_or_init(|| guardiand_bin().unwrap_or_else(|e| panic!("{e:#}")))
+}
+
+/// Locate or build `guardiand` for the current profile (see [`bin`]).
+pub fn guardiand_bin() -> anyhow::Result<PathBuf> {
+    use anyhow::{Context, bail};
+    if let Some(p) = std::env::var_os("GUARDIAND_BIN") {
+        return Ok(p.into());
+    }
+    let exe = std::env::current_exe()?;
+    // target/<profile-dir>/deps/<name>-<hash>
+    let profile_dir = exe
+        .parent()
+        .and_then(Path::parent)
+        .context("test executable has no profile directory")?;
+    let profile = match profile_dir.file_name().and_then(|n| n.to_str()) {
+        Some("debug") | None => "dev".to_string(),
+        Some(other) => other.to_string(),
+    };
+    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+    let status = Command::new(cargo)
+        .args(["build", "-q", "-p", "guardian-daemon", "--bin", "guardiand"])
+        .args(["--profile", &profile])
+        .current_dir(workspace_root())
+        .status()
+        .context("running cargo build for guardiand")?;
+    if !status.success() {
+        bail!("building guardiand failed");
+    }
+    let bin = profile_dir.join("guardiand");
+    if !bin.exists() {
+        bail!("{} not found after the build", bin.display());
+    }
+    Ok(bin)
 }
 
 impl Daemon {

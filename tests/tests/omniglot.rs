@@ -2,20 +2,19 @@
 //! the dataset library) sent through a real `guardiand`: the daemon must preprocess and
 //! embed them exactly as the lab does.
 
-mod common;
-
 use std::path::PathBuf;
 
-use common::{Daemon, Setup};
 use guardian_client::Trajectory;
 use guardian_lab::dataset::convert_strokes;
 use guardian_lab::path::{Geometry, PathSolver};
 use guardian_lab::strokes::read_strokes;
 use guardian_models::bank::distance;
 use guardian_models::embedder::Embedder;
+use guardian_tests::harness;
+use guardian_tests::harness::{Daemon, Setup};
 
 fn strokes_dir() -> PathBuf {
-    common::workspace_root().join("../shared/omniglot/strokes")
+    harness::workspace_root().join("../shared/omniglot/strokes")
 }
 
 /// Drawing `drawer` (1-based) of `Latin/characterNN`.

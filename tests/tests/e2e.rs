@@ -1,13 +1,12 @@
 //! End-to-end tests across real processes: the `guardiand` binary and `guardian-client`.
 
-mod common;
-
 use std::time::Duration;
 
-use common::{Daemon, Setup, task, traj};
 use guardian_client::{
     CheckError, Client, Decision, EnrollError, InvalidKind, MAX_WAYPOINTS, NoGoReason, Trajectory,
 };
+use guardian_tests::harness;
+use guardian_tests::harness::{Daemon, Setup, task, traj};
 
 fn enroll_classes(client: &Client, classes: &[u32]) {
     for &c in classes {
@@ -293,7 +292,7 @@ fn corrupt_persisted_bank_or_model_refuses_to_start() {
         b"guardian-class-bank 1 sha256:00\n{}",
     )
     .unwrap();
-    let out = common::run_to_exit(&s);
+    let out = harness::run_to_exit(&s);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("checksum mismatch"), "{err}");
@@ -303,7 +302,7 @@ fn corrupt_persisted_bank_or_model_refuses_to_start() {
     let n = bytes.len();
     bytes[n - 3] ^= 0x40;
     std::fs::write(&s.model, bytes).unwrap();
-    let out = common::run_to_exit(&s);
+    let out = harness::run_to_exit(&s);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("cannot load model"), "{err}");
@@ -420,7 +419,7 @@ fn sd_notify_ready_status_watchdog_stopping_on_an_abstract_socket() {
     // Pings every WATCHDOG_USEC/2 from the serving loop.
     let start = std::time::Instant::now();
     while d.notes().iter().filter(|n| *n == "WATCHDOG=1").count() < 3 {
-        assert!(start.elapsed() < common::PATIENCE, "{:?}", d.notes());
+        assert!(start.elapsed() < harness::PATIENCE, "{:?}", d.notes());
         std::thread::sleep(Duration::from_millis(20));
     }
     d.signal("INT");
@@ -430,7 +429,7 @@ fn sd_notify_ready_status_watchdog_stopping_on_an_abstract_socket() {
 
 #[test]
 fn print_default_config_parses_back() {
-    let out = std::process::Command::new(common::bin())
+    let out = std::process::Command::new(harness::bin())
         .arg("--print-default-config")
         .output()
         .expect("run");
@@ -517,7 +516,7 @@ fn raw_wire_requests_are_validated_by_the_daemon() {
                 assert_eq!(resp.user_header().request_id, h.request_id);
                 return *resp.user_header();
             }
-            assert!(start.elapsed() < common::PATIENCE, "no response");
+            assert!(start.elapsed() < harness::PATIENCE, "no response");
             std::thread::sleep(Duration::from_millis(1));
         }
     };
