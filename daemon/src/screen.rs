@@ -51,8 +51,13 @@ pub enum LoadStateError {
         detail: String,
     },
     /// The bank could not be loaded.
-    #[error("cannot load class bank: {0}")]
-    Bank(#[from] guardian_models::bank::LoadBankError),
+    #[error("cannot load class bank {path}: {source}")]
+    Bank {
+        /// The bank file.
+        path: PathBuf,
+        /// Why.
+        source: guardian_models::bank::LoadBankError,
+    },
     /// The bank was built with another model.
     #[error(
         "class bank {path} was built with model {bank_model} ({bank_dim}-d) but the loaded model is {model} ({model_dim}-d); \
@@ -87,10 +92,16 @@ pub fn load_bank(
     engine: &Engine,
 ) -> Result<(ClassBank, BankSource), LoadStateError> {
     let state = config.bank_path();
+    let load = |path: &PathBuf| {
+        ClassBank::load(path).map_err(|source| LoadStateError::Bank {
+            path: path.clone(),
+            source,
+        })
+    };
     let (mut bank, source) = if state.exists() {
-        (ClassBank::load(&state)?, BankSource::State(state))
+        (load(&state)?, BankSource::State(state))
     } else if let Some(p) = config.default_bank_path() {
-        (ClassBank::load(&p)?, BankSource::Default(p))
+        (load(&p)?, BankSource::Default(p))
     } else {
         let t = config.default_threshold.unwrap_or(DEFAULT_THRESHOLD);
         (

@@ -100,6 +100,14 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         source,
     })?;
 
+    // A daemon killed while persisting leaves its temporary file (never a damaged bank).
+    match guardian_models::bank::remove_stale_temporaries(&config.bank_path()) {
+        Ok(removed) if !removed.is_empty() => {
+            tracing::warn!(?removed, "removed temporaries of an interrupted bank save")
+        }
+        Ok(_) => {}
+        Err(e) => tracing::warn!(error = %e, "cannot remove stale bank temporaries"),
+    }
     let engine = load_engine(&config)?;
     tracing::info!(model = %config.model_path().display(), version = engine.version(), "model loaded");
     let (bank, source) = load_bank(&config, &engine)?;

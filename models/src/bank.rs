@@ -672,7 +672,11 @@ impl ClassBank {
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_else(|| "bank".into());
-        let tmp = dir.join(format!(".{file_name}.tmp.{}", std::process::id()));
+        let tmp = dir.join(format!(
+            "{}{}",
+            temporary_prefix(&file_name),
+            std::process::id()
+        ));
         let io = |p: &Path| {
             let p = p.to_owned();
             move |source| SaveBankError::Io { path: p, source }
@@ -693,6 +697,40 @@ impl ClassBank {
         }
         result
     }
+}
+
+/// Name prefix of the temporary files [`ClassBank::save`] writes next to `file_name`.
+fn temporary_prefix(file_name: &str) -> String {
+    format!(".{file_name}.tmp.")
+}
+
+/// Remove temporary files that a [`ClassBank::save`] of `path` killed mid-write left behind
+/// (a crash never damages `path` itself, but each crashed writer leaves its temporary).
+/// Call it only while no other process saves to `path`. Returns the names removed.
+pub fn remove_stale_temporaries(path: &Path) -> std::io::Result<Vec<String>> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let Some(file_name) = path.file_name() else {
+        return Ok(Vec::new());
+    };
+    let prefix = temporary_prefix(&file_name.to_string_lossy());
+    let mut removed = Vec::new();
+    let entries = match fs::read_dir(dir) {
+        Ok(e) => e,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(removed),
+        Err(e) => return Err(e),
+    };
+    for entry in entries {
+        let entry = entry?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if name.starts_with(&prefix) && entry.file_type()?.is_file() {
+            fs::remove_file(entry.path())?;
+            removed.push(name);
+        }
+    }
+    Ok(removed)
 }
 
 fn bad(detail: &str) -> LoadBankError {

@@ -1,0 +1,308 @@
+//! Persistence faults across real processes: `guardiand` SIGKILLed while it persists an
+//! enrollment, over and over, and model or bank files truncated or corrupted on disk.
+//!
+//! The bank on disk must always be the old or the new one (never corrupt, never a mix), an
+//! acknowledged enrollment must survive the kill, and a damaged file must be refused at start
+//! with a message naming it, or ignored by a reload that keeps the state being served.
+
+use std::collections::BTreeSet;
+use std::path::Path;
+use std::process::Output;
+use std::time::{Duration, Instant};
+
+use guardian_client::{CheckError, Client, Decision, EnrollError, Trajectory};
+use guardian_models::bank::ClassBank;
+use guardian_models::embedder::Embedder;
+use guardian_tests::harness::{self, Daemon, Setup, traj};
+
+/// Kill rounds of the SIGKILL-during-persistence test (the issue asks for >= 100).
+const ROUNDS: u32 = 100;
+/// Classes in the pre-populated bank: enough that writing it takes milliseconds, so that
+/// kills land inside the write.
+const BASE_CLASSES: usize = 1000;
+
+fn bank_names(bank: &ClassBank) -> BTreeSet<String> {
+    bank.classes().map(|(n, _)| n.to_owned()).collect()
+}
+
+/// Temporary files the bank writer left in `dir`.
+fn temporaries(dir: &Path) -> Vec<String> {
+    std::fs::read_dir(dir)
+        .expect("read state dir")
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.contains(".tmp"))
+        .collect()
+}
+
+/// A bank for `model` with `n` classes of 4 pseudo-random embeddings each.
+fn big_bank(model: &Path, n: usize) -> ClassBank {
+    let embedder = Embedder::load(model).expect("load model");
+    let dim = embedder.config().embed_dim;
+    let mut bank = ClassBank::new(dim, embedder.version(), 1e9);
+    let mut x: u64 = 0x9e37_79b9_7f4a_7c15;
+    let mut next = || {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        (x >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+    };
+    for c in 0..n {
+        let examples: Vec<Vec<f32>> = (0..4).map(|_| (0..dim).map(|_| next()).collect()).collect();
+        bank.enroll(&format!("base{c:04}"), &examples)
+            .expect("enroll");
+    }
+    bank
+}
+
+#[test]
+fn sigkill_during_enrollment_persistence_leaves_the_old_or_the_new_bank() {
+    let mut s = Setup::new(40);
+    s.extra = "default-threshold = 1e9".into();
+    let state = s.state_dir();
+    std::fs::create_dir_all(&state).unwrap();
+    let path = state.join("bank.gcb");
+    big_bank(&s.model, BASE_CLASSES).save(&path).unwrap();
+    let bank_bytes = std::fs::metadata(&path).unwrap().len();
+    let examples: Vec<Trajectory> = (0..3).map(|d| traj(3, d)).collect();
+    let mut config = s.client_config();
+    config.timeout = Duration::from_secs(2);
+
+    // One enrollment without a kill, for the figures.
+    let enroll_time = {
+        let _d = Daemon::start(&s);
+        let client = Client::connect(config.clone()).expect("connect");
+        let t = Instant::now();
+        client.enroll("warm-up", &examples).expect("enroll");
+        t.elapsed()
+    };
+    let mut expected = bank_names(&ClassBank::load(&path).unwrap());
+    assert!(expected.contains("warm-up"));
+
+    let (mut old, mut new, mut mid_write, mut missed) = (0, 0, 0, 0);
+    // (round, class, persisted in that round, the client's answer)
+    let mut answers = Vec::new();
+    let mut rng: u64 = 0x2545_f491_4f6c_dd1d;
+    let mut round = 0;
+    while round < ROUNDS {
+        assert!(
+            missed < ROUNDS,
+            "{missed} enrollments finished before any write"
+        );
+        let mut d = Daemon::start(&s);
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        let name = format!("new{round:03}-{missed}");
+        let (cfg, ex, n2) = (config.clone(), examples.clone(), name.clone());
+        let (connected, ready) = std::sync::mpsc::channel();
+        let enroll = std::thread::spawn(move || {
+            let client = Client::connect(cfg).expect("connect");
+            connected.send(()).expect("signal");
+            client.enroll(&n2, &ex)
+        });
+        ready.recv().expect("client connected");
+        // Aim at the write: wait for the daemon's temporary file to appear, then kill after a
+        // random 0-10 ms, so the kill lands while it writes, syncs or renames, or just after.
+        let start = Instant::now();
+        while temporaries(&state).is_empty() && !enroll.is_finished() {
+            assert!(
+                start.elapsed() < harness::PATIENCE,
+                "round {round}: the daemon never started writing the bank:\n{}",
+                d.log()
+            );
+            std::hint::spin_loop();
+        }
+        let aimed = !enroll.is_finished();
+        if aimed {
+            std::thread::sleep(Duration::from_micros(rng % 10_000));
+        }
+        d.signal("KILL");
+        d.wait_exit();
+        if !temporaries(&state).is_empty() {
+            mid_write += 1;
+        }
+        let bank = ClassBank::load(&path)
+            .unwrap_or_else(|e| panic!("round {round}: bank on disk is corrupt: {e}"));
+        let names = bank_names(&bank);
+        let mut with_new = expected.clone();
+        with_new.insert(name.clone());
+        let persisted = names == with_new;
+        if !persisted {
+            assert_eq!(names, expected, "round {round}: neither old nor new bank");
+        }
+        expected = names;
+        if aimed {
+            round += 1;
+            if persisted { new += 1 } else { old += 1 }
+        } else {
+            // The answer came before the write was seen (e.g. an error under load): not a
+            // kill during persistence; the round is repeated.
+            missed += 1;
+        }
+        // The client waits out its timeout for a dead daemon; collect the answers later.
+        answers.push((round, name, persisted, enroll));
+        drop(d);
+    }
+    let mut acked = 0;
+    for (round, name, persisted, enroll) in answers {
+        match enroll.join().expect("enroll thread") {
+            Ok(_) => {
+                acked += 1;
+                assert!(
+                    persisted,
+                    "round {round}: {name} acknowledged but not persisted"
+                );
+            }
+            // The daemon died: a timeout / not-serving error, never a half answer.
+            Err(EnrollError::Request(
+                CheckError::Timeout { .. } | CheckError::NotServing { .. },
+            )) => {}
+            Err(e) => panic!("round {round}: {name}: {e:?}"),
+        }
+    }
+    eprintln!(
+        "{ROUNDS} kills aimed at the bank write ({bank_bytes}-byte bank, an uninterrupted \
+         enrollment took {enroll_time:?}): {acked} acknowledged, {new} new bank, {old} old \
+         bank, {mid_write} killed before the rename; {missed} rounds repeated"
+    );
+    assert_eq!(old + new, ROUNDS as usize);
+    // The kills must really have hit before and after the rename, or the test proved nothing.
+    assert!(old > 0 && new > 0 && mid_write > 0, "kills missed a phase");
+
+    // A restarted daemon serves the surviving bank and removed the dead writers' leftovers.
+    let d = Daemon::start(&s);
+    let client = Client::connect(config).expect("connect");
+    assert_eq!(
+        client.status().expect("status").classes as usize,
+        expected.len()
+    );
+    assert!(
+        temporaries(&state).is_empty(),
+        "stale temporaries: {:?}",
+        temporaries(&state)
+    );
+    drop(d);
+}
+
+/// Ways a file can be damaged on disk.
+fn damaged(original: &[u8]) -> Vec<(&'static str, Vec<u8>)> {
+    let mut flipped = original.to_vec();
+    let mid = flipped.len() / 2;
+    flipped[mid] ^= 0x01;
+    vec![
+        ("empty", Vec::new()),
+        ("truncated to 1 byte", original[..1].to_vec()),
+        ("truncated to half", original[..original.len() / 2].to_vec()),
+        ("last byte missing", original[..original.len() - 1].to_vec()),
+        ("one bit flipped", flipped),
+        ("not this format", b"\x00\x01garbage\xff".to_vec()),
+    ]
+}
+
+fn refused(out: &Output, file: &Path, what: &str) -> String {
+    assert!(!out.status.success(), "{what}: guardiand started");
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(
+        err.contains(&file.display().to_string()),
+        "{what}: the message does not name {}:\n{err}",
+        file.display()
+    );
+    err
+}
+
+#[test]
+fn damaged_bank_or_model_is_refused_at_start_with_a_message_naming_it() {
+    // A good persisted bank with one class.
+    let mut s = Setup::new(41);
+    s.extra = "default-threshold = 1e9".into();
+    {
+        let _d = Daemon::start(&s);
+        s.client()
+            .enroll("task0", &[traj(0, 1), traj(0, 2)])
+            .expect("enroll");
+    }
+    let bank = s.state_dir().join("bank.gcb");
+    let good_bank = std::fs::read(&bank).unwrap();
+    for (what, bytes) in damaged(&good_bank) {
+        std::fs::write(&bank, bytes).unwrap();
+        let err = refused(&harness::run_to_exit(&s), &bank, what);
+        assert!(err.contains("bank"), "{what}: {err}");
+    }
+    std::fs::write(&bank, &good_bank).unwrap();
+
+    let good_model = std::fs::read(&s.model).unwrap();
+    for (what, bytes) in damaged(&good_model) {
+        std::fs::write(&s.model, bytes).unwrap();
+        let err = refused(&harness::run_to_exit(&s), &s.model, what);
+        assert!(err.contains("cannot load model"), "{what}: {err}");
+    }
+    std::fs::write(&s.model, &good_model).unwrap();
+    // Restored files start again and serve the class.
+    let _d = Daemon::start(&s);
+    assert_eq!(
+        s.client()
+            .check(&traj(0, 3), "task0")
+            .expect("check")
+            .decision,
+        Decision::Go
+    );
+}
+
+#[test]
+fn a_reload_of_a_damaged_bank_or_model_keeps_serving_the_old_state() {
+    let mut s = Setup::new(42);
+    s.extra = "default-threshold = 1e9".into();
+    let d = Daemon::start(&s);
+    let client = s.client();
+    client
+        .enroll("task0", &[traj(0, 1), traj(0, 2)])
+        .expect("enroll");
+    client
+        .enroll("task1", &[traj(1, 1), traj(1, 2)])
+        .expect("enroll");
+    let before = client.status().expect("status");
+    let bank = s.state_dir().join("bank.gcb");
+    let good_bank = std::fs::read(&bank).unwrap();
+    let good_model = std::fs::read(&s.model).unwrap();
+
+    let mut failed = 0;
+    for (file, good) in [(&bank, &good_bank), (&s.model, &good_model)] {
+        for (what, bytes) in damaged(good) {
+            std::fs::write(file, bytes).unwrap();
+            d.signal("HUP");
+            failed += 1;
+            // Each failed reload is logged once; wait for this one.
+            let start = Instant::now();
+            while d
+                .log()
+                .matches("reload failed; keeping the current model and bank")
+                .count()
+                < failed
+            {
+                assert!(
+                    start.elapsed() < harness::PATIENCE,
+                    "{what} {}: no failed reload logged:\n{}",
+                    file.display(),
+                    d.log()
+                );
+                std::thread::sleep(Duration::from_millis(10));
+            }
+            let st = client.status().expect("status");
+            assert_eq!(st.model_version, before.model_version, "{what}");
+            assert_eq!(st.classes, 2, "{what}");
+            assert_eq!(
+                client.check(&traj(1, 4), "task1").expect("check").decision,
+                Decision::Go,
+                "{what} {}",
+                file.display()
+            );
+        }
+        std::fs::write(file, good).unwrap();
+    }
+    // Enrollment still persists after the failed reloads, to a loadable bank.
+    client
+        .enroll("task2", &[traj(2, 1), traj(2, 2)])
+        .expect("enroll");
+    assert_eq!(ClassBank::load(&bank).expect("bank").len(), 3);
+}
