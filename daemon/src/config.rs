@@ -14,6 +14,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use guardian_shared::workcell::Workcell;
 use serde::{Deserialize, Serialize};
 
 /// The system-wide config file consulted when nothing else is given.
@@ -81,6 +82,8 @@ pub struct Config {
     pub max_batch: usize,
     /// iceoryx2 isolation settings.
     pub iceoryx2: Iceoryx2Config,
+    /// Workcell geometry and tolerances of the workcell rules (`docs/guardiand.md`).
+    pub workcell: Workcell,
 }
 
 impl Default for Config {
@@ -99,6 +102,7 @@ impl Default for Config {
             max_clients: 64,
             max_batch: 16,
             iceoryx2: Iceoryx2Config::default(),
+            workcell: Workcell::default(),
         }
     }
 }
@@ -198,6 +202,7 @@ impl Config {
         if self.k_nearest == 0 {
             return Err("k-nearest must be at least 1".into());
         }
+        self.workcell.validate()?;
         if self.tick_ms == 0 {
             return Err("tick-ms must be at least 1".into());
         }
