@@ -190,10 +190,11 @@ impl Config {
              # state-dir = \"/var/lib/guardian\"\n\
              # default-threshold = {}\n\
              # serving-mode: \"event\" | \"busy-poll\" | \"spin-then-sleep\"\n\
-             {body}\
-             # [iceoryx2]\n\
-             # root-path = \"/tmp/iceoryx2/\"\n\
-             # prefix = \"iox2_\"\n",
+             # [iceoryx2] keys (unset: iceoryx2's defaults):\n\
+             #   root-path = \"/tmp/iceoryx2/\", prefix = \"iox2_\"\n\
+             # [workcell]: canvas geometry and tolerances of the workcell rules (m, rad);\n\
+             #   enabled = false turns them off (docs/guardiand.md).\n\
+             {body}",
             guardian_models::bank::DEFAULT_THRESHOLD
         )
     }
