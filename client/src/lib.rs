@@ -43,6 +43,7 @@ use guardian_shared::wire::{
     self, ClassEntry, ClassNameError, MAX_EXAMPLES, Op, ReasonCode, RequestHeader, ResponseHeader,
     Status, VerdictCode,
 };
+pub use guardian_shared::workcell::{GeometryFeature, WorkcellKind};
 
 /// How to reach the daemon.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -156,6 +157,23 @@ pub enum NoGoReason {
         /// Waypoint index, or the offending count for count/shape errors.
         index: u32,
     },
+    /// The plan breaks a workcell rule (decided before any model runs).
+    Workcell {
+        /// Which rule.
+        kind: WorkcellKind,
+        /// The first offending waypoint.
+        index: u32,
+    },
+    /// The embedding fits the claimed class, but where, how large or in which direction
+    /// the plan draws differs from every enrolled example.
+    GeometryMismatch {
+        /// The feature farthest from the enrolled examples (relative to its spread).
+        feature: GeometryFeature,
+        /// The plan's geometry score.
+        score: f32,
+        /// The class's geometry threshold.
+        threshold: f32,
+    },
 }
 
 /// A class and its distance.
@@ -187,6 +205,10 @@ pub struct Verdict {
     pub gap: Option<f32>,
     /// The k nearest classes, nearest first.
     pub nearest: Vec<Neighbour>,
+    /// Geometry score against the claimed class (none when the check does not apply).
+    pub geometry_score: Option<f32>,
+    /// The claimed class's geometry threshold (none when the check does not apply).
+    pub geometry_threshold: Option<f32>,
     /// Model version that answered.
     pub model_version: String,
     /// Class bank version that answered.
@@ -617,6 +639,19 @@ impl Client {
                         })?,
                         index: r.invalid_index,
                     },
+                    Some(ReasonCode::Workcell) => NoGoReason::Workcell {
+                        kind: r.workcell().ok_or_else(|| CheckError::Protocol {
+                            detail: format!("unknown workcell kind {}", r.workcell_kind),
+                        })?,
+                        index: r.workcell_index,
+                    },
+                    Some(ReasonCode::GeometryMismatch) => NoGoReason::GeometryMismatch {
+                        feature: r.geometry().ok_or_else(|| CheckError::Protocol {
+                            detail: format!("unknown geometry feature {}", r.geometry_feature),
+                        })?,
+                        score: r.geometry_score,
+                        threshold: r.geometry_threshold,
+                    },
                     _ => {
                         return Err(CheckError::Protocol {
                             detail: format!("no-go with unknown reason {}", r.reason),
@@ -637,6 +672,8 @@ impl Client {
             threshold: opt(r.threshold),
             margin: opt(r.margin),
             gap: opt(r.gap),
+            geometry_score: opt(r.geometry_score),
+            geometry_threshold: opt(r.geometry_threshold),
             nearest,
             model_version: wire::decode_text(&r.model_version),
             bank_version: r.bank_version,

@@ -14,6 +14,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use guardian_shared::workcell::Workcell;
 use serde::{Deserialize, Serialize};
 
 /// The system-wide config file consulted when nothing else is given.
@@ -81,6 +82,8 @@ pub struct Config {
     pub max_batch: usize,
     /// iceoryx2 isolation settings.
     pub iceoryx2: Iceoryx2Config,
+    /// Workcell geometry and tolerances of the workcell rules (`docs/guardiand.md`).
+    pub workcell: Workcell,
 }
 
 impl Default for Config {
@@ -99,6 +102,7 @@ impl Default for Config {
             max_clients: 64,
             max_batch: 16,
             iceoryx2: Iceoryx2Config::default(),
+            workcell: Workcell::default(),
         }
     }
 }
@@ -186,10 +190,11 @@ impl Config {
              # state-dir = \"/var/lib/guardian\"\n\
              # default-threshold = {}\n\
              # serving-mode: \"event\" | \"busy-poll\" | \"spin-then-sleep\"\n\
-             {body}\
-             # [iceoryx2]\n\
-             # root-path = \"/tmp/iceoryx2/\"\n\
-             # prefix = \"iox2_\"\n",
+             # [iceoryx2] keys (unset: iceoryx2's defaults):\n\
+             #   root-path = \"/tmp/iceoryx2/\", prefix = \"iox2_\"\n\
+             # [workcell]: canvas geometry and tolerances of the workcell rules (m, rad);\n\
+             #   enabled = false turns them off (docs/guardiand.md).\n\
+             {body}",
             guardian_models::bank::DEFAULT_THRESHOLD
         )
     }
@@ -198,6 +203,7 @@ impl Config {
         if self.k_nearest == 0 {
             return Err("k-nearest must be at least 1".into());
         }
+        self.workcell.validate()?;
         if self.tick_ms == 0 {
             return Err("tick-ms must be at least 1".into());
         }

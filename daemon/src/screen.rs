@@ -6,11 +6,13 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use guardian_models::bank::{ClassBank, DEFAULT_THRESHOLD, Outcome};
+use guardian_models::workcell::{self, Inspection};
 use guardian_shared::trajectory::{InvalidTrajectory, Waypoint, from_flat};
 use guardian_shared::wire::{
     ClassEntry, MAX_EXAMPLES, Op, ReasonCode, RequestHeader, ResponseHeader, Status, VerdictCode,
     decode_class_name, encode_text,
 };
+use guardian_shared::workcell::Workcell;
 
 use crate::config::Config;
 use crate::engine::Engine;
@@ -127,6 +129,12 @@ pub fn load_bank(
     {
         bank.set_default_threshold(t);
     }
+    let without = bank.classes_without_geometry();
+    if bank.geometry_calibration().is_none() && !bank.is_empty() {
+        tracing::warn!(%source, "class bank has no geometry calibration (format 1 or not calibrated): geometry check off");
+    } else if !without.is_empty() {
+        tracing::warn!(%source, classes = without.len(), first = without[0], "classes without plan-geometry descriptors (enrolled by format 1): geometry check off for them");
+    }
     Ok((bank, source))
 }
 
@@ -179,8 +187,17 @@ pub struct Screen {
     latencies: Latencies,
     /// Percentiles of `latencies` and when they were computed.
     latency_summary: ([f32; 4], Option<Instant>),
-    /// Embedding of the check being handled, computed beforehand in a batch.
-    batched: Option<Vec<f32>>,
+    /// Inspection and embedding of the check being handled, computed beforehand in a batch.
+    batched: Option<Prepared>,
+    /// The workcell rules applied to every check.
+    workcell: Workcell,
+}
+
+/// A check's trajectory after [`workcell::inspect`], with its embedding if already computed.
+#[derive(Debug)]
+struct Prepared {
+    inspection: Inspection,
+    embedding: Option<Vec<f32>>,
 }
 
 enum Fail {
@@ -201,7 +218,18 @@ impl Screen {
             latencies: Latencies::default(),
             latency_summary: ([f32::NAN; 4], None),
             batched: None,
+            workcell: Workcell::default(),
         }
+    }
+
+    /// Set the workcell rules (default: [`Workcell::default`], enabled).
+    pub fn set_workcell(&mut self, workcell: Workcell) {
+        self.workcell = workcell;
+    }
+
+    /// The workcell rules in use.
+    pub fn workcell(&self) -> &Workcell {
+        &self.workcell
     }
 
     /// The model in use.
@@ -247,7 +275,7 @@ impl Screen {
         &mut self,
         items: &[(RequestHeader, &[f32])],
     ) -> Vec<(ResponseHeader, Vec<ClassEntry>)> {
-        let mut embedded: Vec<Option<Vec<f32>>> = vec![None; items.len()];
+        let mut embedded: Vec<Option<Prepared>> = items.iter().map(|_| None).collect();
         let mut which = Vec::new();
         let mut xs = Vec::new();
         for (i, (h, payload)) in items.iter().enumerate() {
@@ -256,17 +284,25 @@ impl Screen {
             }
             if let Ok(Ok(mut t)) = Self::trajectories(h, payload, 1)
                 && let Some(t) = t.pop()
-                && let Ok(x) = guardian_models::preprocess::preprocess(&t)
+                && let Ok(inspection) = workcell::inspect(&self.workcell, &t)
             {
-                which.push(i);
-                xs.push(x);
+                if inspection.violation.is_none() {
+                    which.push(i);
+                    xs.push(inspection.resampled);
+                }
+                embedded[i] = Some(Prepared {
+                    inspection,
+                    embedding: None,
+                });
             }
         }
         if xs.len() >= 2
             && let Ok(es) = self.engine.embed_resampled(&xs)
         {
             for (i, e) in which.into_iter().zip(es) {
-                embedded[i] = Some(e.to_vec());
+                if let Some(p) = embedded[i].as_mut() {
+                    p.embedding = Some(e.to_vec());
+                }
             }
         }
         items
@@ -437,22 +473,66 @@ impl Screen {
             Err(other) => return Err(other),
         };
         let t = t.pop().unwrap_or_default();
-        let pre = self.batched.take().map(Ok);
-        let e = match pre.unwrap_or_else(|| self.embed(&t)) {
-            Ok(e) => e,
-            Err(Fail::Invalid(inv, _)) => {
-                no_go_invalid(r, inv);
-                return Ok(Vec::new());
-            }
-            Err(other) => return Err(other),
+        let prepared = match self.batched.take() {
+            Some(p) => p,
+            None => match workcell::inspect(&self.workcell, &t) {
+                Ok(inspection) => Prepared {
+                    inspection,
+                    embedding: None,
+                },
+                Err(inv) => {
+                    no_go_invalid(r, inv);
+                    return Ok(Vec::new());
+                }
+            },
         };
-        let d = self.bank.decide(&e, &claimed, self.k);
+        // Workcell rules first: absolute, no model involved.
+        if let Some(v) = prepared.inspection.violation {
+            r.verdict = VerdictCode::NoGo as u32;
+            r.reason = ReasonCode::Workcell as u32;
+            r.workcell_kind = v.kind as u32;
+            r.workcell_index = v.index;
+            r.message = encode_text(&format!(
+                "workcell rule broken: {:?} at waypoint {}",
+                v.kind, v.index
+            ));
+            return Ok(Vec::new());
+        }
+        let x = prepared.inspection.resampled;
+        let e = match prepared.embedding {
+            Some(e) => e,
+            None => match self.engine.embed_resampled(std::slice::from_ref(&x)) {
+                Ok(mut es) if es.len() == 1 => es.remove(0).to_vec(),
+                Ok(_) => {
+                    return Err(Fail::Status(Status::Internal, "embedding failed".into()));
+                }
+                Err(msg) => {
+                    tracing::error!(error = %msg, "embedding failed");
+                    return Err(Fail::Status(
+                        Status::Internal,
+                        format!("embedding failed: {msg}"),
+                    ));
+                }
+            },
+        };
+        // Plan geometry only when the bank can use it (128 forward-kinematics evaluations).
+        let geometry = self
+            .bank
+            .geometry_calibration()
+            .and_then(|_| workcell::plan_geometry(&x));
+        let d = self
+            .bank
+            .decide_with_geometry(&e, geometry.as_ref(), &claimed, self.k);
         let (verdict, reason) = match &d.outcome {
             Outcome::Go => (VerdictCode::Go, ReasonCode::None),
             Outcome::WrongTask { .. } => (VerdictCode::NoGo, ReasonCode::WrongTask),
             Outcome::Outlier => (VerdictCode::NoGo, ReasonCode::Outlier),
+            Outcome::GeometryMismatch { .. } => (VerdictCode::NoGo, ReasonCode::GeometryMismatch),
             Outcome::UnknownClass => (VerdictCode::NoGo, ReasonCode::UnknownClass),
         };
+        r.geometry_score = d.geometry_score.unwrap_or(f32::NAN);
+        r.geometry_threshold = d.geometry_threshold.unwrap_or(f32::NAN);
+        r.geometry_feature = d.geometry_feature.map_or(0, |f| f as u32);
         r.verdict = verdict as u32;
         r.reason = reason as u32;
         r.claimed_distance = d.claimed_distance.unwrap_or(f32::NAN);
@@ -488,14 +568,26 @@ impl Screen {
         let name = Self::class_name(h)?;
         let ts = Self::trajectories(h, payload, MAX_EXAMPLES)??;
         let mut embeddings = Vec::with_capacity(ts.len());
+        let mut geometry = Vec::with_capacity(ts.len());
         for (i, t) in ts.iter().enumerate() {
-            embeddings.push(self.embed(t).map_err(|f| match f {
-                Fail::Invalid(inv, _) => Fail::Invalid(inv, i as u32),
-                other => other,
-            })?);
+            let x = guardian_models::preprocess::preprocess(t)
+                .map_err(|inv| Fail::Invalid(inv, i as u32))?;
+            let e = self
+                .engine
+                .embed_resampled(std::slice::from_ref(&x))
+                .map_err(|msg| {
+                    Fail::Status(Status::Internal, format!("embedding failed: {msg}"))
+                })?;
+            embeddings.extend(e.iter().map(|e| e.to_vec()));
+            geometry.push(workcell::plan_geometry(&x));
         }
+        // Descriptors only if every example draws on the canvas.
+        let geometry: Vec<_> = geometry
+            .into_iter()
+            .collect::<Option<_>>()
+            .unwrap_or_default();
         let mut next = self.bank.clone();
-        next.enroll(&name, &embeddings)
+        next.enroll_with_geometry(&name, &embeddings, &geometry)
             .map_err(|e| Fail::Status(Status::Internal, e.to_string()))?;
         self.commit(next)?;
         tracing::info!(class = %name, examples = embeddings.len(), bank = self.bank.generation(), "enrolled");
@@ -592,6 +684,11 @@ mod tests {
             bank.enroll(&format!("task{c}"), &es).unwrap();
         }
         let mut screen = Screen::new(engine, bank, dir.path().join("bank.gcb"), 3);
+        // The synthetic tasks are joint-space patterns, not drawings on the canvas.
+        screen.set_workcell(Workcell {
+            enabled: false,
+            ..Workcell::default()
+        });
         let mut bad = task(1, 9);
         bad[5][0] = 99.0;
         let reqs = [

@@ -117,6 +117,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         tracing::info!(%source, classes = bank.len(), version = bank.generation(), "class bank loaded");
     }
     let mut screen = Screen::new(engine, bank, config.bank_path(), config.k_nearest);
+    screen.set_workcell(config.workcell);
 
     let iox_config = iceoryx2_config(&config)?;
     let node = NodeBuilder::new()
@@ -277,6 +278,7 @@ fn reload(config: &Config, screen: &mut Screen, sd: &SdNotify) {
     match result {
         Ok((engine, bank, source)) => {
             screen.replace(engine, bank, config.k_nearest);
+            screen.set_workcell(config.workcell);
             tracing::info!(%source, "reload complete: {}", screen.summary());
         }
         Err(e) => {

@@ -11,8 +11,10 @@
 use std::path::PathBuf;
 
 use anyhow::Context as _;
-use guardian_models::bank::{self, Calibration, ClassBank, GenuineScore};
+use guardian_models::bank::{self, Calibration, ClassBank, GenuineScore, GeometryCalibration};
 use guardian_models::embedder::Embedder;
+use guardian_models::geometry::{self, PlanGeometry};
+use guardian_shared::trajectory::Resampled;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
@@ -102,6 +104,57 @@ pub fn genuine_scores(
     Ok(out)
 }
 
+/// Plan geometry of every trajectory (`None`: the pen never touches the canvas).
+pub fn geometry_of(xs: &[Resampled]) -> Vec<Option<PlanGeometry>> {
+    use rayon::prelude::*;
+    xs.par_iter()
+        .map(guardian_models::workcell::plan_geometry)
+        .collect()
+}
+
+/// The geometry calibration: pooled per-feature spreads of the calibration classes, then
+/// the geometry threshold for the part of the `target_rate` budget the embedding
+/// calibration `cal` left, from the genuine plans of `reps` random `shots`-shot enrollments
+/// (the same enrollments as [`genuine_scores`] with the same seed, so `scores` line up).
+#[allow(clippy::too_many_arguments)]
+pub fn calibrate_geometry_pool(
+    scores: &[GenuineScore],
+    cal: &Calibration,
+    geo: &[Option<PlanGeometry>],
+    labels: &[u32],
+    shots: usize,
+    reps: usize,
+    target_rate: f32,
+    seed: u64,
+    note: &str,
+) -> anyhow::Result<GeometryCalibration> {
+    let groups: Vec<Vec<PlanGeometry>> = by_class(labels)
+        .iter()
+        .map(|idx| idx.iter().filter_map(|&i| geo[i]).collect())
+        .collect();
+    let scales =
+        geometry::pooled_scales(&groups).context("no geometry spread on the calibration data")?;
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut g = Vec::new();
+    for _ in 0..reps {
+        let (support, queries) = split(labels, shots, &mut rng);
+        for q in queries {
+            let l = labels[q] as usize;
+            if support[l].is_empty() {
+                continue;
+            }
+            let ex: Vec<PlanGeometry> = support[l].iter().filter_map(|&i| geo[i]).collect();
+            g.push(geo[q].and_then(|x| geometry::score(&x, &ex, &scales).map(|(s, _)| s)));
+        }
+    }
+    anyhow::ensure!(
+        g.len() == scores.len(),
+        "geometry and embedding scores differ in number"
+    );
+    bank::calibrate_geometry(scores, &g, cal, target_rate, scales, note)
+        .context("geometry calibration failed")
+}
+
 /// Calibrate on the pool's embeddings for `target_rate`.
 pub fn calibrate_pool(
     emb: &[Vec<f32>],
@@ -139,9 +192,13 @@ pub struct Args {
     /// Enrolled drawings per class (calibration uses the same number).
     #[arg(long, default_value_t = 5)]
     pub shots: usize,
-    /// Target false-reject rate on genuine plans.
+    /// Target false-reject rate on genuine plans (embedding and geometry together).
     #[arg(long, default_value_t = 0.01)]
     pub target_frr: f32,
+    /// Share of the false-reject budget given to the geometry check (the embedding gets
+    /// the rest); 0 turns the geometry check off.
+    #[arg(long, default_value_t = 0.25)]
+    pub geometry_share: f32,
     /// Random enrollments of the calibration alphabets.
     #[arg(long, default_value_t = 20)]
     pub reps: usize,
@@ -162,6 +219,8 @@ pub struct BankSummary {
     pub classes: usize,
     /// The calibration record stored in the bank.
     pub calibration: Calibration,
+    /// The geometry calibration stored in the bank.
+    pub geometry_calibration: Option<GeometryCalibration>,
     /// Output file.
     pub out: PathBuf,
 }
@@ -187,26 +246,69 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         args.calib_alphabets.join(","),
         model.version()
     );
-    let cal = calibrate_pool(
+    anyhow::ensure!(
+        (0.0..=1.0).contains(&args.geometry_share),
+        "--geometry-share must be in [0, 1]"
+    );
+    let emb_target = args.target_frr * (1.0 - args.geometry_share);
+    let scores = genuine_scores(
         &cemb,
-        &cpool,
+        &cpool.labels,
+        &cpool.class_names,
         args.shots,
         args.reps,
-        args.target_frr,
         args.seed,
-        &note,
     )?;
+    let cal = bank::calibrate(&scores, emb_target, &note)
+        .with_context(|| format!("cannot calibrate: {} scores", scores.len()))?;
+    let gcal = if args.geometry_share > 0.0 {
+        let cgeo = geometry_of(&cpool.xs);
+        Some(calibrate_geometry_pool(
+            &scores,
+            &cal,
+            &cgeo,
+            &cpool.labels,
+            args.shots,
+            args.reps,
+            args.target_frr,
+            args.seed,
+            &format!("{note}; geometry share {}", args.geometry_share),
+        )?)
+    } else {
+        None
+    };
     let pool = Pool::new(&data, &args.alphabets)?;
     let emb = pool.embed(&model)?;
+    let geo = geometry_of(&pool.xs);
     let mut rng = StdRng::seed_from_u64(args.seed ^ 0x5eed);
     let (support, _) = split(&pool.labels, args.shots, &mut rng);
-    let mut b = bank_of(&emb, &support, &pool.class_names, model.version())?;
+    let dim = emb.first().map_or(0, Vec::len);
+    let mut b = ClassBank::new(dim, model.version(), bank::DEFAULT_THRESHOLD);
+    for (l, idx) in support.iter().enumerate() {
+        if idx.is_empty() {
+            continue;
+        }
+        let rows: Vec<Vec<f32>> = idx.iter().map(|&i| emb[i].clone()).collect();
+        let g: Vec<PlanGeometry> = idx
+            .iter()
+            .map(|&i| geo[i])
+            .collect::<Option<_>>()
+            .unwrap_or_default();
+        let name = pool
+            .class_names
+            .get(l)
+            .cloned()
+            .unwrap_or_else(|| format!("class{l}"));
+        b.enroll_with_geometry(&name, &rows, &g)?;
+    }
     b.apply_calibration(cal.clone());
+    b.set_geometry_calibration(gcal.clone());
     b.save(&args.out)?;
     let summary = BankSummary {
         model_version: model.version().to_owned(),
         classes: b.len(),
         calibration: cal,
+        geometry_calibration: gcal,
         out: args.out.clone(),
     };
     println!("{}", serde_json::to_string_pretty(&summary)?);

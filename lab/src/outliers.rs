@@ -15,10 +15,22 @@
 //!   test drawings (re-solved through the IK once; a round skips a source enrolled in it)
 //!   and claiming the drawing's own class.
 //!
-//! Score of a plan claiming class c (higher = more suspicious): `max(d_c / t_c, d_c / (d_o +
-//! tol))`, with `d_c` the distance to class c, `d_o` to the nearest other class, `t_c` the
-//! calibrated threshold and `tol` the wrong-task tolerance; the score exceeds 1 exactly when
-//! the bank's decision rule says no-go. Reported per fault and severity: AUROC of faulty vs
+//! Embedding score of a plan claiming class c (higher = more suspicious): `max(d_c / t_c,
+//! d_c / (d_o + tol))`, with `d_c` the distance to class c, `d_o` to the nearest other
+//! class, `t_c` the calibrated threshold and `tol` the wrong-task tolerance; the score
+//! exceeds 1 exactly when the bank's embedding rule says no-go. Methods:
+//! - `guardian`: the full decision of `guardiand` — workcell rules, embedding and plan
+//!   geometry. Its score is the largest of three normalised scores, each > 1 exactly when
+//!   its own rule says no-go: the embedding score (calibrated for `(1 − geometry-share) ×
+//!   target`), the geometry score divided by its calibrated threshold (the rest of the
+//!   budget, [`bank::calibrate_geometry`]), and the workcell score (the largest deviation
+//!   over all waypoints and rules, each divided by its tolerance,
+//!   [`guardian_models::workcell::Inspection::score`]);
+//! - `guardian-embedding`: the shipped embedder alone, calibrated for the whole target
+//!   (the decision before the workcell and geometry checks existed), for comparison;
+//! - `siamese`, `knn`: the baselines.
+//!
+//! Reported per fault and severity: AUROC of faulty vs
 //! genuine scores, TPR at 1 % FPR (threshold at the genuine scores' 99th percentile),
 //! detection rate at the calibrated threshold (score > 1); and the genuine false-reject
 //! rate at the calibrated threshold.
@@ -27,9 +39,12 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use anyhow::Context as _;
-use guardian_models::bank::{self, Calibration, GenuineScore};
+use guardian_models::bank::{self, Calibration, GenuineScore, GeometryCalibration};
 use guardian_models::embedder::Embedder;
+use guardian_models::geometry::{self, PlanGeometry};
+use guardian_models::workcell;
 use guardian_shared::trajectory::Resampled;
+use guardian_shared::workcell::Workcell;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand::seq::{IndexedRandom, SliceRandom};
@@ -109,8 +124,11 @@ fn share_above_eq(v: &[f32], t: f32) -> f64 {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Method {
-    /// The shipped embedder, prototypes, calibrated per-class thresholds.
+    /// The full decision: workcell rules, the shipped embedder (prototypes, calibrated
+    /// per-class thresholds) and the per-class plan geometry.
     Guardian,
+    /// The shipped embedder alone, calibrated for the whole target.
+    GuardianEmbedding,
     /// The Siamese baseline network, prototypes, calibrated the same way.
     Siamese,
     /// 1-NN on standardised raw trajectories (smallest L2 to a class's enrolled drawings),
@@ -132,6 +150,8 @@ struct Space<'a> {
 
 /// Per-class state of one enrollment.
 struct Enrolled {
+    /// Geometry descriptors of the support per class (empty without geometry).
+    geometry: Vec<Vec<PlanGeometry>>,
     /// Prototype (prototype methods) per class; empty if the class is not enrolled.
     protos: Vec<Vec<f32>>,
     /// Support vectors per class.
@@ -140,8 +160,15 @@ struct Enrolled {
 }
 
 impl Space<'_> {
-    fn enroll(&self, support: &[Vec<usize>]) -> Enrolled {
+    fn enroll(&self, support: &[Vec<usize>], geo: Option<&[Option<PlanGeometry>]>) -> Enrolled {
         let mut e = Enrolled {
+            geometry: support
+                .iter()
+                .map(|idx| {
+                    geo.map(|g| idx.iter().filter_map(|&i| g[i]).collect())
+                        .unwrap_or_default()
+                })
+                .collect(),
             protos: Vec::new(),
             support: Vec::new(),
             spread: Vec::new(),
@@ -206,19 +233,36 @@ impl Enrolled {
     }
 }
 
-/// The score of a plan (see the module docs); > 1 = no-go.
+/// The embedding score of a plan (see the module docs); > 1 = no-go.
 pub fn score(g: &GenuineScore, cal: &Calibration) -> f32 {
-    let global = cal.global_threshold.unwrap_or(bank::DEFAULT_THRESHOLD);
-    let t = match (cal.class_scale, g.spread) {
-        (Some(k), Some(s)) => k * s,
-        _ => global,
+    g.normalised(cal)
+}
+
+impl Enrolled {
+    /// Raw geometry score of `g` against class `c` (`None` without descriptors).
+    fn geometry_score(
+        &self,
+        g: Option<&PlanGeometry>,
+        c: usize,
+        scales: &[f32; 12],
+    ) -> Option<f32> {
+        geometry::score(g?, self.geometry.get(c)?, scales).map(|(s, _)| s)
+    }
+}
+
+/// The full decision's score: the largest of the normalised embedding, geometry and
+/// workcell scores (> 1 = no-go).
+fn full_score(
+    emb: f32,
+    geometry: Option<f32>,
+    gcal: Option<&GeometryCalibration>,
+    workcell: f32,
+) -> f32 {
+    let g = match (geometry, gcal) {
+        (Some(s), Some(c)) => s / c.threshold,
+        _ => 0.0,
     };
-    let tol = cal.wrong_task_tolerance.unwrap_or(0.0);
-    let a = g.claimed / t.max(1e-12);
-    let b = g
-        .nearest_other
-        .map_or(0.0, |o| g.claimed / (o + tol).max(1e-12));
-    a.max(b)
+    emb.max(g).max(workcell)
 }
 
 /// Arguments of `guardian-lab outliers`.
@@ -257,6 +301,10 @@ pub struct Args {
     /// Siamese baseline model (skipped if absent).
     #[arg(long)]
     pub siamese_model: Option<PathBuf>,
+    /// Share of the false-reject budget given to the geometry check (the embedding gets the
+    /// rest).
+    #[arg(long, default_value_t = 0.25)]
+    pub geometry_share: f32,
     /// Seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -292,6 +340,9 @@ pub struct MethodReport {
     pub method: Method,
     /// Its calibration (on the calibration alphabets).
     pub calibration: Calibration,
+    /// The geometry calibration (`guardian` only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub geometry_calibration: Option<GeometryCalibration>,
     /// Genuine plans scored.
     pub genuine: usize,
     /// Share of genuine plans with a no-go at the calibrated threshold.
@@ -432,12 +483,32 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         }
         Ok(out)
     };
-    methods.push((
-        Method::Guardian,
+    let (gc, gt, gf) = (
         embed(&model, &cpool.xs)?,
         embed(&model, &pool.xs)?,
         embed(&model, &fxs)?,
-    ));
+    );
+    methods.push((Method::Guardian, gc.clone(), gt.clone(), gf.clone()));
+    methods.push((Method::GuardianEmbedding, gc, gt, gf));
+    // Plan geometry of every plan, workcell score of every test and faulty plan.
+    let geo_of = |xs: &[Resampled]| -> Vec<Option<PlanGeometry>> {
+        xs.par_iter().map(workcell::plan_geometry).collect()
+    };
+    let cell = Workcell::default();
+    let wc_of = |xs: &[Resampled]| -> Vec<f32> {
+        xs.par_iter()
+            .map(|x| workcell::inspect(&cell, x).map_or(f32::INFINITY, |i| i.score))
+            .collect()
+    };
+    let (cgeo, tgeo, fgeo) = (geo_of(&cpool.xs), geo_of(&pool.xs), geo_of(&fxs));
+    let (twc, fwc) = (wc_of(&pool.xs), wc_of(&fxs));
+    let scales = {
+        let groups: Vec<Vec<PlanGeometry>> = crate::calibrate::by_class(&cpool.labels)
+            .iter()
+            .map(|idx| idx.iter().filter_map(|&i| cgeo[i]).collect())
+            .collect();
+        geometry::pooled_scales(&groups).context("no geometry spread on the calibration data")?
+    };
     if let Some(p) = &args.siamese_model {
         let s = Embedder::load(p).with_context(|| format!("loading {}", p.display()))?;
         methods.push((
@@ -470,26 +541,64 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let mut reports = Vec::new();
     let mut raw: BTreeMap<String, Scores> = BTreeMap::new();
     for (method, cv, tv, fv) in &methods {
+        let full = *method == Method::Guardian;
+        let space_method = match method {
+            Method::GuardianEmbedding => Method::Guardian,
+            m => *m,
+        };
         // Calibration.
         let cspace = Space {
-            method: *method,
+            method: space_method,
             vecs: cv,
         };
         let mut crng = StdRng::seed_from_u64(args.seed);
         let mut gs = Vec::new();
+        let mut ggeo = Vec::new();
         for _ in 0..args.calib_reps {
             let (support, queries) = split(&cpool.labels, args.shots, &mut crng);
-            let e = cspace.enroll(&support);
+            let e = cspace.enroll(&support, full.then_some(cgeo.as_slice()));
             for q in queries {
-                let d = e.distances(*method, &cv[q]);
-                gs.push(e.genuine(&d, cpool.labels[q] as usize));
+                let d = e.distances(space_method, &cv[q]);
+                let c = cpool.labels[q] as usize;
+                gs.push(e.genuine(&d, c));
+                ggeo.push(e.geometry_score(cgeo[q].as_ref(), c, &scales));
             }
         }
-        let cal = bank::calibrate(&gs, args.target_frr, &format!("{method:?}"))
+        let emb_target = if full {
+            args.target_frr * (1.0 - args.geometry_share)
+        } else {
+            args.target_frr
+        };
+        let cal = bank::calibrate(&gs, emb_target, &format!("{method:?}"))
             .context("calibration failed")?;
+        let gcal = if full {
+            Some(
+                bank::calibrate_geometry(
+                    &gs,
+                    &ggeo,
+                    &cal,
+                    args.target_frr,
+                    scales,
+                    &format!("geometry share {}", args.geometry_share),
+                )
+                .context("geometry calibration failed")?,
+            )
+        } else {
+            None
+        };
+        let gcal = gcal.as_ref();
+        // The method's score of a plan claiming class c.
+        let plan_score = |e: &Enrolled, d: &[f32], c: usize, g: Option<&PlanGeometry>, wc: f32| {
+            let s = score(&e.genuine(d, c), &cal);
+            if full {
+                full_score(s, e.geometry_score(g, c, &scales), gcal, wc)
+            } else {
+                s
+            }
+        };
         // Test rounds.
         let tspace = Space {
-            method: *method,
+            method: space_method,
             vecs: tv,
         };
         let mut sc = Scores::default();
@@ -502,7 +611,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             for &u in &unknown {
                 support[u].clear();
             }
-            let e = tspace.enroll(&support);
+            let e = tspace.enroll(&support, full.then_some(tgeo.as_slice()));
             let enrolled: Vec<usize> = (0..nclass).filter(|c| !support[*c].is_empty()).collect();
             // Nearest enrolled prototype of each class (in this method's space), by the
             // mean of all its drawings for never-enrolled classes.
@@ -548,29 +657,28 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 support.iter().flatten().copied().collect();
             for &q in &queries {
                 let c = pool.labels[q] as usize;
-                let d = e.distances(*method, &tv[q]);
+                let d = e.distances(space_method, &tv[q]);
+                let (g, wc) = (tgeo[q].as_ref(), twc[q]);
                 if unknown.contains(&c) {
                     for sev in [25u32, 50, 100] {
                         let claim = pick(c, sev, &mut trng);
-                        let g = e.genuine(&d, claim);
                         sc.faulty
                             .entry(format!("unknown-task@{sev}"))
                             .or_default()
-                            .push(score(&g, &cal));
+                            .push(plan_score(&e, &d, claim, g, wc));
                     }
                     continue;
                 }
-                sc.genuine.push(score(&e.genuine(&d, c), &cal));
+                sc.genuine.push(plan_score(&e, &d, c, g, wc));
                 for sev in [25u32, 50, 100] {
                     let claim = pick(c, sev, &mut trng);
                     if claim == c {
                         continue;
                     }
-                    let g = e.genuine(&d, claim);
                     sc.faulty
                         .entry(format!("wrong-task@{sev}"))
                         .or_default()
-                        .push(score(&g, &cal));
+                        .push(plan_score(&e, &d, claim, g, wc));
                 }
             }
             for (k, (p, key, _)) in faulty.iter().enumerate() {
@@ -578,11 +686,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 if supports.contains(p) || support[c].is_empty() {
                     continue;
                 }
-                let d = e.distances(*method, &fv[k]);
+                let d = e.distances(space_method, &fv[k]);
                 sc.faulty
                     .entry(format!("{}@{}", key.0, key.1))
                     .or_default()
-                    .push(score(&e.genuine(&d, c), &cal));
+                    .push(plan_score(&e, &d, c, fgeo[k].as_ref(), fwc[k]));
             }
         }
         let mut figs = Vec::new();
@@ -604,12 +712,16 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         });
         reports.push(MethodReport {
             method: *method,
-            calibration: cal,
+            calibration: cal.clone(),
+            geometry_calibration: gcal.cloned(),
             genuine: sc.genuine.len(),
             genuine_false_reject: share_above(&sc.genuine, 1.0),
             faults: figs,
         });
-        raw.insert(format!("{method:?}").to_lowercase(), sc);
+        let key = serde_json::to_value(method)?
+            .as_str()
+            .map_or_else(|| format!("{method:?}").to_lowercase(), str::to_owned);
+        raw.insert(key, sc);
     }
     let report = OutliersReport {
         model_version: model.version().to_owned(),

@@ -8,7 +8,12 @@
 //! 2. another class is nearer than the claimed one by more than the bank's wrong-task
 //!    tolerance (0 unless calibrated) → [`Outcome::WrongTask`];
 //! 3. the distance to the claimed prototype exceeds the class threshold → [`Outcome::Outlier`];
-//! 4. otherwise [`Outcome::Go`].
+//! 4. the plan's geometry (position, size, strokes, direction; [`crate::geometry`]) is
+//!    farther from the class's enrolled examples than the calibrated geometry threshold →
+//!    [`Outcome::GeometryMismatch`] (only [`ClassBank::decide_with_geometry`], only for
+//!    classes whose every example has a descriptor, only in a bank with a geometry
+//!    calibration);
+//! 5. otherwise [`Outcome::Go`].
 //!
 //! Distances are Euclidean between embeddings; a prototype is the mean of a class's enrolled
 //! embeddings. A class uses its own calibrated threshold when it has one, else the bank's
@@ -23,6 +28,9 @@
 //! (positive = the claimed class is the nearest).
 //!
 //! ## File format (version [`FORMAT_VERSION`])
+//! Version 2 adds the per-class plan-geometry descriptors (`geometry`, one per enrolled
+//! example) and the bank's `geometry-calibration`; version 1 files still load (their
+//! classes have no descriptors, so the geometry check is off for them).
 //! One ASCII header line, `guardian-class-bank <version> sha256:<64 hex>\n`, then a UTF-8 JSON
 //! body; the checksum is SHA-256 of the body bytes exactly as stored. Saving is atomic: a
 //! temporary file in the target directory, `fsync`, `rename`, `fsync` of the directory.
@@ -32,11 +40,16 @@ use std::fs;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use guardian_shared::workcell::{GEOMETRY_FEATURES, GeometryFeature};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+use crate::geometry::{self, PlanGeometry};
+
 /// Version of the on-disk format written by [`ClassBank::to_bytes`].
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
+/// Oldest on-disk format [`ClassBank::from_bytes`] still reads.
+pub const OLDEST_FORMAT_VERSION: u32 = 1;
 /// Global default decision threshold (Euclidean embedding distance) used until per-class
 /// thresholds are calibrated. Provisional: a later calibration replaces it per class.
 pub const DEFAULT_THRESHOLD: f32 = 0.5;
@@ -144,6 +157,88 @@ pub struct GenuineScore {
     pub spread: Option<f32>,
 }
 
+impl GenuineScore {
+    /// The embedding decision as one number: `max(d_c / t_c, d_c / (d_o + tol))` with the
+    /// calibration's class threshold `t_c` (`class_scale × spread`, else the global one) and
+    /// wrong-task tolerance; `> 1` exactly when [`ClassBank::decide`] answers no-go.
+    pub fn normalised(&self, cal: &Calibration) -> f32 {
+        let global = cal.global_threshold.unwrap_or(DEFAULT_THRESHOLD);
+        let t = match (cal.class_scale, self.spread) {
+            (Some(k), Some(s)) => k * s,
+            _ => global,
+        };
+        let tol = cal.wrong_task_tolerance.unwrap_or(0.0);
+        let a = self.claimed / t.max(1e-12);
+        let b = self
+            .nearest_other
+            .map_or(0.0, |o| self.claimed / (o + tol).max(1e-12));
+        a.max(b)
+    }
+}
+
+/// The geometry check's calibration, stored in the bank (see [`crate::geometry`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GeometryCalibration {
+    /// Pooled within-class spread of every feature (validation alphabet), in
+    /// [`GeometryFeature::ALL`] order.
+    pub scales: [f32; GEOMETRY_FEATURES],
+    /// A plan whose geometry score exceeds this is a [`Outcome::GeometryMismatch`].
+    pub threshold: f32,
+    /// Combined false-reject target (embedding and geometry together).
+    pub target_rate: f32,
+    /// Genuine plans the threshold was chosen from.
+    pub samples: u32,
+    /// Combined false-reject rate (embedding or geometry) on the calibration data.
+    pub measured_rate: f32,
+    /// Free text: data, split of the budget.
+    pub note: String,
+}
+
+/// Choose the geometry threshold for genuine calibration plans already scored by the
+/// embedding calibration `cal`: of the budget `floor(target_rate × n)`, what the embedding
+/// rule has not used goes to the geometry score, on the plans the embedding accepts.
+/// `geometry[i]` is the geometry score of `scores[i]` (`None`: no descriptor, never rejected
+/// by geometry). `None` if there are no scores or the rate is not in `[0, 1)`.
+pub fn calibrate_geometry(
+    scores: &[GenuineScore],
+    geometry: &[Option<f32>],
+    cal: &Calibration,
+    target_rate: f32,
+    scales: [f32; GEOMETRY_FEATURES],
+    note: &str,
+) -> Option<GeometryCalibration> {
+    if scores.is_empty() || scores.len() != geometry.len() || !(0.0..1.0).contains(&target_rate) {
+        return None;
+    }
+    let n = scores.len();
+    let budget = (f64::from(target_rate) * n as f64).floor() as usize;
+    let emb_rejected: Vec<bool> = scores.iter().map(|s| s.normalised(cal) > 1.0).collect();
+    let used = emb_rejected.iter().filter(|&&r| r).count();
+    let kept: Vec<f32> = geometry
+        .iter()
+        .zip(&emb_rejected)
+        .filter(|(_, r)| !**r)
+        .filter_map(|(g, _)| *g)
+        .collect();
+    let threshold = threshold_allowing(&kept, budget.saturating_sub(used))
+        .unwrap_or(f32::MAX)
+        .max(f32::MIN_POSITIVE);
+    let rejected = geometry
+        .iter()
+        .zip(&emb_rejected)
+        .filter(|(g, r)| **r || g.is_some_and(|g| g > threshold))
+        .count();
+    Some(GeometryCalibration {
+        scales,
+        threshold,
+        target_rate,
+        samples: u32::try_from(n).unwrap_or(u32::MAX),
+        measured_rate: rejected as f32 / n as f32,
+        note: note.to_owned(),
+    })
+}
+
 /// Choose the wrong-task tolerance, the global threshold and the per-class scale so that at
 /// most `target_rate` of the genuine plans are rejected by [`ClassBank::decide`].
 ///
@@ -208,6 +303,18 @@ pub struct Class {
     pub threshold: Option<f32>,
     /// How `threshold` was calibrated.
     pub calibration: Option<Calibration>,
+    /// Plan-geometry descriptor of every enrolled example, in enrollment order (format 2);
+    /// empty when any example has none (a format-1 class), which turns the geometry check
+    /// off for the class.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub geometry: Vec<PlanGeometry>,
+}
+
+impl Class {
+    /// Every enrolled example has a geometry descriptor.
+    pub fn has_geometry(&self) -> bool {
+        !self.geometry.is_empty() && self.geometry.len() == self.embeddings.len()
+    }
 }
 
 /// A class and its distance to a query.
@@ -231,6 +338,12 @@ pub enum Outcome {
     },
     /// The claimed class is nearest but farther than its threshold.
     Outlier,
+    /// The embedding fits the claimed class, but the plan draws in another place, size,
+    /// stroke count or direction than every enrolled example.
+    GeometryMismatch {
+        /// The feature farthest from the enrolled examples (relative to its spread).
+        feature: GeometryFeature,
+    },
     /// The claimed class is not enrolled.
     UnknownClass,
 }
@@ -250,6 +363,12 @@ pub struct Decision {
     pub gap: Option<f32>,
     /// The k nearest classes, nearest first.
     pub nearest: Vec<Neighbour>,
+    /// Geometry score against the claimed class (`None`: check not applicable).
+    pub geometry_score: Option<f32>,
+    /// Geometry threshold (`None`: check not applicable).
+    pub geometry_threshold: Option<f32>,
+    /// The feature behind `geometry_score`.
+    pub geometry_feature: Option<GeometryFeature>,
 }
 
 /// Enrolling into the bank failed.
@@ -269,7 +388,15 @@ pub enum EnrollError {
         /// Its length.
         got: usize,
     },
-    /// An embedding holds NaN or infinity.
+    /// Geometry descriptors were given, but not one per embedding.
+    #[error("{geometry} geometry descriptors for {embeddings} embeddings")]
+    GeometryCount {
+        /// Embeddings given.
+        embeddings: usize,
+        /// Descriptors given.
+        geometry: usize,
+    },
+    /// An embedding (or its geometry descriptor) holds NaN or infinity.
     #[error("embedding {index} is not finite")]
     NonFinite {
         /// Which embedding.
@@ -350,6 +477,8 @@ pub struct ClassBank {
     calibration: Option<Calibration>,
     #[serde(default)]
     wrong_task_tolerance: f32,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    geometry_calibration: Option<GeometryCalibration>,
     classes: BTreeMap<String, Class>,
 }
 
@@ -363,6 +492,7 @@ impl ClassBank {
             default_threshold,
             calibration: None,
             wrong_task_tolerance: 0.0,
+            geometry_calibration: None,
             classes: BTreeMap::new(),
         }
     }
@@ -396,6 +526,24 @@ impl ClassBank {
     /// [`Outcome::WrongTask`]; 0 = any strictly nearer class.
     pub fn wrong_task_tolerance(&self) -> f32 {
         self.wrong_task_tolerance
+    }
+    /// The geometry check's calibration, if the bank has one.
+    pub fn geometry_calibration(&self) -> Option<&GeometryCalibration> {
+        self.geometry_calibration.as_ref()
+    }
+    /// Set (or remove) the geometry calibration.
+    pub fn set_geometry_calibration(&mut self, g: Option<GeometryCalibration>) {
+        self.geometry_calibration = g;
+        self.generation += 1;
+    }
+    /// Names of the classes without geometry descriptors (the geometry check is off for
+    /// them), e.g. classes of a format-1 bank.
+    pub fn classes_without_geometry(&self) -> Vec<&str> {
+        self.classes
+            .iter()
+            .filter(|(_, c)| !c.has_geometry())
+            .map(|(n, _)| n.as_str())
+            .collect()
     }
     /// Apply a calibration: its global threshold (if any) as the default, the wrong-task
     /// tolerance and, if the record has a `class_scale`, a threshold for every class with at
@@ -480,8 +628,30 @@ impl ClassBank {
             .map(|c| c.threshold.unwrap_or(self.default_threshold))
     }
 
-    /// Add `embeddings` to class `name` (created if new) and recompute its prototype.
+    /// Add `embeddings` to class `name` (created if new) and recompute its prototype. The
+    /// examples have no geometry descriptors, so the class's geometry check turns off; use
+    /// [`ClassBank::enroll_with_geometry`] to keep it.
     pub fn enroll(&mut self, name: &str, embeddings: &[Vec<f32>]) -> Result<&Class, EnrollError> {
+        self.enroll_with_geometry(name, embeddings, &[])
+    }
+
+    /// Add `embeddings` with their plan-geometry descriptors (one per embedding, or none) to
+    /// class `name`. The class keeps descriptors only while every example has one.
+    pub fn enroll_with_geometry(
+        &mut self,
+        name: &str,
+        embeddings: &[Vec<f32>],
+        geometry: &[PlanGeometry],
+    ) -> Result<&Class, EnrollError> {
+        if !geometry.is_empty() && geometry.len() != embeddings.len() {
+            return Err(EnrollError::GeometryCount {
+                embeddings: embeddings.len(),
+                geometry: geometry.len(),
+            });
+        }
+        if let Some(index) = geometry.iter().position(|g| !g.is_finite()) {
+            return Err(EnrollError::NonFinite { index });
+        }
         if embeddings.is_empty() {
             return Err(EnrollError::NoExamples);
         }
@@ -506,7 +676,14 @@ impl ClassBank {
                 prototype: vec![0.0; dim],
                 threshold: None,
                 calibration: None,
+                geometry: Vec::new(),
             });
+        let complete = class.geometry.len() == class.embeddings.len();
+        if complete && !geometry.is_empty() {
+            class.geometry.extend_from_slice(geometry);
+        } else {
+            class.geometry.clear();
+        }
         class.embeddings.extend(embeddings.iter().cloned());
         class.prototype = mean(&class.embeddings, dim);
         self.recalibrate_class(name);
@@ -556,6 +733,9 @@ impl ClassBank {
                 margin: None,
                 gap: None,
                 nearest,
+                geometry_score: None,
+                geometry_threshold: None,
+                geometry_feature: None,
             };
         };
         let d = distance(query, &class.prototype);
@@ -575,7 +755,46 @@ impl ClassBank {
             margin: Some(threshold - d),
             gap: other.map(|o| o.distance - d),
             nearest,
+            geometry_score: None,
+            geometry_threshold: None,
+            geometry_feature: None,
         }
+    }
+
+    /// Geometry score of `g` against class `name` and the deciding feature, with the
+    /// threshold; `None` if the check does not apply (no geometry calibration, unknown
+    /// class, or a class without descriptors).
+    pub fn geometry_score(
+        &self,
+        g: &PlanGeometry,
+        name: &str,
+    ) -> Option<(f32, GeometryFeature, f32)> {
+        let cal = self.geometry_calibration.as_ref()?;
+        let class = self.classes.get(name).filter(|c| c.has_geometry())?;
+        let (s, f) = geometry::score(g, &class.geometry, &cal.scales)?;
+        Some((s, f, cal.threshold))
+    }
+
+    /// [`ClassBank::decide`], then the geometry check (step 4 of the module docs) for a plan
+    /// whose embedding decision is go. The geometry numbers are filled in whenever the check
+    /// applies.
+    pub fn decide_with_geometry(
+        &self,
+        query: &[f32],
+        geometry: Option<&PlanGeometry>,
+        claimed: &str,
+        k: usize,
+    ) -> Decision {
+        let mut d = self.decide(query, claimed, k);
+        if let Some((s, f, t)) = geometry.and_then(|g| self.geometry_score(g, claimed)) {
+            d.geometry_score = Some(s);
+            d.geometry_threshold = Some(t);
+            d.geometry_feature = Some(f);
+            if d.outcome == Outcome::Go && (s > t || s.is_nan()) {
+                d.outcome = Outcome::GeometryMismatch { feature: f };
+            }
+        }
+        d
     }
 
     /// Serialise to the on-disk format (header line + JSON body).
@@ -603,7 +822,7 @@ impl ClassBank {
             .next()
             .and_then(|v| v.parse().ok())
             .ok_or_else(|| bad("missing format version"))?;
-        if found != FORMAT_VERSION {
+        if !(OLDEST_FORMAT_VERSION..=FORMAT_VERSION).contains(&found) {
             return Err(LoadBankError::UnsupportedFormat {
                 found,
                 supported: FORMAT_VERSION,
@@ -634,6 +853,11 @@ impl ClassBank {
         if !(self.wrong_task_tolerance.is_finite() && self.wrong_task_tolerance >= 0.0) {
             return inconsistent("wrong-task tolerance is not finite and >= 0".into());
         }
+        if let Some(g) = &self.geometry_calibration
+            && (g.threshold.is_nan() || g.scales.iter().any(|s| !(s.is_finite() && *s > 0.0)))
+        {
+            return inconsistent("geometry calibration: threshold NaN or scale not > 0".into());
+        }
         for (name, c) in &self.classes {
             if c.prototype.len() != self.dim {
                 return inconsistent(format!("class {name:?}: prototype length"));
@@ -646,6 +870,12 @@ impl ClassBank {
             }
             if c.threshold.is_some_and(|t| !t.is_finite()) {
                 return inconsistent(format!("class {name:?}: threshold is not finite"));
+            }
+            if !c.geometry.is_empty() && c.geometry.len() != c.embeddings.len() {
+                return inconsistent(format!("class {name:?}: geometry descriptor count"));
+            }
+            if c.geometry.iter().any(|g| !g.is_finite()) {
+                return inconsistent(format!("class {name:?}: geometry is not finite"));
             }
         }
         Ok(())
@@ -841,15 +1071,15 @@ mod tests {
             Err(LoadBankError::ChecksumMismatch { .. })
         ));
         let newer = String::from_utf8(bytes.clone()).unwrap().replacen(
-            "guardian-class-bank 1 ",
             "guardian-class-bank 2 ",
+            "guardian-class-bank 3 ",
             1,
         );
         assert!(matches!(
             ClassBank::from_bytes(newer.as_bytes()),
             Err(LoadBankError::UnsupportedFormat {
-                found: 2,
-                supported: 1
+                found: 3,
+                supported: 2
             })
         ));
         assert!(matches!(
@@ -932,5 +1162,126 @@ mod tests {
         let s = class_spread(&[vec![0.0], vec![1.0], vec![2.0]]).unwrap();
         assert!((s - (4.5f32 / 3.0).sqrt()).abs() < 1e-6, "{s}");
         assert_eq!(class_spread(&[vec![0.0], vec![1.0]]), None);
+    }
+
+    /// A format-1 file exactly as the format-1 code wrote it (header + JSON body).
+    fn v1_file() -> Vec<u8> {
+        let body = r#"{"dim":2,"model_version":"m","generation":3,"default_threshold":0.5,"calibration":null,"wrong_task_tolerance":0.25,"classes":{"a":{"embeddings":[[0.0,0.0],[0.0,2.0],[2.0,0.0]],"prototype":[0.6666667,0.6666667],"threshold":null,"calibration":null}}}"#;
+        let sum = hex(&Sha256::digest(body.as_bytes()));
+        format!("guardian-class-bank 1 sha256:{sum}\n{body}").into_bytes()
+    }
+
+    fn geo(x: f32) -> PlanGeometry {
+        let mut g = [0.0f32; GEOMETRY_FEATURES];
+        g[0] = x;
+        g[5] = 1.0;
+        PlanGeometry(g)
+    }
+
+    fn geo_cal(threshold: f32) -> GeometryCalibration {
+        GeometryCalibration {
+            scales: [0.01; GEOMETRY_FEATURES],
+            threshold,
+            target_rate: 0.01,
+            samples: 10,
+            measured_rate: 0.01,
+            note: "test".into(),
+        }
+    }
+
+    #[test]
+    fn format_1_banks_load_without_geometry() {
+        let mut b = ClassBank::from_bytes(&v1_file()).unwrap();
+        assert_eq!(b.len(), 1);
+        assert_eq!(b.wrong_task_tolerance(), 0.25);
+        assert_eq!(b.classes_without_geometry(), vec!["a"]);
+        assert!(b.geometry_calibration().is_none());
+        // Even with a geometry calibration, a class without descriptors is not checked.
+        b.set_geometry_calibration(Some(geo_cal(1.0)));
+        let d = b.decide_with_geometry(&[0.6, 0.6], Some(&geo(5.0)), "a", 1);
+        assert_eq!(d.outcome, Outcome::Go);
+        assert_eq!(d.geometry_score, None);
+        // Saved again, it is a format-2 file.
+        let bytes = b.to_bytes().unwrap();
+        assert!(bytes.starts_with(b"guardian-class-bank 2 "));
+        assert_eq!(ClassBank::from_bytes(&bytes).unwrap(), b);
+    }
+
+    #[test]
+    fn geometry_round_trips_and_decides() {
+        let mut b = ClassBank::new(2, "m", 1.0);
+        b.enroll_with_geometry(
+            "a",
+            &[vec![0.0, 0.0], vec![0.0, 0.2]],
+            &[geo(0.0), geo(0.01)],
+        )
+        .unwrap();
+        b.enroll("b", &[vec![5.0, 5.0]]).unwrap();
+        assert_eq!(b.classes_without_geometry(), vec!["b"]);
+        b.set_geometry_calibration(Some(geo_cal(2.0)));
+        // 0.03 from the nearest example = 2 spreads: inside; 0.05 = 4 spreads: mismatch.
+        let d = b.decide_with_geometry(&[0.0, 0.1], Some(&geo(0.025)), "a", 2);
+        assert_eq!(d.outcome, Outcome::Go);
+        assert!((d.geometry_score.unwrap() - 1.5).abs() < 1e-4);
+        let d = b.decide_with_geometry(&[0.0, 0.1], Some(&geo(0.05)), "a", 2);
+        assert_eq!(
+            d.outcome,
+            Outcome::GeometryMismatch {
+                feature: GeometryFeature::CentreX
+            }
+        );
+        assert_eq!(d.geometry_threshold, Some(2.0));
+        // The embedding decision comes first.
+        let d = b.decide_with_geometry(&[5.0, 5.0], Some(&geo(0.05)), "a", 2);
+        assert!(matches!(d.outcome, Outcome::WrongTask { .. }));
+        // Round trip through the file format, atomically saved.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("bank.gcb");
+        b.save(&path).unwrap();
+        let back = ClassBank::load(&path).unwrap();
+        assert_eq!(back, b);
+        assert_eq!(back.class("a").unwrap().geometry.len(), 2);
+        // Enrolling without descriptors turns the class's check off.
+        b.enroll("a", &[vec![0.1, 0.1]]).unwrap();
+        assert!(!b.class("a").unwrap().has_geometry());
+        assert_eq!(
+            b.enroll_with_geometry("c", &[vec![0.0, 0.0]], &[geo(0.0), geo(1.0)])
+                .unwrap_err(),
+            EnrollError::GeometryCount {
+                embeddings: 1,
+                geometry: 2
+            }
+        );
+    }
+
+    #[test]
+    fn geometry_calibration_spends_what_the_embedding_left() {
+        let cal = calibrate(
+            &(1..=1000)
+                .map(|i| GenuineScore {
+                    claimed: i as f32 / 1000.0,
+                    nearest_other: None,
+                    spread: None,
+                })
+                .collect::<Vec<_>>(),
+            0.005,
+            "",
+        )
+        .unwrap();
+        let scores: Vec<GenuineScore> = (1..=1000)
+            .map(|i| GenuineScore {
+                claimed: i as f32 / 1000.0,
+                nearest_other: None,
+                spread: None,
+            })
+            .collect();
+        // Geometry scores independent of the embedding: 0.001 .. 1.0 in another order.
+        let geo: Vec<Option<f32>> = (1..=1000)
+            .map(|i| Some(((i * 7919) % 1000) as f32 / 1000.0))
+            .collect();
+        let g =
+            calibrate_geometry(&scores, &geo, &cal, 0.01, [0.01; GEOMETRY_FEATURES], "").unwrap();
+        assert!(g.measured_rate <= 0.01 && g.measured_rate >= 0.009, "{g:?}");
+        assert!(calibrate_geometry(&scores, &geo[1..], &cal, 0.01, g.scales, "").is_none());
     }
 }

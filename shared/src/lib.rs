@@ -9,3 +9,4 @@
 
 pub mod trajectory;
 pub mod wire;
+pub mod workcell;

@@ -16,11 +16,12 @@
 use iceoryx2::prelude::ZeroCopySend;
 
 use crate::trajectory::{CHANNELS, InvalidKind, MAX_WAYPOINTS};
+use crate::workcell::{GeometryFeature, WorkcellKind};
 
 /// Version of this wire contract; part of the service name.
-pub const PROTOCOL_VERSION: u32 = 1;
+pub const PROTOCOL_VERSION: u32 = 2;
 /// Default name of the request-response service.
-pub const DEFAULT_SERVICE_NAME: &str = "guardian/v1/rpc";
+pub const DEFAULT_SERVICE_NAME: &str = "guardian/v2/rpc";
 /// Size of every fixed name field (class names, model version), NUL-padded.
 pub const NAME_BYTES: usize = 64;
 /// Longest class name in bytes (UTF-8); one byte of [`NAME_BYTES`] stays NUL.
@@ -158,6 +159,13 @@ pub enum ReasonCode {
     UnknownClass = 3,
     /// The trajectory failed validation; see `invalid_kind`, `invalid_index`.
     InvalidTrajectory = 4,
+    /// The plan breaks a workcell rule (tool orientation, pen height, canvas, hover
+    /// height); see `workcell_kind`, `workcell_index`. Decided before any model runs.
+    Workcell = 5,
+    /// The embedding fits the claimed class, but the plan's geometry (position, size,
+    /// strokes, direction) is farther from every enrolled example than the calibrated
+    /// threshold; see `geometry_score`, `geometry_threshold`, `geometry_feature`.
+    GeometryMismatch = 6,
 }
 
 impl ReasonCode {
@@ -169,6 +177,8 @@ impl ReasonCode {
             2 => Self::Outlier,
             3 => Self::UnknownClass,
             4 => Self::InvalidTrajectory,
+            5 => Self::Workcell,
+            6 => Self::GeometryMismatch,
             _ => return None,
         })
     }
@@ -176,7 +186,7 @@ impl ReasonCode {
 
 /// The request user header. 152 bytes, alignment 8; see `docs/wire-protocol.md`.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("guardian_v1_RequestHeader")]
+#[type_name("guardian_v2_RequestHeader")]
 #[repr(C)]
 pub struct RequestHeader {
     /// Chosen by the client, echoed in the response.
@@ -219,7 +229,7 @@ impl RequestHeader {
 
 /// The response user header. 440 bytes, alignment 8; see `docs/wire-protocol.md`.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("guardian_v1_ResponseHeader")]
+#[type_name("guardian_v2_ResponseHeader")]
 #[repr(C)]
 pub struct ResponseHeader {
     /// The request's `request_id`.
@@ -276,8 +286,19 @@ pub struct ResponseHeader {
     pub message: [u8; MESSAGE_BYTES],
     /// The class a request was about (check: claimed; enroll/forget: target).
     pub class_name: [u8; NAME_BYTES],
+    /// A [`WorkcellKind`] value when a workcell rule was broken (reason `Workcell`), else 0.
+    pub workcell_kind: u32,
+    /// Index of the first waypoint that broke it.
+    pub workcell_index: u32,
+    /// Geometry score of the plan against the claimed class (check), NaN when the geometry
+    /// check does not apply.
+    pub geometry_score: f32,
+    /// Geometry threshold (check), NaN when the check does not apply.
+    pub geometry_threshold: f32,
+    /// The [`GeometryFeature`] behind `geometry_score` (value 1..=12), 0 when none.
+    pub geometry_feature: u32,
     /// Reserved, zero.
-    pub reserved: [u8; 64],
+    pub reserved: [u8; 44],
 }
 
 impl Default for ResponseHeader {
@@ -316,8 +337,23 @@ impl ResponseHeader {
             model_version: [0; NAME_BYTES],
             message: [0; MESSAGE_BYTES],
             class_name: [0; NAME_BYTES],
-            reserved: [0; 64],
+            workcell_kind: 0,
+            workcell_index: 0,
+            geometry_score: f32::NAN,
+            geometry_threshold: f32::NAN,
+            geometry_feature: 0,
+            reserved: [0; 44],
         }
+    }
+
+    /// The workcell rule broken, if any.
+    pub fn workcell(&self) -> Option<WorkcellKind> {
+        WorkcellKind::from_u32(self.workcell_kind)
+    }
+
+    /// The geometry feature behind `geometry_score`, if any.
+    pub fn geometry(&self) -> Option<GeometryFeature> {
+        GeometryFeature::from_u32(self.geometry_feature)
     }
 
     /// The invalid-trajectory kind, if any.
@@ -330,7 +366,7 @@ impl ResponseHeader {
 
 /// One class in a response payload. 80 bytes, alignment 4.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("guardian_v1_ClassEntry")]
+#[type_name("guardian_v2_ClassEntry")]
 #[repr(C)]
 pub struct ClassEntry {
     /// Class name, UTF-8, NUL-padded.
@@ -477,7 +513,12 @@ mod tests {
         assert_eq!(offset_of!(ResponseHeader, model_version), 120);
         assert_eq!(offset_of!(ResponseHeader, message), 184);
         assert_eq!(offset_of!(ResponseHeader, class_name), 312);
-        assert_eq!(offset_of!(ResponseHeader, reserved), 376);
+        assert_eq!(offset_of!(ResponseHeader, workcell_kind), 376);
+        assert_eq!(offset_of!(ResponseHeader, workcell_index), 380);
+        assert_eq!(offset_of!(ResponseHeader, geometry_score), 384);
+        assert_eq!(offset_of!(ResponseHeader, geometry_threshold), 388);
+        assert_eq!(offset_of!(ResponseHeader, geometry_feature), 392);
+        assert_eq!(offset_of!(ResponseHeader, reserved), 396);
 
         assert_eq!(size_of::<ClassEntry>(), 80);
         assert_eq!(align_of::<ClassEntry>(), 4);
@@ -527,7 +568,7 @@ mod tests {
         for v in 0..=6 {
             assert_eq!(Status::from_u32(v).map(|s| s as u32), Some(v));
         }
-        for v in 0..=4 {
+        for v in 0..=6 {
             assert_eq!(ReasonCode::from_u32(v).map(|s| s as u32), Some(v));
         }
         let t: [u8; 4] = encode_text("aéé");

@@ -23,6 +23,9 @@ pub struct Setup {
     pub prefix: String,
     pub model: PathBuf,
     pub extra: String,
+    /// Apply the workcell rules (`[workcell] enabled`). Off by default here: the synthetic
+    /// sample tasks are joint-space patterns that do not draw on the canvas.
+    pub workcell_rules: bool,
 }
 
 impl Setup {
@@ -38,6 +41,7 @@ impl Setup {
             model,
             dir,
             extra: String::new(),
+            workcell_rules: false,
         }
     }
 
@@ -51,13 +55,14 @@ impl Setup {
 
     pub fn write_config(&self) -> PathBuf {
         let text = format!(
-            "model = {:?}\ndefault-bank = \"\"\nstate-dir = {:?}\nservice-name = {:?}\ntick-ms = 50\n{}\n[iceoryx2]\nroot-path = {:?}\nprefix = {:?}\n",
+            "model = {:?}\ndefault-bank = \"\"\nstate-dir = {:?}\nservice-name = {:?}\ntick-ms = 50\n{}\n[iceoryx2]\nroot-path = {:?}\nprefix = {:?}\n[workcell]\nenabled = {}\n",
             self.model,
             self.state_dir(),
             self.service,
             self.extra,
             self.dir.path().join("iox"),
-            self.prefix
+            self.prefix,
+            self.workcell_rules
         );
         let p = self.config_path();
         std::fs::write(&p, text).expect("write config");

@@ -262,7 +262,7 @@ fn enrollment_persists_across_restart() {
     }
     let bank = s.state_dir().join("bank.gcb");
     let text = std::fs::read(&bank).expect("bank file");
-    assert!(text.starts_with(b"guardian-class-bank 1 sha256:"));
+    assert!(text.starts_with(b"guardian-class-bank 2 sha256:"));
 
     let d = Daemon::start(&s);
     d.wait_log("persisted bank");

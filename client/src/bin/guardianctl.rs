@@ -208,6 +208,13 @@ fn print_verdict(v: &Verdict) {
         opt(v.threshold)
     );
     println!("margin    {}   gap {}", opt(v.margin), opt(v.gap));
+    if v.geometry_score.is_some() {
+        println!(
+            "geometry  {} (threshold {})",
+            opt(v.geometry_score),
+            opt(v.geometry_threshold)
+        );
+    }
     for (i, n) in v.nearest.iter().enumerate() {
         println!("  #{} {:<32} {:.4}", i + 1, n.class, n.distance);
     }
@@ -227,6 +234,17 @@ fn reason_text(r: &NoGoReason) -> String {
         NoGoReason::Outlier => "outlier".into(),
         NoGoReason::UnknownClass => "unknown class".into(),
         NoGoReason::InvalidTrajectory { kind, index } => format!("invalid: {kind:?} at {index}"),
+        NoGoReason::Workcell { kind, index } => {
+            format!("workcell: {kind:?} at waypoint {index}")
+        }
+        NoGoReason::GeometryMismatch {
+            feature,
+            score,
+            threshold,
+        } => format!(
+            "geometry mismatch: {} (score {score:.2} > {threshold:.2})",
+            feature.name()
+        ),
         _ => format!("{r:?}"),
     }
 }
@@ -416,6 +434,12 @@ fn demo(client: &Client, json: bool, keep: bool) -> anyhow::Result<()> {
                     Decision::NoGo {
                         reason: NoGoReason::InvalidTrajectory { .. },
                     } => "invalid",
+                    Decision::NoGo {
+                        reason: NoGoReason::Workcell { .. },
+                    } => "workcell",
+                    Decision::NoGo {
+                        reason: NoGoReason::GeometryMismatch { .. },
+                    } => "geometry",
                     Decision::NoGo { .. } => "no-go",
                 };
                 (
@@ -469,6 +493,13 @@ fn demo(client: &Client, json: bool, keep: bool) -> anyhow::Result<()> {
         }
         let ok = rows.iter().filter(|r| r.as_expected).count();
         println!("{ok}/{} as expected", rows.len());
+    }
+    if rows.iter().any(|r| r.verdict.contains("workcell")) {
+        eprintln!(
+            "note: the demo tasks are synthetic joint-space patterns, not drawings on the \
+             canvas, so the daemon's workcell rules reject them; run the demo against a \
+             guardiand with `[workcell] enabled = false` (docs/guardiand.md)"
+        );
     }
     Ok(())
 }
