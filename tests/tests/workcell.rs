@@ -5,11 +5,8 @@
 //! enrolled through the daemon get descriptors, and the same drawing placed elsewhere on
 //! the canvas is answered `GeometryMismatch` naming the centre.
 
-mod common;
-
 use std::path::PathBuf;
 
-use common::{Daemon, Setup};
 use guardian_client::{Decision, GeometryFeature, NoGoReason, Trajectory, WorkcellKind};
 use guardian_lab::dataset::convert_strokes;
 use guardian_lab::path::{Geometry, PathSolver};
@@ -17,13 +14,14 @@ use guardian_lab::strokes::read_strokes;
 use guardian_models::bank::{ClassBank, GeometryCalibration};
 use guardian_models::embedder::{EMBED_DIM, Embedder};
 use guardian_shared::trajectory::Waypoint;
+use guardian_tests::harness::{self, Daemon, Setup};
 
 fn drawing(character: u32, drawer: usize) -> Vec<Waypoint> {
     drawing_on(&Geometry::default(), character, drawer)
 }
 
 fn drawing_on(geometry: &Geometry, character: u32, drawer: usize) -> Vec<Waypoint> {
-    let dir = common::workspace_root()
+    let dir = harness::workspace_root()
         .join("../shared/omniglot/strokes/Latin")
         .join(format!("character{character:02}"));
     let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
