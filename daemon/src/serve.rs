@@ -205,6 +205,8 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         node: &node,
         shared: &notifier,
         wakers: &mut wakers,
+        batch: Vec::with_capacity(config.max_batch),
+        answered: Vec::with_capacity(config.max_batch),
     };
 
     loop {
@@ -307,6 +309,10 @@ struct Outbox<'a> {
     /// The shared response event, for clients without an event service of their own.
     shared: &'a iceoryx2::port::notifier::Notifier<ipc::Service>,
     wakers: &'a mut ClientWakers,
+    /// Requests being answered (reused: the busy-poll loop calls `drain` continuously).
+    batch: Vec<ActiveRequest>,
+    /// Clients answered in the current batch (each is woken once).
+    answered: Vec<u128>,
 }
 
 /// Answer every queued request, taking up to `max_batch` at a time so that queued checks
@@ -324,9 +330,8 @@ fn drain(
     max_batch: usize,
 ) -> Result<usize, RunError> {
     let mut n = 0;
-    let mut batch: Vec<ActiveRequest> = Vec::with_capacity(max_batch);
-    // Clients answered in the current batch (each is woken once).
-    let mut answered: Vec<u128> = Vec::with_capacity(max_batch);
+    let mut batch = std::mem::take(&mut out.batch);
+    let mut answered = std::mem::take(&mut out.answered);
     loop {
         while batch.len() < max_batch {
             match server.receive() {
@@ -398,5 +403,7 @@ fn drain(
             tracing::warn!(error = ?e, "cannot notify clients");
         }
     }
+    out.batch = batch;
+    out.answered = answered;
     Ok(n)
 }
