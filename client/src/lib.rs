@@ -567,7 +567,8 @@ impl Client {
                 });
             }
             if now < spin_until {
-                std::hint::spin_loop();
+                // Poll, but let other runnable tasks (the daemon, on a shared core) go first.
+                std::thread::yield_now();
                 continue;
             }
             let wait = (deadline - now).min(Duration::from_millis(5));

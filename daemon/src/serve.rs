@@ -272,7 +272,10 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
                 Ok(_) | Err(ListenerWaitError::InterruptSignal) => {}
                 Err(e) => return Err(iox("drain request events")(e)),
             }
-            std::hint::spin_loop();
+            // Give the core to any other runnable task while idle, so the scheduler has less
+            // reason to preempt this process in the middle of a check (see
+            // docs/performance.md, busy-poll tail).
+            std::thread::yield_now();
         }
     }
 
