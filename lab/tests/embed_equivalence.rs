@@ -76,6 +76,7 @@ fn specialised_fk_matches_the_general_chain_on_real_plans() {
             worst_len = worst_len.max((a - b).abs());
         }
     }
+    eprintln!("worst pen-tip difference {worst:e} m, path length {worst_len:e} m");
     assert!(worst <= 1e-12, "worst pen-tip difference {worst:e} m");
     assert!(
         worst_len <= 1e-10,
@@ -107,6 +108,10 @@ fn embeddings_of_real_plans_do_not_change() {
         let norm: f32 = e_ref.iter().map(|v| v * v).sum::<f32>().sqrt();
         worst_rel = worst_rel.max(diff / norm);
     }
+    eprintln!(
+        "{} plans: worst input difference {worst_input:e} rad, embedding {worst_rel:e} relative",
+        plans.len()
+    );
     // Resampling positions may move by a few 1e-16 m of path length: at most a rounding
     // step of an f32 joint value.
     assert!(
