@@ -478,15 +478,6 @@ impl Client {
             .event()
             .open()
             .map_err(connect_err("open request event service"))?;
-        let wake_client = node
-            .service_builder(&name(wire::response_event_name(&config.service_name))?)
-            .event()
-            .open()
-            .map_err(connect_err("open response event service"))?;
-        let listener = wake_client
-            .listener_builder()
-            .create()
-            .map_err(connect_err("create listener"))?;
         let notifier = wake_server
             .notifier_builder()
             .create()
@@ -497,6 +488,24 @@ impl Client {
             .allocation_strategy(AllocationStrategy::PowerOfTwo)
             .create()
             .map_err(connect_err("create client port"))?;
+        // This client's own response event service (named after its port id, which the
+        // daemon sees on every request): an answer wakes only this client. Its listener
+        // exists before the first request, so no wake-up is lost.
+        let own_events = node
+            .service_builder(&name(wire::client_response_event_name(
+                &config.service_name,
+                client.id().value(),
+            ))?)
+            .event()
+            .max_listeners(1)
+            .max_notifiers(4)
+            .max_nodes(4)
+            .create()
+            .map_err(connect_err("create own response event service"))?;
+        let listener = own_events
+            .listener_builder()
+            .create()
+            .map_err(connect_err("create listener"))?;
         // Distinct id streams per client keep logs readable; uniqueness per client is all
         // the protocol needs.
         let seed = u64::from(std::process::id()) << 32;
@@ -580,7 +589,8 @@ impl Client {
                 });
             }
             if now < spin_until {
-                std::hint::spin_loop();
+                // Poll, but let other runnable tasks (the daemon, on a shared core) go first.
+                std::thread::yield_now();
                 continue;
             }
             let wait = (deadline - now).min(Duration::from_millis(5));

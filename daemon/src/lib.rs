@@ -8,6 +8,7 @@ pub mod engine;
 pub mod notify;
 pub mod screen;
 pub mod serve;
+pub mod wakers;
 
 pub use config::{Config, ServingMode};
 pub use serve::{Control, RunError, run};

@@ -15,6 +15,7 @@ use guardian_shared::wire::{
 use crate::config::{Config, ServingMode};
 use crate::notify::SdNotify;
 use crate::screen::{LoadStateError, Screen, load_bank, load_engine};
+use crate::wakers::{ClientWakers, Woken};
 
 /// Flags set from signal handlers (or a test harness) to steer the loop.
 #[derive(Debug, Clone, Default)]
@@ -80,6 +81,8 @@ pub fn iceoryx2_config(config: &Config) -> Result<iceoryx2::config::Config, RunE
 
 /// How often the serving loop reclaims resources of dead planner processes.
 const DEAD_NODE_CLEANUP: Duration = Duration::from_secs(30);
+/// How often the serving loop drops per-client notifiers of disconnected clients.
+const WAKER_SWEEP: Duration = Duration::from_secs(1);
 
 type ActiveRequest = iceoryx2::active_request::ActiveRequest<
     ipc::Service,
@@ -203,11 +206,21 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     let mut last_ping = Instant::now();
     let mut last_cleanup = Instant::now();
     let mut last_request = Instant::now();
+    let mut last_sweep = Instant::now();
     let spin = Duration::from_micros(config.spin_us);
+    let mut wakers = ClientWakers::new(&config.service_name, max_clients);
+    let mut live_clients: Vec<u128> = Vec::with_capacity(max_clients);
+    let mut out = Outbox {
+        node: &node,
+        shared: &notifier,
+        wakers: &mut wakers,
+        batch: Vec::with_capacity(config.max_batch),
+        answered: Vec::with_capacity(config.max_batch),
+    };
 
     loop {
         // Answer everything queued first, so that a stop answers in-flight requests.
-        let served = drain(&server, &notifier, &mut screen, config.max_batch)?;
+        let served = drain(&server, &mut out, &mut screen, config.max_batch)?;
         if served > 0 {
             last_request = Instant::now();
         }
@@ -234,6 +247,18 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
             }
             last_cleanup = Instant::now();
         }
+        // Per-client notifiers of clients that disconnected are dropped.
+        if last_sweep.elapsed() >= WAKER_SWEEP {
+            if !out.wakers.is_empty() {
+                live_clients.clear();
+                rpc.dynamic_config().list_clients(|c| {
+                    live_clients.push(c.client_id.value());
+                    CallbackProgression::Continue
+                });
+                out.wakers.retain_connected(|id| live_clients.contains(&id));
+            }
+            last_sweep = Instant::now();
+        }
         if served > 0 {
             continue;
         }
@@ -256,13 +281,16 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
                 Ok(_) | Err(ListenerWaitError::InterruptSignal) => {}
                 Err(e) => return Err(iox("drain request events")(e)),
             }
-            std::hint::spin_loop();
+            // Give the core to any other runnable task while idle, so the scheduler has less
+            // reason to preempt this process in the middle of a check (see
+            // docs/performance.md, busy-poll tail).
+            std::thread::yield_now();
         }
     }
 
     sd.stopping();
     tracing::info!("stopping: answering queued requests and flushing state");
-    let _ = drain(&server, &notifier, &mut screen, config.max_batch)?;
+    let _ = drain(&server, &mut out, &mut screen, config.max_batch)?;
     screen.flush()?;
     tracing::info!("stopped");
     Ok(())
@@ -288,6 +316,18 @@ fn reload(config: &Config, screen: &mut Screen, sd: &SdNotify) {
     sd.status(&screen.summary());
 }
 
+/// Where wake-ups for answered clients go.
+struct Outbox<'a> {
+    node: &'a Node<ipc::Service>,
+    /// The shared response event, for clients without an event service of their own.
+    shared: &'a iceoryx2::port::notifier::Notifier<ipc::Service>,
+    wakers: &'a mut ClientWakers,
+    /// Requests being answered (reused: the busy-poll loop calls `drain` continuously).
+    batch: Vec<ActiveRequest>,
+    /// Clients answered in the current batch (each is woken once).
+    answered: Vec<u128>,
+}
+
 /// Answer every queued request, taking up to `max_batch` at a time so that queued checks
 /// are embedded in one forward pass; returns how many.
 fn drain(
@@ -298,12 +338,13 @@ fn drain(
         [ClassEntry],
         ResponseHeader,
     >,
-    notifier: &iceoryx2::port::notifier::Notifier<ipc::Service>,
+    out: &mut Outbox<'_>,
     screen: &mut Screen,
     max_batch: usize,
 ) -> Result<usize, RunError> {
     let mut n = 0;
-    let mut batch: Vec<ActiveRequest> = Vec::new();
+    let mut batch = std::mem::take(&mut out.batch);
+    let mut answered = std::mem::take(&mut out.answered);
     loop {
         while batch.len() < max_batch {
             match server.receive() {
@@ -330,9 +371,10 @@ fn drain(
             screen.handle_batch(&items)
         };
         let size = batch.len();
-        let mut any_sent = false;
+        answered.clear();
         for (request, (response, entries)) in batch.drain(..).zip(answers) {
             let header = *request.user_header();
+            let origin = request.origin().value();
             let span = tracing::debug_span!("request", id = header.request_id, op = header.op);
             let _enter = span.enter();
             let sent = request
@@ -345,7 +387,11 @@ fn drain(
                 .and_then(|r| r.send().map_err(|e| format!("{e:?}")));
             drop(request);
             match sent {
-                Ok(()) => any_sent = true,
+                Ok(()) => {
+                    if !answered.contains(&origin) {
+                        answered.push(origin);
+                    }
+                }
                 Err(e) => tracing::warn!(error = %e, "cannot send response (client gone?)"),
             }
             let elapsed = start.elapsed();
@@ -360,10 +406,17 @@ fn drain(
             );
             n += 1;
         }
-        // One notification wakes every waiting client; each picks up its own response.
-        if any_sent && let Err(e) = notifier.notify() {
+        // Wake only the clients that were answered, each on its own event service; clients
+        // without one share the common response event (one notification for all of them).
+        let mut shared = false;
+        for &client in &answered {
+            shared |= out.wakers.wake(out.node, client) == Woken::NeedsShared;
+        }
+        if shared && let Err(e) = out.shared.notify() {
             tracing::warn!(error = ?e, "cannot notify clients");
         }
     }
+    out.batch = batch;
+    out.answered = answered;
     Ok(n)
 }

@@ -416,6 +416,25 @@ impl Embedder {
     /// Embed `xs` into `out` (same length) with the fast path, using per-thread scratch
     /// buffers: after the first call with the largest batch, no allocation.
     pub fn embed_into(&self, xs: &[Resampled], out: &mut [Embedding]) -> Result<(), EmbedError> {
+        self.embed_into_with(xs, out, false)
+    }
+
+    /// [`Embedder::embed`] with the pen path through the general kinematic chain
+    /// ([`crate::features::pen_path_reference`]) instead of the specialised position FK:
+    /// the path as it was before the specialised FK, kept as the reference the fast path is
+    /// tested against (`lab/tests/embed_equivalence.rs`).
+    pub fn embed_reference(&self, x: &Resampled) -> Result<Embedding, EmbedError> {
+        let mut out = [[0.0f32; EMBED_DIM]];
+        self.embed_into_with(std::slice::from_ref(x), &mut out, true)?;
+        Ok(out[0])
+    }
+
+    fn embed_into_with(
+        &self,
+        xs: &[Resampled],
+        out: &mut [Embedding],
+        reference: bool,
+    ) -> Result<(), EmbedError> {
         if out.len() != xs.len() {
             return Err(EmbedError::OutputLength {
                 expected: xs.len(),
@@ -427,9 +446,9 @@ impl Embedder {
         }
         check_finite(xs)?;
         SCRATCH.with(|cell| match cell.try_borrow_mut() {
-            Ok(mut s) => self.embed_fast(xs, out, &mut s),
+            Ok(mut s) => self.embed_fast(xs, out, &mut s, reference),
             // Re-entered on this thread (cannot happen today): use a fresh scratch.
-            Err(_) => self.embed_fast(xs, out, &mut EmbedScratch::default()),
+            Err(_) => self.embed_fast(xs, out, &mut EmbedScratch::default(), reference),
         })
     }
 
@@ -438,8 +457,9 @@ impl Embedder {
         xs: &[Resampled],
         out: &mut [Embedding],
         s: &mut EmbedScratch,
+        reference: bool,
     ) -> Result<(), EmbedError> {
-        let copies = self.features_into(xs, &mut s.feats);
+        let copies = self.features_into(xs, &mut s.feats, reference);
         let rows = copies * xs.len();
         let raw = if s.raw.len() < rows * EMBED_DIM {
             s.raw.resize(rows * EMBED_DIM, 0.0);
@@ -479,7 +499,8 @@ impl Embedder {
     /// Write the network input for `xs` into `feats` (grown as needed): per trajectory one
     /// feature sequence, or two (forwards, then time-reversed) with reverse averaging.
     /// Returns the number of sequences per trajectory.
-    fn features_into(&self, xs: &[Resampled], feats: &mut Vec<f32>) -> usize {
+    /// With `reference`, the pen path goes through the general kinematic chain.
+    fn features_into(&self, xs: &[Resampled], feats: &mut Vec<f32>, reference: bool) -> usize {
         let kind = self.net.config().features;
         let c = kind.channels();
         let both = self.net.config().reverse_average && kind != FeatureKind::Joints;
@@ -489,20 +510,24 @@ impl Embedder {
             feats.resize(n, 0.0);
         }
         let feats = &mut feats[..n];
-        if both {
-            let reverse = Augment {
-                reverse: true,
-                ..Augment::default()
-            };
-            for (x, out) in xs.iter().zip(feats.chunks_exact_mut(2 * STEPS * c)) {
-                let path = crate::features::pen_path(x);
-                let (fwd, bwd) = out.split_at_mut(STEPS * c);
-                crate::features::path_features(kind, &path, &Augment::default(), fwd);
-                crate::features::path_features(kind, &path, &reverse, bwd);
-            }
-        } else {
-            for (x, out) in xs.iter().zip(feats.chunks_exact_mut(STEPS * c)) {
+        let reverse = Augment {
+            reverse: true,
+            ..Augment::default()
+        };
+        for (x, out) in xs.iter().zip(feats.chunks_exact_mut(copies * STEPS * c)) {
+            if kind == FeatureKind::Joints {
                 crate::features::compute(kind, x, out);
+                continue;
+            }
+            let path = if reference {
+                crate::features::pen_path_reference(x)
+            } else {
+                crate::features::pen_path(x)
+            };
+            let (fwd, bwd) = out.split_at_mut(STEPS * c);
+            crate::features::path_features(kind, &path, &Augment::default(), fwd);
+            if both {
+                crate::features::path_features(kind, &path, &reverse, bwd);
             }
         }
         copies
@@ -517,7 +542,7 @@ impl Embedder {
         check_finite(xs)?;
         let c = self.net.config().features.channels();
         let mut feats = Vec::new();
-        let copies = self.features_into(xs, &mut feats);
+        let copies = self.features_into(xs, &mut feats, false);
         let input = Tensor::from_vec(feats, (copies * xs.len(), STEPS, c), &Device::Cpu)?;
         let mut e = self.net.forward(&input)?;
         if copies == 2 {

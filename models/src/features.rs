@@ -74,13 +74,27 @@ impl Default for Augment {
     }
 }
 
-/// Pen-tip path of a resampled trajectory by forward kinematics.
+/// Pen-tip path of a resampled trajectory by forward kinematics (the specialised
+/// position FK of [`crate::kinematics::PositionFk`] when available; no allocation).
 pub fn pen_path(x: &Resampled) -> [PenPoint; STEPS] {
+    let panda = crate::preprocess::default_panda();
+    let mut positions = [[0.0f64; 3]; STEPS];
+    panda.pen_tip_positions_into(x, &mut positions);
+    let mut out = [[0.0f32; 3]; STEPS];
+    for ((o, p), w) in out.iter_mut().zip(positions.iter()).zip(x.iter()) {
+        // Base +x is drawing "up", base -y is drawing "right".
+        *o = [-p[1] as f32, p[0] as f32, w[TOOL]];
+    }
+    out
+}
+
+/// [`pen_path`] through the general chain (full frames per joint), the reference the fast
+/// path is tested against.
+pub fn pen_path_reference(x: &Resampled) -> [PenPoint; STEPS] {
     let panda = crate::preprocess::default_panda();
     let mut out = [[0.0f32; 3]; STEPS];
     for (o, w) in out.iter_mut().zip(x.iter()) {
-        let p = panda.pen_tip_position(&crate::preprocess::joints_of(w));
-        // Base +x is drawing "up", base -y is drawing "right".
+        let p = panda.pen_tip_position_general(&crate::preprocess::joints_of(w));
         *o = [-p[1] as f32, p[0] as f32, w[TOOL]];
     }
     out

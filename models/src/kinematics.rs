@@ -16,7 +16,7 @@
 // Joint-indexed loops over several parallel arrays read best with an index.
 #![allow(clippy::needless_range_loop)]
 
-use guardian_shared::trajectory::{JOINTS, Q_MAX, Q_MIN};
+use guardian_shared::trajectory::{JOINTS, Q_MAX, Q_MIN, Waypoint};
 use nalgebra::{Matrix3, Matrix6, Matrix6x1, Rotation3, SMatrix, Vector3, Vector6};
 
 /// The robot model shipped with guardian (kinematic only).
@@ -198,6 +198,8 @@ pub struct Panda {
     tool: Frame,
     q_min: JointVector,
     q_max: JointVector,
+    /// The pen-tip position specialised to these joint origins, if they allow it.
+    position_fk: Option<PositionFk>,
 }
 
 const HALF_PI: f64 = std::f64::consts::FRAC_PI_2;
@@ -227,7 +229,9 @@ impl Default for Panda {
             tool: Frame::from_xyz_rpy([0.0, 0.0, PEN_LENGTH], [0.0, 0.0, PEN_YAW]),
             q_min: Q_MIN,
             q_max: Q_MAX,
+            position_fk: None,
         }
+        .with_position_fk()
     }
 }
 
@@ -331,13 +335,28 @@ impl Panda {
             tool,
             q_min,
             q_max,
-        })
+            position_fk: None,
+        }
+        .with_position_fk())
+    }
+
+    /// Build (or drop) the specialised pen-tip position FK for the current numbers.
+    fn with_position_fk(mut self) -> Self {
+        self.position_fk = PositionFk::from_panda(&self);
+        self
+    }
+
+    /// The specialised pen-tip position FK, if the joint origins allow it (they do for the
+    /// Panda: every origin rotation is a signed axis permutation). `None` means every
+    /// position goes through the general chain.
+    pub fn position_fk(&self) -> Option<&PositionFk> {
+        self.position_fk.as_ref()
     }
 
     /// The same robot with another tool: `length` along flange z, rotated `yaw` about it.
     pub fn with_tool(mut self, length: f64, yaw: f64) -> Self {
         self.tool = Frame::from_xyz_rpy([0.0, 0.0, length], [0.0, 0.0, yaw]);
-        self
+        self.with_position_fk()
     }
 
     /// The tool (pen tip) frame in the flange frame.
@@ -382,10 +401,36 @@ impl Panda {
         self.flange(q).compose(&self.tool)
     }
 
-    /// Pen-tip position only (m), the fast path for path lengths and features.
+    /// Pen-tip position only (m), the fast path for path lengths and features: the
+    /// specialised [`PositionFk`] when the joint origins allow it, else the general chain
+    /// ([`Panda::pen_tip`]).
     #[inline]
     pub fn pen_tip_position(&self, q: &JointVector) -> Vector3<f64> {
+        match &self.position_fk {
+            Some(fk) => Vector3::from(fk.position(q)),
+            None => self.pen_tip(q).translation,
+        }
+    }
+
+    /// Pen-tip position through the general chain (full frames), the reference
+    /// [`Panda::pen_tip_position`] is tested against.
+    pub fn pen_tip_position_general(&self, q: &JointVector) -> Vector3<f64> {
         self.pen_tip(q).translation
+    }
+
+    /// Pen-tip positions (m, base frame) of the joint parts of `waypoints` into `out`
+    /// (same length; extra slots are left alone). Uses [`PositionFk::positions_into`] when
+    /// available; allocates nothing.
+    pub fn pen_tip_positions_into(&self, waypoints: &[Waypoint], out: &mut [[f64; 3]]) {
+        match &self.position_fk {
+            Some(fk) => fk.positions_into(waypoints, out),
+            None => {
+                for (o, w) in out.iter_mut().zip(waypoints) {
+                    let q: JointVector = std::array::from_fn(|j| f64::from(w[j]));
+                    *o = self.pen_tip(&q).translation.into();
+                }
+            }
+        }
     }
 
     /// Pen-tip frame and its geometric Jacobian (base frame).
@@ -504,6 +549,214 @@ impl Panda {
     }
 }
 
+/// A rotation that is a signed permutation of the axes: `(R v)[i] = sign[i] * v[src[i]]`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct AxisMap {
+    src: [usize; 3],
+    sign: [f64; 3],
+}
+
+impl AxisMap {
+    /// `Some` if every entry of `r` is within `tol` of 0 or +-1, with exactly one +-1 in
+    /// every row and every column.
+    fn from_matrix(r: &Matrix3<f64>, tol: f64) -> Option<Self> {
+        let mut src = [0usize; 3];
+        let mut sign = [0.0f64; 3];
+        let mut used = [false; 3];
+        for i in 0..3 {
+            let mut found = None;
+            for k in 0..3 {
+                let v = r[(i, k)];
+                if (v.abs() - 1.0).abs() <= tol {
+                    if found.is_some() {
+                        return None;
+                    }
+                    found = Some((k, v.signum()));
+                } else if v.abs() > tol || !v.is_finite() {
+                    return None;
+                }
+            }
+            let (k, s) = found?;
+            if used[k] {
+                return None;
+            }
+            used[k] = true;
+            src[i] = k;
+            sign[i] = s;
+        }
+        Some(Self { src, sign })
+    }
+}
+
+/// Largest distance (m) between [`PositionFk`] and the general chain accepted when the
+/// specialised FK is built; above it [`Panda`] keeps using the general chain.
+pub const POSITION_FK_TOLERANCE: f64 = 1e-12;
+
+/// Pen-tip position forward kinematics specialised to a chain whose joint origin rotations
+/// are signed axis permutations (the Panda's are the identity or +-pi/2 about x).
+///
+/// Evaluated from the pen tip back to the base: per joint one rotation about z (4
+/// multiplies), a signed axis permutation (no arithmetic) and the origin offset; f64, no
+/// allocation, no 4x4 or 3x3 products. It is built by [`Panda`] from the numbers of the
+/// loaded chain (URDF or built-in) and checked at construction against the general chain
+/// ([`Panda::pen_tip_position_general`]) at several joint vectors; if the origins are not
+/// signed permutations (to 1e-12 per entry) or the check misses [`POSITION_FK_TOLERANCE`],
+/// there is no `PositionFk` and [`Panda`] uses the general chain, so another URDF cannot be
+/// silently mis-computed. The general chain stays the source of truth and serves IK and
+/// Jacobians.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PositionFk {
+    rotations: [AxisMap; JOINTS],
+    offsets: [[f64; 3]; JOINTS],
+    /// The pen tip in the frame of link 7 (flange offset and tool composed).
+    tip: [f64; 3],
+}
+
+/// Waypoints per block of [`PositionFk::positions_into`] (the sines and cosines of a block
+/// are computed together, which the compiler vectorises).
+const FK_LANES: usize = 8;
+
+impl PositionFk {
+    fn from_panda(panda: &Panda) -> Option<Self> {
+        let mut rotations = [AxisMap {
+            src: [0, 1, 2],
+            sign: [1.0; 3],
+        }; JOINTS];
+        let mut offsets = [[0.0; 3]; JOINTS];
+        for j in 0..JOINTS {
+            rotations[j] = AxisMap::from_matrix(&panda.joints[j].rotation, 1e-12)?;
+            offsets[j] = panda.joints[j].translation.into();
+        }
+        let tip = panda.flange.translation + panda.flange.rotation * panda.tool.translation;
+        let fk = Self {
+            rotations,
+            offsets,
+            tip: tip.into(),
+        };
+        // Verify against the general chain at the limits, their middle and the ready pose.
+        let mid: JointVector = std::array::from_fn(|j| 0.5 * (panda.q_min[j] + panda.q_max[j]));
+        let mixed: JointVector = std::array::from_fn(|j| {
+            if j % 2 == 0 {
+                panda.q_min[j]
+            } else {
+                panda.q_max[j]
+            }
+        });
+        let probes = [READY_POSE, mid, panda.q_min, panda.q_max, mixed];
+        for q in &probes {
+            let general = panda.pen_tip(q).translation;
+            let fast = Vector3::from(fk.position(q));
+            let d = (general - fast).norm();
+            if d.is_nan() || d > POSITION_FK_TOLERANCE {
+                return None;
+            }
+        }
+        Some(fk)
+    }
+
+    /// One joint: `v` in the frame after joint `j` to the frame before it.
+    #[inline(always)]
+    fn link(&self, j: usize, s: f64, c: f64, v: [f64; 3]) -> [f64; 3] {
+        let r = [c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]];
+        let m = &self.rotations[j];
+        let t = &self.offsets[j];
+        [
+            m.sign[0] * r[m.src[0]] + t[0],
+            m.sign[1] * r[m.src[1]] + t[1],
+            m.sign[2] * r[m.src[2]] + t[2],
+        ]
+    }
+
+    /// Pen-tip position (m, base frame) at `q`.
+    #[inline]
+    pub fn position(&self, q: &JointVector) -> [f64; 3] {
+        let mut v = self.tip;
+        for j in (0..JOINTS).rev() {
+            let (s, c) = q[j].sin_cos();
+            v = self.link(j, s, c, v);
+        }
+        v
+    }
+
+    /// Pen-tip positions (m, base frame) of the joint parts of `waypoints` into `out`
+    /// (pairs up to the shorter of the two). Sines and cosines of blocks of waypoints are
+    /// computed together by [`sin_cos_block`]; allocates nothing.
+    pub fn positions_into(&self, waypoints: &[Waypoint], out: &mut [[f64; 3]]) {
+        for (ws, os) in waypoints.chunks(FK_LANES).zip(out.chunks_mut(FK_LANES)) {
+            let n = ws.len().min(os.len());
+            let mut s = [[0.0f64; FK_LANES]; JOINTS];
+            let mut c = [[0.0f64; FK_LANES]; JOINTS];
+            for j in 0..JOINTS {
+                let mut x = [0.0f64; FK_LANES];
+                for l in 0..n {
+                    x[l] = f64::from(ws[l][j]);
+                }
+                sin_cos_block(&x, &mut s[j], &mut c[j]);
+            }
+            for l in 0..n {
+                let mut v = self.tip;
+                for j in (0..JOINTS).rev() {
+                    v = self.link(j, s[j][l], c[j][l], v);
+                }
+                os[l] = v;
+            }
+        }
+    }
+}
+
+/// Sine and cosine of a block of angles, branch-free so the compiler vectorises it:
+/// reduction to `[-pi/4, pi/4]` by the nearest multiple of pi/2 and Taylor polynomials to
+/// degree 17 (sine) and 18 (cosine), whose truncation error there is below 1e-19. Absolute
+/// error against `f64::sin_cos` is a few 1e-16 for `|x| <= 1e3` (tested over the joint
+/// range); larger or non-finite angles fall back to `f64::sin_cos`.
+fn sin_cos_block(x: &[f64; FK_LANES], s: &mut [f64; FK_LANES], c: &mut [f64; FK_LANES]) {
+    // Adding and subtracting 1.5 * 2^52 rounds to the nearest integer (ties to even), and
+    // the low bits of the sum are that integer modulo 4.
+    const ROUND: f64 = 6_755_399_441_055_744.0;
+    // pi/2 = PIO2_HI + PIO2_LO to about 1e-33.
+    const PIO2_HI: f64 = std::f64::consts::FRAC_PI_2;
+    const PIO2_LO: f64 = 6.123_233_995_736_766e-17;
+    for l in 0..FK_LANES {
+        let v = x[l];
+        let shifted = v * std::f64::consts::FRAC_2_PI + ROUND;
+        let quadrant = shifted.to_bits() & 3;
+        let k = shifted - ROUND;
+        let r = (v - k * PIO2_HI) - k * PIO2_LO;
+        let z = r * r;
+        let sp = 1.0 / 355_687_428_096_000.0;
+        let sp = -1.0 / 1_307_674_368_000.0 + z * sp;
+        let sp = 1.0 / 6_227_020_800.0 + z * sp;
+        let sp = -1.0 / 39_916_800.0 + z * sp;
+        let sp = 1.0 / 362_880.0 + z * sp;
+        let sp = -1.0 / 5_040.0 + z * sp;
+        let sp = 1.0 / 120.0 + z * sp;
+        let sp = -1.0 / 6.0 + z * sp;
+        let sin_r = r + r * z * sp;
+        let cp = -1.0 / 6_402_373_705_728_000.0;
+        let cp = 1.0 / 20_922_789_888_000.0 + z * cp;
+        let cp = -1.0 / 87_178_291_200.0 + z * cp;
+        let cp = 1.0 / 479_001_600.0 + z * cp;
+        let cp = -1.0 / 3_628_800.0 + z * cp;
+        let cp = 1.0 / 40_320.0 + z * cp;
+        let cp = -1.0 / 720.0 + z * cp;
+        let cp = 1.0 / 24.0 + z * cp;
+        let cp = -0.5 + z * cp;
+        let cos_r = 1.0 + z * cp;
+        // Quadrant q: (sin, cos) = (s, c), (c, -s), (-s, -c), (-c, s).
+        let swap = 0u64.wrapping_sub(quadrant & 1);
+        let (sb, cb) = (sin_r.to_bits(), cos_r.to_bits());
+        let sin_bits = (sb & !swap) | (cb & swap);
+        let cos_bits = (cb & !swap) | (sb & swap);
+        s[l] = f64::from_bits(sin_bits ^ ((quadrant & 2) << 62));
+        c[l] = f64::from_bits(cos_bits ^ (((quadrant + 1) & 2) << 62));
+    }
+    for l in 0..FK_LANES {
+        if x[l].is_nan() || x[l].abs() > 1e3 {
+            (s[l], c[l]) = x[l].sin_cos();
+        }
+    }
+}
+
 /// Joints with their pen-tip frame and Jacobian, carried from one IK solve to the next.
 #[derive(Debug, Clone, PartialEq)]
 pub struct IkState {
@@ -617,6 +870,102 @@ mod tests {
             let pad = 0.1 * (hi - lo);
             rng.random_range(lo + pad..hi - pad)
         })
+    }
+
+    #[test]
+    fn block_sin_cos_matches_std() {
+        let mut x = [0.0f64; FK_LANES];
+        let (mut s, mut c) = ([0.0; FK_LANES], [0.0; FK_LANES]);
+        let mut worst = 0.0f64;
+        let n = 200_000;
+        for i in 0..n {
+            let l = i % FK_LANES;
+            x[l] = -4.0 + 8.0 * i as f64 / n as f64;
+            if l == FK_LANES - 1 {
+                sin_cos_block(&x, &mut s, &mut c);
+                for k in 0..FK_LANES {
+                    let (es, ec) = x[k].sin_cos();
+                    worst = worst.max((s[k] - es).abs()).max((c[k] - ec).abs());
+                }
+            }
+        }
+        assert!(worst < 1e-15, "worst {worst:e}");
+        // Quadrant boundaries, zero, large and non-finite angles.
+        let h = std::f64::consts::FRAC_PI_4;
+        let x = [0.0, -0.0, h, -h, 3.0 * h, -3.0 * h, 1e4, f64::NAN];
+        sin_cos_block(&x, &mut s, &mut c);
+        for k in 0..7 {
+            let (es, ec) = x[k].sin_cos();
+            assert!(
+                (s[k] - es).abs() < 1e-15 && (c[k] - ec).abs() < 1e-15,
+                "{}",
+                x[k]
+            );
+        }
+        assert!(s[7].is_nan() && c[7].is_nan());
+    }
+
+    #[test]
+    fn specialised_fk_equals_the_general_chain() {
+        for panda in [
+            Panda::default(),
+            Panda::from_embedded_urdf().expect("shipped URDF parses"),
+            Panda::default().with_tool(0.2, 0.3),
+        ] {
+            let fk = *panda
+                .position_fk()
+                .expect("the Panda's origins are permutations");
+            let mut rng = StdRng::seed_from_u64(17);
+            let mut ws = Vec::new();
+            let mut worst = 0.0f64;
+            for _ in 0..2000 {
+                // Anywhere within the limits, the limits included.
+                let q: JointVector =
+                    std::array::from_fn(|j| rng.random_range(panda.q_min[j]..=panda.q_max[j]));
+                let general = panda.pen_tip(&q).translation;
+                worst = worst.max((Vector3::from(fk.position(&q)) - general).norm());
+                worst = worst.max((panda.pen_tip_position(&q) - general).norm());
+                let mut w = [0.0f32; 8];
+                for j in 0..JOINTS {
+                    w[j] = q[j] as f32;
+                }
+                ws.push(w);
+            }
+            // The batch path on f32 waypoints, including a partial last block.
+            let ws = &ws[..ws.len() - 3];
+            let mut out = vec![[0.0; 3]; ws.len()];
+            panda.pen_tip_positions_into(ws, &mut out);
+            for (w, o) in ws.iter().zip(&out) {
+                let q: JointVector = std::array::from_fn(|j| f64::from(w[j]));
+                let general = panda.pen_tip_position_general(&q);
+                worst = worst.max((Vector3::from(*o) - general).norm());
+            }
+            assert!(worst <= 1e-12, "worst {worst:e} m");
+        }
+    }
+
+    #[test]
+    fn other_origins_fall_back_to_the_general_chain() {
+        // A joint origin tilted by 0.1 rad is not an axis permutation: no specialised FK,
+        // and positions still come from the general chain.
+        let tilted = PANDA_URDF.replacen(
+            r#"rpy="-1.5707963267948966 0 0""#,
+            r#"rpy="-1.4707963267948966 0 0""#,
+            1,
+        );
+        assert_ne!(tilted, PANDA_URDF, "the URDF spells the origin as expected");
+        let panda = Panda::from_urdf_str(&tilted).expect("still a valid chain");
+        assert!(panda.position_fk().is_none());
+        let q = READY_POSE;
+        assert_eq!(panda.pen_tip_position(&q), panda.pen_tip(&q).translation);
+        let w = [0.1f32, -0.7, 0.2, -2.3, 0.1, 1.6, 0.8, 1.0];
+        let mut out = [[0.0; 3]; 1];
+        panda.pen_tip_positions_into(&[w], &mut out);
+        let q: JointVector = std::array::from_fn(|j| f64::from(w[j]));
+        assert_eq!(Vector3::from(out[0]), panda.pen_tip(&q).translation);
+        // A permutation with the wrong numbers would be caught by the construction check;
+        // the default Panda has its specialised FK.
+        assert!(Panda::default().position_fk().is_some());
     }
 
     #[test]

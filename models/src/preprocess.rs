@@ -2,6 +2,7 @@
 //! planner trajectory, measure its pen-tip path length by forward kinematics and resample it
 //! to [`STEPS`](guardian_shared::trajectory::STEPS) samples uniform in that length.
 
+use std::cell::RefCell;
 use std::sync::LazyLock;
 
 use guardian_shared::trajectory::{self, InvalidTrajectory, Resampled, Waypoint};
@@ -30,10 +31,9 @@ pub fn pen_tip_positions(waypoints: &[Waypoint]) -> Vec<Vector3<f64>> {
 
 /// Pen-tip positions (m, base frame) of each waypoint, with a given robot.
 pub fn pen_tip_positions_with(panda: &Panda, waypoints: &[Waypoint]) -> Vec<Vector3<f64>> {
-    waypoints
-        .iter()
-        .map(|w| panda.pen_tip_position(&joints_of(w)))
-        .collect()
+    let mut out = vec![[0.0; 3]; waypoints.len()];
+    panda.pen_tip_positions_into(waypoints, &mut out);
+    out.into_iter().map(Vector3::from).collect()
 }
 
 /// Cumulative pen-tip path length (m) by forward kinematics: element `i` is the length of
@@ -44,11 +44,40 @@ pub fn pen_path_lengths(waypoints: &[Waypoint]) -> Vec<f64> {
 
 /// [`pen_path_lengths`] with a given robot.
 pub fn pen_path_lengths_with(panda: &Panda, waypoints: &[Waypoint]) -> Vec<f64> {
+    let mut positions = vec![[0.0; 3]; waypoints.len()];
+    let mut out = vec![0.0; waypoints.len()];
+    path_lengths_into(panda, waypoints, &mut positions, &mut out);
+    out
+}
+
+/// Pen-tip positions into `positions`, cumulative lengths into `out` (both as long as
+/// `waypoints`).
+fn path_lengths_into(
+    panda: &Panda,
+    waypoints: &[Waypoint],
+    positions: &mut [[f64; 3]],
+    out: &mut [f64],
+) {
+    panda.pen_tip_positions_into(waypoints, positions);
+    let mut total = 0.0;
+    for (i, o) in out.iter_mut().enumerate() {
+        if i > 0 {
+            let (a, b) = (positions[i - 1], positions[i]);
+            let d = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+            total += (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        }
+        *o = total;
+    }
+}
+
+/// [`pen_path_lengths_with`] through the general chain ([`Panda::pen_tip_position_general`],
+/// full frames per joint): the reference the fast path is tested against.
+pub fn pen_path_lengths_reference(panda: &Panda, waypoints: &[Waypoint]) -> Vec<f64> {
     let mut out = Vec::with_capacity(waypoints.len());
     let mut total = 0.0;
     let mut prev: Option<Vector3<f64>> = None;
     for w in waypoints {
-        let p = panda.pen_tip_position(&joints_of(w));
+        let p = panda.pen_tip_position_general(&joints_of(w));
         if let Some(pp) = prev {
             total += (p - pp).norm();
         }
@@ -58,6 +87,17 @@ pub fn pen_path_lengths_with(panda: &Panda, waypoints: &[Waypoint]) -> Vec<f64> 
     out
 }
 
+/// Per-thread buffers of [`preprocess_with`] (grown to the longest trajectory seen).
+#[derive(Default)]
+struct Scratch {
+    positions: Vec<[f64; 3]>,
+    lengths: Vec<f64>,
+}
+
+thread_local! {
+    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+}
+
 /// Validate `raw` ([`trajectory::validate`]) and resample it to 128 x 8 uniformly in pen-tip
 /// path length ([`trajectory::resample`]). The daemon and the dataset generator both call
 /// this, so a trajectory is seen the same way in training and in service.
@@ -65,10 +105,34 @@ pub fn preprocess(raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
     preprocess_with(&PANDA, raw)
 }
 
-/// [`preprocess`] with a given robot (e.g. another pen length).
+/// [`preprocess`] with a given robot (e.g. another pen length). Uses per-thread buffers:
+/// after the longest trajectory has been seen once, nothing is allocated.
 pub fn preprocess_with(panda: &Panda, raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
     trajectory::validate(raw)?;
-    let cumulative = pen_path_lengths_with(panda, raw);
+    let n = raw.len();
+    let resample = |s: &mut Scratch| {
+        if s.positions.len() < n {
+            s.positions.resize(n, [0.0; 3]);
+            s.lengths.resize(n, 0.0);
+        }
+        let (positions, lengths) = (&mut s.positions[..n], &mut s.lengths[..n]);
+        path_lengths_into(panda, raw, positions, lengths);
+        trajectory::resample(raw, lengths)
+    };
+    Ok(SCRATCH.with(|cell| match cell.try_borrow_mut() {
+        Ok(mut s) => resample(&mut s),
+        Err(_) => resample(&mut Scratch::default()),
+    }))
+}
+
+/// [`preprocess_with`] as it was before the specialised FK: path lengths through the
+/// general chain ([`pen_path_lengths_reference`]). The reference for equivalence tests.
+pub fn preprocess_reference(
+    panda: &Panda,
+    raw: &[Waypoint],
+) -> Result<Resampled, InvalidTrajectory> {
+    trajectory::validate(raw)?;
+    let cumulative = pen_path_lengths_reference(panda, raw);
     Ok(trajectory::resample(raw, &cumulative))
 }
 

@@ -39,9 +39,20 @@ pub fn request_event_name(service: &str) -> String {
     format!("{service}/requests")
 }
 
-/// Name of the event service the daemon notifies after sending a response.
+/// Name of the event service the daemon notifies after sending a response to a client
+/// that has no event service of its own ([`client_response_event_name`]).
 pub fn response_event_name(service: &str) -> String {
     format!("{service}/responses")
+}
+
+/// Name of one client's own response event service: the client creates it (with its one
+/// listener) before its first request, and the daemon notifies it after answering that
+/// client's requests, so an answer wakes only the client it is for. `client_id` is the
+/// value of the client port's iceoryx2 `UniqueClientId` (`Client::id().value()`), which
+/// the daemon reads from every request (`ActiveRequest::origin().value()`); written as 32
+/// lower-case hex digits.
+pub fn client_response_event_name(service: &str, client_id: u128) -> String {
+    format!("{service}/responses/{client_id:032x}")
 }
 
 /// Operation codes ([`RequestHeader::op`]).
@@ -574,5 +585,9 @@ mod tests {
         let t: [u8; 4] = encode_text("aéé");
         assert_eq!(decode_text(&t), "aé");
         assert_eq!(request_event_name("g/v1/rpc"), "g/v1/rpc/requests");
+        assert_eq!(
+            client_response_event_name("g/v1/rpc", 0xab),
+            "g/v1/rpc/responses/000000000000000000000000000000ab"
+        );
     }
 }

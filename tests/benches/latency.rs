@@ -634,6 +634,39 @@ fn run(o: Opts) -> Result<()> {
         std::hint::black_box(embedder.embed(&samples[k % samples.len()])?);
         Ok(())
     })?;
+    // Preprocessing and the pen path alone, with the specialised position FK (serving) and
+    // through the general chain with full frames (the path before it, kept as reference).
+    let panda = guardian_models::preprocess::default_panda();
+    let mut k = 0usize;
+    let prep = time_n(50, n_fwd, || {
+        k += 1;
+        let w = &drawings.checks[k % samples.len()].1;
+        std::hint::black_box(guardian_models::preprocess::preprocess(w)?);
+        Ok(())
+    })?;
+    let mut k = 0usize;
+    let prep_ref = time_n(50, n_fwd, || {
+        k += 1;
+        let w = &drawings.checks[k % samples.len()].1;
+        std::hint::black_box(guardian_models::preprocess::preprocess_reference(panda, w)?);
+        Ok(())
+    })?;
+    let mut k = 0usize;
+    let path_fk = time_n(50, n_fwd, || {
+        k += 1;
+        std::hint::black_box(guardian_models::features::pen_path(
+            &samples[k % samples.len()],
+        ));
+        Ok(())
+    })?;
+    let mut k = 0usize;
+    let path_ref = time_n(50, n_fwd, || {
+        k += 1;
+        std::hint::black_box(guardian_models::features::pen_path_reference(
+            &samples[k % samples.len()],
+        ));
+        Ok(())
+    })?;
     let mut k = 0usize;
     let full = time_n(50, n_fwd, || {
         k += 1;
@@ -793,6 +826,17 @@ fn run(o: Opts) -> Result<()> {
             "{:<8} {:>9} {:>10.0} {:>9.1} {:>9.1} {:>9.1} {:>9.1}",
             t.clients, t.max_batch, t.checks_per_s, t.lat.p50, t.lat.p99, t.lat.p999, t.lat.max
         );
+    }
+    println!();
+    println!("forward kinematics, specialised position FK vs the general chain (full frames):");
+    print_header();
+    for (name, v) in [
+        ("preprocess (validate, FK length, resample)", &prep),
+        ("  ... general-chain FK (before)", &prep_ref),
+        ("pen path of 128 resampled points", &path_fk),
+        ("  ... general-chain FK (before)", &path_ref),
+    ] {
+        print_row(name, &stats(v));
     }
     let [candle, fastf, _, _, ev, busy, spin, json] = rows.map(|r| r.1);
     let busy = if spin.p50 < busy.p50 { spin } else { busy };

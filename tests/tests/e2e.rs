@@ -580,3 +580,129 @@ fn raw_wire_requests_are_validated_by_the_daemon() {
     assert_eq!(r.verdict, VerdictCode::Go as u32);
     assert!(r.errors >= 6);
 }
+
+#[test]
+fn an_answer_wakes_only_its_client_and_legacy_clients_share_the_common_event() {
+    use guardian_shared::wire::{self, ClassEntry, Op, RequestHeader, ResponseHeader, VerdictCode};
+    use iceoryx2::prelude::*;
+
+    let mut s = Setup::new(23);
+    s.extra = "default-threshold = 1e9".into();
+    let _d = Daemon::start(&s);
+    enroll_classes(&s.client(), &[0]);
+
+    let mut ic = iceoryx2::config::Config::default();
+    let root = format!("{}/", s.dir.path().join("iox").display());
+    ic.global
+        .set_root_path(&Path::new(root.as_bytes()).unwrap());
+    ic.global.prefix = FileName::new(s.prefix.as_bytes()).unwrap();
+    let node = NodeBuilder::new()
+        .config(&ic)
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<ipc::Service>()
+        .unwrap();
+    let rpc = node
+        .service_builder(&ServiceName::new(&s.service).unwrap())
+        .request_response::<[f32], [ClassEntry]>()
+        .request_user_header::<RequestHeader>()
+        .response_user_header::<ResponseHeader>()
+        .open()
+        .unwrap();
+    let wake = node
+        .service_builder(&ServiceName::new(&wire::request_event_name(&s.service)).unwrap())
+        .event()
+        .open()
+        .unwrap()
+        .notifier_builder()
+        .create()
+        .unwrap();
+    let shared = node
+        .service_builder(&ServiceName::new(&wire::response_event_name(&s.service)).unwrap())
+        .event()
+        .open()
+        .unwrap()
+        .listener_builder()
+        .create()
+        .unwrap();
+    let new_client = || {
+        rpc.client_builder()
+            .initial_max_slice_len(8192)
+            .allocation_strategy(AllocationStrategy::PowerOfTwo)
+            .create()
+            .unwrap()
+    };
+    // Clients A and B with their own response event services, C without (an older client).
+    let (a, b, c) = (new_client(), new_client(), new_client());
+    let own = |client: u128| {
+        node.service_builder(
+            &ServiceName::new(&wire::client_response_event_name(&s.service, client)).unwrap(),
+        )
+        .event()
+        .create()
+        .unwrap()
+        .listener_builder()
+        .create()
+        .unwrap()
+    };
+    let (wake_a, wake_b) = (own(a.id().value()), own(b.id().value()));
+    let good: Vec<f32> = task(0, 20).iter().flatten().copied().collect();
+    let mut h = RequestHeader::new(0, Op::Check);
+    h.examples = 1;
+    h.waypoints[0] = (good.len() / 8) as u32;
+    h.class_name = wire::encode_class_name("task0").unwrap();
+    let call = |client: &iceoryx2::port::client::Client<
+        ipc::Service,
+        [f32],
+        RequestHeader,
+        [ClassEntry],
+        ResponseHeader,
+    >,
+                id: u64| {
+        let mut h = h;
+        h.request_id = id;
+        let mut r = client.loan_slice_uninit(good.len()).unwrap();
+        *r.user_header_mut() = h;
+        let pending = r.write_from_slice(&good).send().unwrap();
+        wake.notify().unwrap();
+        let start = std::time::Instant::now();
+        loop {
+            if let Some(resp) = pending.receive().unwrap() {
+                assert_eq!(resp.user_header().request_id, id);
+                assert_eq!(resp.user_header().verdict, VerdictCode::Go as u32);
+                return;
+            }
+            assert!(start.elapsed() < harness::PATIENCE, "no response");
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    };
+    // Notifications are sent right after the response; wait for the one expected.
+    let woken = |l: &iceoryx2::port::listener::Listener<ipc::Service>| {
+        let mut n = 0;
+        l.timed_wait(|_| n += 1, Duration::from_secs(5)).unwrap();
+        n > 0
+    };
+    let quiet = |l: &iceoryx2::port::listener::Listener<ipc::Service>| {
+        let mut n = 0;
+        l.try_wait(|_| n += 1).unwrap();
+        n == 0
+    };
+    // Enrolment above may have left notifications on the shared event.
+    quiet(&shared);
+    for round in 0..3 {
+        call(&a, 10 + round);
+        assert!(woken(&wake_a), "A's own listener is woken");
+        assert!(quiet(&wake_b), "B is not woken by A's answer");
+        assert!(quiet(&shared), "the shared event stays quiet");
+        call(&b, 20 + round);
+        assert!(woken(&wake_b));
+        assert!(quiet(&wake_a));
+        assert!(quiet(&shared));
+        // The client without an own event service is woken through the shared one.
+        call(&c, 30 + round);
+        assert!(
+            woken(&shared),
+            "a legacy client is woken by the shared event"
+        );
+        assert!(quiet(&wake_a) && quiet(&wake_b));
+    }
+}
