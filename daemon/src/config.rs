@@ -58,8 +58,8 @@ pub struct Config {
     pub default_bank: Option<PathBuf>,
     /// Where the enrolled class bank is persisted. Unset: see the module docs.
     pub state_dir: Option<PathBuf>,
-    /// Name of the request-response service; the event services append `/requests` and
-    /// `/responses`.
+    /// Name of the request-response service; the event services append `/requests`,
+    /// `/responses` and `/responses/<client id>` (see `docs/wire-protocol.md`).
     pub service_name: String,
     /// Global default decision threshold (Euclidean embedding distance) for classes without
     /// a calibrated one. Unset: the bank's own default.

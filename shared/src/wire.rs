@@ -9,7 +9,9 @@
 //!   nearest classes (check, identify), the class list (classes), the enrolled class (enroll).
 //!
 //! After sending a request a client notifies the `<service>/requests` event service; after
-//! sending a response the daemon notifies `<service>/responses`. The exact byte layout is in
+//! sending a response the daemon notifies the client's own event service
+//! `<service>/responses/<client id>` ([`client_response_event_name`]), or `<service>/responses`
+//! for a client that has none. The exact byte layout is in
 //! `docs/wire-protocol.md`; changing any type here bumps [`PROTOCOL_VERSION`] and with it the
 //! service name.
 
