@@ -433,6 +433,29 @@ impl Panda {
         }
     }
 
+    /// Pen-tip positions and tool rotations (base frame) of the joint parts of `waypoints`
+    /// (pairs up to the shortest of the three): [`PositionFk::poses_into`] when available,
+    /// else the general chain. The positions equal [`Panda::pen_tip_positions_into`]'s bit for
+    /// bit. Allocates nothing.
+    pub fn pen_tip_poses_into(
+        &self,
+        waypoints: &[Waypoint],
+        positions: &mut [[f64; 3]],
+        rotations: &mut [Matrix3<f64>],
+    ) {
+        match &self.position_fk {
+            Some(fk) => fk.poses_into(waypoints, positions, rotations),
+            None => {
+                for ((p, r), w) in positions.iter_mut().zip(rotations).zip(waypoints) {
+                    let q: JointVector = std::array::from_fn(|j| f64::from(w[j]));
+                    let f = self.pen_tip(&q);
+                    *p = f.translation.into();
+                    *r = f.rotation;
+                }
+            }
+        }
+    }
+
     /// Pen-tip frame and its geometric Jacobian (base frame).
     pub fn jacobian(&self, q: &JointVector) -> (Frame, Jacobian) {
         let mut axes = [Vector3::zeros(); JOINTS];
@@ -610,6 +633,8 @@ pub struct PositionFk {
     offsets: [[f64; 3]; JOINTS],
     /// The pen tip in the frame of link 7 (flange offset and tool composed).
     tip: [f64; 3],
+    /// The tool's x and z axes in the frame of link 7.
+    tool_axes: [[f64; 3]; 2],
 }
 
 /// Waypoints per block of [`PositionFk::positions_into`] (the sines and cosines of a block
@@ -628,10 +653,12 @@ impl PositionFk {
             offsets[j] = panda.joints[j].translation.into();
         }
         let tip = panda.flange.translation + panda.flange.rotation * panda.tool.translation;
+        let tool = panda.flange.rotation * panda.tool.rotation;
         let fk = Self {
             rotations,
             offsets,
             tip: tip.into(),
+            tool_axes: [tool.column(0).into(), tool.column(2).into()],
         };
         // Verify against the general chain at the limits, their middle and the ready pose.
         let mid: JointVector = std::array::from_fn(|j| 0.5 * (panda.q_min[j] + panda.q_max[j]));
@@ -644,14 +671,36 @@ impl PositionFk {
         });
         let probes = [READY_POSE, mid, panda.q_min, panda.q_max, mixed];
         for q in &probes {
-            let general = panda.pen_tip(q).translation;
+            let general = panda.pen_tip(q);
             let fast = Vector3::from(fk.position(q));
-            let d = (general - fast).norm();
+            let d = (general.translation - fast).norm();
             if d.is_nan() || d > POSITION_FK_TOLERANCE {
+                return None;
+            }
+            let mut p = [[0.0; 3]];
+            let mut r = [Matrix3::zeros()];
+            let w: Waypoint = std::array::from_fn(|j| if j < JOINTS { q[j] as f32 } else { 0.0 });
+            fk.poses_into(&[w], &mut p, &mut r);
+            let qf: JointVector = std::array::from_fn(|j| f64::from(w[j]));
+            let e = (panda.pen_tip(&qf).rotation - r[0]).norm();
+            if e.is_nan() || e > POSITION_FK_TOLERANCE {
                 return None;
             }
         }
         Some(fk)
+    }
+
+    /// One joint, rotation only: direction `v` in the frame after joint `j` to the frame
+    /// before it.
+    #[inline(always)]
+    fn turn(&self, j: usize, s: f64, c: f64, v: [f64; 3]) -> [f64; 3] {
+        let r = [c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]];
+        let m = &self.rotations[j];
+        [
+            m.sign[0] * r[m.src[0]],
+            m.sign[1] * r[m.src[1]],
+            m.sign[2] * r[m.src[2]],
+        ]
     }
 
     /// One joint: `v` in the frame after joint `j` to the frame before it.
@@ -699,6 +748,46 @@ impl PositionFk {
                     v = self.link(j, s[j][l], c[j][l], v);
                 }
                 os[l] = v;
+            }
+        }
+    }
+
+    /// Pen-tip positions and tool rotations of `waypoints` (pairs up to the shortest of the
+    /// three). The positions are bit for bit those of [`PositionFk::positions_into`] (same
+    /// operations); the rotation's x and z columns are the tool axes carried through the same
+    /// joint rotations, y = z x x. Allocates nothing.
+    pub fn poses_into(
+        &self,
+        waypoints: &[Waypoint],
+        positions: &mut [[f64; 3]],
+        rotations: &mut [Matrix3<f64>],
+    ) {
+        let chunks = waypoints
+            .chunks(FK_LANES)
+            .zip(positions.chunks_mut(FK_LANES))
+            .zip(rotations.chunks_mut(FK_LANES));
+        for ((ws, ps), rs) in chunks {
+            let n = ws.len().min(ps.len()).min(rs.len());
+            let mut s = [[0.0f64; FK_LANES]; JOINTS];
+            let mut c = [[0.0f64; FK_LANES]; JOINTS];
+            for j in 0..JOINTS {
+                let mut x = [0.0f64; FK_LANES];
+                for l in 0..n {
+                    x[l] = f64::from(ws[l][j]);
+                }
+                sin_cos_block(&x, &mut s[j], &mut c[j]);
+            }
+            for l in 0..n {
+                let mut v = self.tip;
+                let [mut ax, mut az] = self.tool_axes;
+                for j in (0..JOINTS).rev() {
+                    v = self.link(j, s[j][l], c[j][l], v);
+                    ax = self.turn(j, s[j][l], c[j][l], ax);
+                    az = self.turn(j, s[j][l], c[j][l], az);
+                }
+                ps[l] = v;
+                let (x, z) = (Vector3::from(ax), Vector3::from(az));
+                rs[l] = Matrix3::from_columns(&[x, z.cross(&x), z]);
             }
         }
     }
@@ -941,6 +1030,18 @@ mod tests {
                 worst = worst.max((Vector3::from(*o) - general).norm());
             }
             assert!(worst <= 1e-12, "worst {worst:e} m");
+            // Poses: positions bit for bit those of the position path, rotations equal to
+            // the general chain's.
+            let mut pos = vec![[0.0; 3]; ws.len()];
+            let mut rot = vec![Matrix3::zeros(); ws.len()];
+            panda.pen_tip_poses_into(ws, &mut pos, &mut rot);
+            assert_eq!(pos, out);
+            let mut worst_r = 0.0f64;
+            for (w, r) in ws.iter().zip(&rot) {
+                let q: JointVector = std::array::from_fn(|j| f64::from(w[j]));
+                worst_r = worst_r.max((panda.pen_tip(&q).rotation - r).norm());
+            }
+            assert!(worst_r <= 1e-12, "worst rotation {worst_r:e}");
         }
     }
 

@@ -59,6 +59,12 @@ fn path_lengths_into(
     out: &mut [f64],
 ) {
     panda.pen_tip_positions_into(waypoints, positions);
+    cumulative_lengths(positions, out);
+}
+
+/// Cumulative polyline length through `positions` into `out` (element 0 is 0): the one
+/// summation every resampling length comes from.
+pub(crate) fn cumulative_lengths(positions: &[[f64; 3]], out: &mut [f64]) {
     let mut total = 0.0;
     for (i, o) in out.iter_mut().enumerate() {
         if i > 0 {

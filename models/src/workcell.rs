@@ -14,13 +14,15 @@
 //! (tool z straight down, tool x along base +x): `θ = 2 asin(‖R − R_cmd‖_F / (2√2))`, exact
 //! for small angles.
 
+use std::cell::RefCell;
+
 use guardian_shared::trajectory::{self, InvalidTrajectory, Resampled, TOOL, Waypoint};
 use guardian_shared::workcell::{Workcell, WorkcellKind, WorkcellViolation};
 use nalgebra::{Matrix3, Vector3};
 
 use crate::geometry::PlanGeometry;
 use crate::kinematics::{Frame, Panda};
-use crate::preprocess::{default_panda, joints_of};
+use crate::preprocess::{cumulative_lengths, default_panda};
 
 /// Result of [`inspect`].
 #[derive(Debug, Clone)]
@@ -50,9 +52,13 @@ pub fn orientation_error(r: &Matrix3<f64>) -> f64 {
 
 /// Normalised deviations of one pen-tip frame from the workcell rules, in rule order
 /// (orientation, pen height, canvas, hover height); each `> 1` breaks that rule.
-fn deviations(cell: &Workcell, frame: &Frame, pen_down: bool) -> [f64; 4] {
-    let p = frame.translation;
-    let orient = orientation_error(&frame.rotation) / cell.orientation_tolerance;
+fn deviations(
+    cell: &Workcell,
+    p: Vector3<f64>,
+    rotation: &Matrix3<f64>,
+    pen_down: bool,
+) -> [f64; 4] {
+    let orient = orientation_error(rotation) / cell.orientation_tolerance;
     let half = 0.5 * cell.canvas_side;
     let outside = ((p.x - cell.canvas_x).abs() - half)
         .max((p.y - cell.canvas_y).abs() - half)
@@ -96,13 +102,27 @@ pub fn check_frames(
     frames: &[Frame],
     tool: impl Iterator<Item = f32>,
 ) -> (Option<WorkcellViolation>, f32) {
+    check_poses(
+        cell,
+        frames
+            .iter()
+            .zip(tool)
+            .map(|(f, t)| (f.translation, f.rotation, t)),
+    )
+}
+
+/// [`check_frames`] over (position, rotation, tool value) per waypoint.
+fn check_poses(
+    cell: &Workcell,
+    poses: impl Iterator<Item = (Vector3<f64>, Matrix3<f64>, f32)>,
+) -> (Option<WorkcellViolation>, f32) {
     if !cell.enabled {
         return (None, 0.0);
     }
     let mut first = None;
     let mut worst = 0.0f64;
-    for (i, (f, t)) in frames.iter().zip(tool).enumerate() {
-        let d = deviations(cell, f, t > 0.5);
+    for (i, (p, r, t)) in poses.enumerate() {
+        let d = deviations(cell, p, &r, t > 0.5);
         for (k, &v) in d.iter().enumerate() {
             // NaN (a degenerate frame) counts as a violation.
             if first.is_none() && (v > 1.0 || v.is_nan()) {
@@ -123,33 +143,60 @@ pub fn inspect(cell: &Workcell, raw: &[Waypoint]) -> Result<Inspection, InvalidT
     inspect_with(default_panda(), cell, raw)
 }
 
-/// [`inspect`] with a given robot.
+/// Per-thread buffers of [`inspect_with`] (grown to the longest trajectory seen).
+#[derive(Default)]
+struct Scratch {
+    positions: Vec<[f64; 3]>,
+    rotations: Vec<Matrix3<f64>>,
+    lengths: Vec<f64>,
+}
+
+thread_local! {
+    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+}
+
+/// [`inspect`] with a given robot. One pass of the specialised forward kinematics
+/// ([`Panda::pen_tip_poses_into`]) gives every waypoint's pen-tip position and tool
+/// rotation; the positions are those [`crate::preprocess::preprocess_with`] uses, summed the
+/// same way, so the model input is identical. Uses per-thread buffers: after the longest
+/// trajectory has been seen once, nothing is allocated.
 pub fn inspect_with(
     panda: &Panda,
     cell: &Workcell,
     raw: &[Waypoint],
 ) -> Result<Inspection, InvalidTrajectory> {
     trajectory::validate(raw)?;
-    let frames: Vec<Frame> = raw.iter().map(|w| panda.pen_tip(&joints_of(w))).collect();
-    // Same summation as `preprocess::pen_path_lengths_with`.
-    let mut cumulative = Vec::with_capacity(frames.len());
-    let mut total = 0.0;
-    let mut prev: Option<Vector3<f64>> = None;
-    for f in &frames {
-        let p = f.translation;
-        if let Some(pp) = prev {
-            total += (p - pp).norm();
+    let n = raw.len();
+    let run = |s: &mut Scratch| {
+        if s.positions.len() < n {
+            s.positions.resize(n, [0.0; 3]);
+            s.rotations.resize(n, Matrix3::zeros());
+            s.lengths.resize(n, 0.0);
         }
-        cumulative.push(total);
-        prev = Some(p);
-    }
-    let resampled = trajectory::resample(raw, &cumulative);
-    let (violation, score) = check_frames(cell, &frames, raw.iter().map(|w| w[TOOL]));
-    Ok(Inspection {
-        resampled,
-        violation,
-        score,
-    })
+        let (positions, rotations, lengths) = (
+            &mut s.positions[..n],
+            &mut s.rotations[..n],
+            &mut s.lengths[..n],
+        );
+        panda.pen_tip_poses_into(raw, positions, rotations);
+        cumulative_lengths(positions, lengths);
+        let resampled = trajectory::resample(raw, lengths);
+        let poses = positions
+            .iter()
+            .zip(rotations.iter())
+            .zip(raw)
+            .map(|((p, r), w)| (Vector3::from(*p), *r, w[TOOL]));
+        let (violation, score) = check_poses(cell, poses);
+        Inspection {
+            resampled,
+            violation,
+            score,
+        }
+    };
+    Ok(SCRATCH.with(|cell| match cell.try_borrow_mut() {
+        Ok(mut s) => run(&mut s),
+        Err(_) => run(&mut Scratch::default()),
+    }))
 }
 
 /// The plan geometry of a resampled trajectory (see [`PlanGeometry`]); `None` if the pen
