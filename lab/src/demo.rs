@@ -258,7 +258,12 @@ impl Drawings {
             })
     }
 
-    fn strokes(&self, alphabet: &str, character: u32, drawer: u32) -> Result<(PathBuf, Vec<Stroke>), DemoError> {
+    fn strokes(
+        &self,
+        alphabet: &str,
+        character: u32,
+        drawer: u32,
+    ) -> Result<(PathBuf, Vec<Stroke>), DemoError> {
         let f = self.file(alphabet, character, drawer)?;
         Ok((f.path.clone(), read_strokes(&f.path)?))
     }
@@ -273,7 +278,12 @@ impl Drawings {
     }
 
     /// The dense joint path a planner would send for one drawing.
-    fn plan(&self, alphabet: &str, character: u32, drawer: u32) -> Result<Vec<Waypoint>, DemoError> {
+    fn plan(
+        &self,
+        alphabet: &str,
+        character: u32,
+        drawer: u32,
+    ) -> Result<Vec<Waypoint>, DemoError> {
         let (path, strokes) = self.strokes(alphabet, character, drawer)?;
         self.solve(&path, &strokes)
     }
@@ -445,10 +455,7 @@ pub fn run(client: &Client, opts: &Options) -> Result<Report, DemoError> {
         base[0],
         base[1],
         if over > 0.0 {
-            format!(
-                "it reaches {:.1} mm beyond the canvas edge",
-                over * 1000.0
-            )
+            format!("it reaches {:.1} mm beyond the canvas edge", over * 1000.0)
         } else {
             "it stays on the canvas".to_string()
         }
