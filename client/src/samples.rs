@@ -1,7 +1,9 @@
-//! Synthetic sample trajectories for demos and tests: valid Panda joint paths (inside the
-//! limits, tool 0/1), one smooth joint-space pattern per task class, with small
-//! per-"drawer" changes of amplitude, phase, speed and waypoint count. They are not
-//! Omniglot drawings; they only exercise the protocol and the decision rule.
+//! Synthetic sample trajectories for tests: valid Panda joint paths (inside the limits,
+//! tool 0/1), one smooth joint-space pattern per task class, with small per-"drawer"
+//! changes of amplitude, phase, speed and waypoint count. They are not Omniglot drawings
+//! and do not draw on the canvas (a daemon with the workcell rules on answers them no-go
+//! `Workcell`); they only exercise the protocol and the decision rule. The demo on real
+//! drawings is `guardian-lab demo`.
 
 use crate::Waypoint;
 

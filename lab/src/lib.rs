@@ -12,10 +12,13 @@
 //! - [`calibrate`]: threshold calibration and the default class bank.
 //! - [`faults`]: faulty-plan generators (corruptions of a genuine plan).
 //! - [`outliers`]: go / no-go metrics on faulty and genuine plans.
+//! - [`demo`]: enroll real drawings in a running `guardiand` and check genuine and faulty
+//!   plans through the client (`guardian-lab demo`).
 #![forbid(unsafe_code)]
 
 pub mod calibrate;
 pub mod dataset;
+pub mod demo;
 pub mod eval;
 pub mod faults;
 pub mod outliers;

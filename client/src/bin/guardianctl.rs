@@ -2,15 +2,15 @@
 #![forbid(unsafe_code)]
 
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
-use guardian_client::{
-    CHANNELS, CheckError, Client, ClientConfig, Decision, NoGoReason, Trajectory, Verdict, samples,
-};
+use guardian_client::{CHANNELS, Client, ClientConfig, Decision, NoGoReason, Trajectory, Verdict};
 
-/// Talk to guardiand: check, identify, enroll, forget, list classes, status, demo.
+/// Talk to guardiand: check, identify, enroll, forget, list classes, status.
+///
+/// The go/no-go demo on real drawings is `guardian-lab demo`.
 #[derive(Debug, Parser)]
 #[command(version, about)]
 struct Args {
@@ -74,12 +74,6 @@ enum Cmd {
     Classes,
     /// Versions, counters and latency percentiles.
     Status,
-    /// Enroll demo classes, send genuine and faulty trajectories, print a go/no-go table.
-    Demo {
-        /// Keep the demo classes enrolled afterwards.
-        #[arg(long)]
-        keep: bool,
-    },
 }
 
 fn main() -> anyhow::Result<()> {
@@ -193,7 +187,6 @@ fn main() -> anyhow::Result<()> {
                 }
             }
         }
-        Cmd::Demo { keep } => demo(&client, json, keep)?,
     }
     Ok(())
 }
@@ -319,187 +312,4 @@ fn read_trajectory(path: &Path, index: Option<usize>) -> anyhow::Result<Trajecto
         data.extend(vals);
     }
     Ok(Trajectory::from_flat(data, channels.unwrap_or(CHANNELS)))
-}
-
-#[derive(serde::Serialize)]
-struct DemoRow {
-    case: String,
-    claimed: String,
-    expected: String,
-    verdict: String,
-    claimed_distance: Option<f32>,
-    threshold: Option<f32>,
-    latency_us: f64,
-    as_expected: bool,
-}
-
-/// Enroll three synthetic demo tasks, then send genuine and faulty trajectories.
-fn demo(client: &Client, json: bool, keep: bool) -> anyhow::Result<()> {
-    let classes = ["demo-wave", "demo-loop", "demo-zigzag"];
-    for (c, name) in classes.iter().enumerate() {
-        let ex: Vec<Trajectory> = (0..5)
-            .map(|d| Trajectory::from_waypoints(&samples::task(c as u32, d)))
-            .collect();
-        client
-            .enroll(name, &ex)
-            .with_context(|| format!("enroll {name}"))?;
-    }
-    let genuine = |c: u32, d: u32| samples::task(c, d);
-    let mut cases: Vec<(String, Trajectory, &str, &str)> = Vec::new();
-    for (c, name) in classes.iter().enumerate() {
-        cases.push((
-            format!("genuine {name}"),
-            Trajectory::from_waypoints(&genuine(c as u32, 30)),
-            name,
-            "go",
-        ));
-    }
-    cases.push((
-        "wave claimed as loop".into(),
-        Trajectory::from_waypoints(&genuine(0, 31)),
-        classes[1],
-        "wrong-task",
-    ));
-    cases.push((
-        "zigzag claimed as wave".into(),
-        Trajectory::from_waypoints(&genuine(2, 31)),
-        classes[0],
-        "wrong-task",
-    ));
-    cases.push((
-        "unknown class".into(),
-        Trajectory::from_waypoints(&genuine(0, 32)),
-        "demo-nothing",
-        "unknown-class",
-    ));
-    let mut w = genuine(0, 33);
-    w[10][2] = f32::NAN;
-    cases.push((
-        "NaN joint value".into(),
-        Trajectory::from_waypoints(&w),
-        classes[0],
-        "invalid",
-    ));
-    let mut w = genuine(0, 34);
-    w[20][3] = 0.5;
-    cases.push((
-        "joint 4 beyond limit".into(),
-        Trajectory::from_waypoints(&w),
-        classes[0],
-        "invalid",
-    ));
-    let mut w = genuine(1, 35);
-    w[5][7] = 0.5;
-    cases.push((
-        "tool value 0.5".into(),
-        Trajectory::from_waypoints(&w),
-        classes[1],
-        "invalid",
-    ));
-    let seven: Vec<f32> = genuine(1, 36)
-        .iter()
-        .flat_map(|w| w[..7].to_vec())
-        .collect();
-    cases.push((
-        "7 channels".into(),
-        Trajectory::from_flat(seven, 7),
-        classes[1],
-        "invalid",
-    ));
-    cases.push((
-        "1 waypoint".into(),
-        Trajectory::from_waypoints(&genuine(2, 37)[..1]),
-        classes[2],
-        "invalid",
-    ));
-
-    let mut rows = Vec::new();
-    for (case, t, claimed, expected) in cases {
-        let start = Instant::now();
-        let result = client.check(&t, claimed);
-        let latency_us = start.elapsed().as_secs_f64() * 1e6;
-        let (verdict, got, cd, th) = match &result {
-            Ok(v) => {
-                let got = match &v.decision {
-                    Decision::Go => "go",
-                    Decision::NoGo {
-                        reason: NoGoReason::WrongTask { .. },
-                    } => "wrong-task",
-                    Decision::NoGo {
-                        reason: NoGoReason::Outlier,
-                    } => "outlier",
-                    Decision::NoGo {
-                        reason: NoGoReason::UnknownClass,
-                    } => "unknown-class",
-                    Decision::NoGo {
-                        reason: NoGoReason::InvalidTrajectory { .. },
-                    } => "invalid",
-                    Decision::NoGo {
-                        reason: NoGoReason::Workcell { .. },
-                    } => "workcell",
-                    Decision::NoGo {
-                        reason: NoGoReason::GeometryMismatch { .. },
-                    } => "geometry",
-                    Decision::NoGo { .. } => "no-go",
-                };
-                (
-                    decision_text(&v.decision),
-                    got,
-                    v.claimed_distance,
-                    v.threshold,
-                )
-            }
-            Err(e) => (format!("ERROR {e}"), "error", None, None),
-        };
-        rows.push(DemoRow {
-            case,
-            claimed: claimed.to_string(),
-            expected: expected.to_string(),
-            verdict,
-            claimed_distance: cd,
-            threshold: th,
-            latency_us,
-            as_expected: got == expected,
-        });
-    }
-    if !keep {
-        for name in classes {
-            match client.forget(name) {
-                Ok(()) | Err(CheckError::UnknownClass { .. }) => {}
-                Err(e) => return Err(e).context("forget demo class"),
-            }
-        }
-    }
-    if json {
-        println!("{}", serde_json::to_string_pretty(&rows)?);
-    } else {
-        println!(
-            "{:<24} {:<14} {:<14} {:<44} {:>9} {:>9} {:>10}",
-            "case", "claimed", "expected", "verdict", "distance", "threshold", "round trip"
-        );
-        for r in &rows {
-            let opt = |x: Option<f32>| x.map_or("-".to_string(), |v| format!("{v:.3}"));
-            println!(
-                "{:<24} {:<14} {:<14} {:<44} {:>9} {:>9} {:>7.0} us{}",
-                r.case,
-                r.claimed,
-                r.expected,
-                r.verdict,
-                opt(r.claimed_distance),
-                opt(r.threshold),
-                r.latency_us,
-                if r.as_expected { "" } else { "  <- unexpected" }
-            );
-        }
-        let ok = rows.iter().filter(|r| r.as_expected).count();
-        println!("{ok}/{} as expected", rows.len());
-    }
-    if rows.iter().any(|r| r.verdict.contains("workcell")) {
-        eprintln!(
-            "note: the demo tasks are synthetic joint-space patterns, not drawings on the \
-             canvas, so the daemon's workcell rules reject them; run the demo against a \
-             guardiand with `[workcell] enabled = false` (docs/guardiand.md)"
-        );
-    }
-    Ok(())
 }
