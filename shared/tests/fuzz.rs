@@ -154,8 +154,7 @@ proptest! {
         prop_assert_eq!(Status::from_u32(v).map(|o| o as u32), (v <= 6).then_some(v));
         prop_assert_eq!(VerdictCode::from_u32(v).map(|o| o as u32), (v <= 2).then_some(v));
         prop_assert_eq!(ReasonCode::from_u32(v).map(|o| o as u32), (v <= 4).then_some(v));
-        let mut r = ResponseHeader::default();
-        r.invalid_kind = v;
+        let r = ResponseHeader { invalid_kind: v, ..ResponseHeader::default() };
         prop_assert_eq!(r.invalid().map(|k| k as u32), (1..=6).contains(&v).then_some(v));
     }
 

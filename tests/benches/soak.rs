@@ -150,6 +150,9 @@ fn percentiles(v: &mut [f32]) -> [f32; 5] {
     [q(0.5), q(0.9), q(0.99), q(0.999), v[v.len() - 1]]
 }
 
+/// Requests done, time since the start, daemon memory ([`rss_kib`]).
+type Mark = (u64, Duration, [u64; 3]);
+
 #[derive(Default)]
 struct Outcome {
     /// (global sequence number, round trip in microseconds).
@@ -296,7 +299,7 @@ fn main() -> Result<()> {
 
     // Progress, RSS and wall time whenever a window of requests completes.
     let finished = Arc::new(AtomicBool::new(false));
-    let marks: Arc<Mutex<Vec<(u64, Duration, [u64; 3])>>> = Arc::new(Mutex::new(Vec::new()));
+    let marks: Arc<Mutex<Vec<Mark>>> = Arc::new(Mutex::new(Vec::new()));
     barrier.wait();
     let start = Instant::now();
     let monitor = {
