@@ -798,7 +798,11 @@ fn status_ok(r: &ResponseHeader) -> Result<(), CheckError> {
             index: r.invalid_index,
             example: r.invalid_example,
         }),
-        Some(Status::InvalidClassName) => Err(CheckError::BadRequest { message }),
+        // The response echoes the request's name field: decode it for the typed reason.
+        Some(Status::InvalidClassName) => Err(match wire::decode_class_name(&r.class_name) {
+            Err(e) => CheckError::InvalidClassName(e),
+            Ok(_) => CheckError::BadRequest { message },
+        }),
         Some(Status::UnknownClass) => Err(CheckError::UnknownClass {
             class: wire::decode_text(&r.class_name),
         }),

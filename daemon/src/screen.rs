@@ -412,18 +412,29 @@ impl Screen {
                 format!("examples is {n}, expected 1..={max_examples}"),
             ));
         }
-        let channels = h.channels as u64;
-        let total: u64 = h.waypoints[..n]
-            .iter()
-            .map(|&w| u64::from(w) * channels)
-            .sum();
-        if total != payload.len() as u64 {
+        // Checked: 16 counts of up to 2^32 - 1 waypoints of up to 2^32 - 1 channels overflow
+        // u64, and a wrapped total could match the payload and index past it.
+        let channels = u64::from(h.channels);
+        let total = h.waypoints[..n].iter().try_fold(0u64, |acc, &w| {
+            u64::from(w)
+                .checked_mul(channels)
+                .and_then(|floats| acc.checked_add(floats))
+        });
+        if total != Some(payload.len() as u64) {
             return Err(Fail::Status(
                 Status::BadRequest,
-                format!(
-                    "payload has {} floats, header announces {total}",
-                    payload.len()
-                ),
+                match total {
+                    Some(total) => {
+                        format!(
+                            "payload has {} floats, header announces {total}",
+                            payload.len()
+                        )
+                    }
+                    None => format!(
+                        "payload has {} floats, header announces more than 2^64",
+                        payload.len()
+                    ),
+                },
             ));
         }
         let mut out = Vec::with_capacity(n);

@@ -1,0 +1,418 @@
+//! Bad input across real processes: a planner that bypasses the client library (as a C
+//! planner would) sends thousands of random and adversarial raw requests over iceoryx2 to a
+//! real `guardiand`. Every one is answered (no hang, no crash), an error status never carries
+//! a verdict, and `Go` is only ever answered to a well-formed check of an enrolled class;
+//! a genuine check still passes afterwards. Hostile class names are rejected with a typed
+//! error by the client library and by the daemon.
+
+use std::cell::RefCell;
+use std::collections::BTreeSet;
+use std::time::{Duration, Instant};
+
+use guardian_client::{CheckError, EnrollError};
+use guardian_shared::trajectory::{CHANNELS, MAX_WAYPOINTS, from_flat};
+use guardian_shared::wire::{
+    self, ClassEntry, ClassNameError, MAX_EXAMPLES, MAX_REQUEST_FLOATS, NAME_BYTES, Op, ReasonCode,
+    RequestHeader, ResponseHeader, Status, VerdictCode, decode_class_name, encode_class_name,
+};
+use guardian_tests::harness::{Daemon, PATIENCE, Setup, task, traj};
+use iceoryx2::prelude::*;
+use proptest::prelude::*;
+use proptest::test_runner::{Config, TestRunner};
+
+/// Random raw requests sent to the daemon (each is one round trip to the real process).
+const RANDOM_REQUESTS: u32 = 3_000;
+
+type RawPort = iceoryx2::port::client::Client<
+    ipc::Service,
+    [f32],
+    RequestHeader,
+    [ClassEntry],
+    ResponseHeader,
+>;
+
+/// A raw planner: its own node, client port and wake-up notifier, no validation.
+struct Raw {
+    port: RawPort,
+    wake: iceoryx2::port::notifier::Notifier<ipc::Service>,
+    _node: Node<ipc::Service>,
+}
+
+impl Raw {
+    fn connect(s: &Setup) -> Self {
+        let mut ic = iceoryx2::config::Config::default();
+        let root = format!("{}/", s.dir.path().join("iox").display());
+        ic.global
+            .set_root_path(&iceoryx2::prelude::Path::new(root.as_bytes()).unwrap());
+        ic.global.prefix = FileName::new(s.prefix.as_bytes()).unwrap();
+        let node = NodeBuilder::new()
+            .config(&ic)
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<ipc::Service>()
+            .unwrap();
+        let rpc = node
+            .service_builder(&ServiceName::new(&s.service).unwrap())
+            .request_response::<[f32], [ClassEntry]>()
+            .request_user_header::<RequestHeader>()
+            .response_user_header::<ResponseHeader>()
+            .open()
+            .unwrap();
+        let wake = node
+            .service_builder(&ServiceName::new(&wire::request_event_name(&s.service)).unwrap())
+            .event()
+            .open()
+            .unwrap()
+            .notifier_builder()
+            .create()
+            .unwrap();
+        let port = rpc
+            .client_builder()
+            .initial_max_slice_len(8192)
+            .allocation_strategy(AllocationStrategy::PowerOfTwo)
+            .create()
+            .unwrap();
+        Self {
+            port,
+            wake,
+            _node: node,
+        }
+    }
+
+    /// Send one request and wait for its response (a hang fails the test).
+    fn call(&self, h: &RequestHeader, payload: &[f32]) -> (ResponseHeader, Vec<ClassEntry>) {
+        let mut r = self.port.loan_slice_uninit(payload.len()).expect("loan");
+        *r.user_header_mut() = *h;
+        let pending = r.write_from_slice(payload).send().expect("send");
+        self.wake.notify().expect("notify");
+        let start = Instant::now();
+        loop {
+            if let Some(resp) = pending.receive().expect("receive") {
+                return (*resp.user_header(), resp.payload().to_vec());
+            }
+            assert!(
+                pending.is_connected(),
+                "guardiand dropped the request: {h:?}"
+            );
+            assert!(start.elapsed() < PATIENCE, "no response to {h:?}");
+            std::thread::sleep(Duration::from_micros(200));
+        }
+    }
+}
+
+fn flat(class: u32, drawer: u32) -> Vec<f32> {
+    task(class, drawer).iter().flatten().copied().collect()
+}
+
+fn header(id: u64, op: Op, class: &[u8], waypoints: &[u32]) -> RequestHeader {
+    let mut h = RequestHeader::new(id, op);
+    h.examples = waypoints.len() as u32;
+    h.waypoints[..waypoints.len()].copy_from_slice(waypoints);
+    h.class_name[..class.len()].copy_from_slice(class);
+    h
+}
+
+/// Whether `h` is a well-formed check of a class in `enrolled` with a valid trajectory.
+fn genuine_check(enrolled: &BTreeSet<String>, h: &RequestHeader, payload: &[f32]) -> bool {
+    h.op == Op::Check as u32
+        && h.channels == CHANNELS as u32
+        && h.examples == 1
+        && u64::from(h.waypoints[0]) * CHANNELS as u64 == payload.len() as u64
+        && decode_class_name(&h.class_name).is_ok_and(|n| enrolled.contains(n))
+        && from_flat(payload, CHANNELS).is_ok()
+}
+
+/// The invariants of every answer; keeps `enrolled` up to date.
+fn judge(
+    enrolled: &mut BTreeSet<String>,
+    h: &RequestHeader,
+    payload: &[f32],
+    r: &ResponseHeader,
+) -> Result<(), TestCaseError> {
+    let genuine = genuine_check(enrolled, h, payload);
+    prop_assert_eq!(r.request_id, h.request_id);
+    prop_assert_eq!(r.op, h.op);
+    prop_assert!(Status::from_u32(r.status).is_some(), "{r:?}");
+    if r.status != Status::Ok as u32 || h.op != Op::Check as u32 {
+        prop_assert_eq!(r.verdict, VerdictCode::None as u32, "{:?}", h);
+    }
+    if r.verdict == VerdictCode::Go as u32 {
+        prop_assert!(genuine, "Go for {h:?}");
+    }
+    if genuine {
+        prop_assert_ne!(r.verdict, VerdictCode::None as u32);
+    }
+    if r.status == Status::Ok as u32 {
+        let name = decode_class_name(&h.class_name).map(str::to_owned);
+        if h.op == Op::Enroll as u32 {
+            enrolled.insert(name.expect("enrolled under an invalid name"));
+        } else if h.op == Op::Forget as u32 {
+            enrolled.remove(&name.expect("forgot an invalid name"));
+        }
+    }
+    Ok(())
+}
+
+fn f32_any() -> impl Strategy<Value = f32> {
+    prop_oneof![
+        any::<u32>().prop_map(f32::from_bits),
+        -4.0f32..4.0,
+        Just(f32::NAN),
+        Just(f32::NEG_INFINITY),
+    ]
+}
+
+fn count() -> impl Strategy<Value = u32> {
+    prop_oneof![
+        any::<u32>(),
+        0u32..8,
+        Just(u32::MAX),
+        Just(MAX_WAYPOINTS as u32 + 1),
+        Just(1 << 31)
+    ]
+}
+
+fn name_field() -> impl Strategy<Value = [u8; NAME_BYTES]> {
+    prop_oneof![
+        prop::sample::select(vec!["task0", "task1", "fuzzed"])
+            .prop_map(|n| encode_class_name(n).unwrap()),
+        prop::collection::vec(any::<u8>(), NAME_BYTES).prop_map(|v| v.try_into().unwrap()),
+        "[\\x00-\\x1f\\x7f a-z\\u{80}-\\u{ff}]{0,64}".prop_map(|s| {
+            let mut f = [0u8; NAME_BYTES];
+            let n = s.len().min(NAME_BYTES);
+            f[..n].copy_from_slice(&s.as_bytes()[..n]);
+            f
+        }),
+    ]
+}
+
+fn payload() -> impl Strategy<Value = Vec<f32>> {
+    prop_oneof![
+        (
+            0u32..2,
+            0u32..40,
+            prop::option::of((any::<prop::sample::Index>(), f32_any()))
+        )
+            .prop_map(|(c, d, m)| {
+                let mut p = flat(c, d);
+                if let Some((i, v)) = m {
+                    let i = i.index(p.len());
+                    p[i] = v;
+                }
+                p
+            }),
+        prop::collection::vec(f32_any(), 0..200),
+        Just(Vec::new()),
+    ]
+}
+
+fn request() -> impl Strategy<Value = (RequestHeader, Vec<f32>)> {
+    (
+        any::<u64>(),
+        prop_oneof![4 => 1u32..=6, 1 => any::<u32>()],
+        prop_oneof![4 => Just(CHANNELS as u32), 1 => count()],
+        prop_oneof![4 => Just(1u32), 1 => 0u32..=17, 1 => count()],
+        prop::array::uniform16(count()),
+        prop::bool::weighted(0.7),
+        name_field(),
+        any::<u32>(),
+        payload(),
+    )
+        .prop_map(
+            |(
+                id,
+                op,
+                channels,
+                examples,
+                mut waypoints,
+                consistent,
+                class_name,
+                reserved,
+                payload,
+            )| {
+                if consistent && channels != 0 {
+                    waypoints[0] = (payload.len() / channels as usize) as u32;
+                }
+                let h = RequestHeader {
+                    request_id: id,
+                    op,
+                    channels,
+                    examples,
+                    reserved,
+                    waypoints,
+                    class_name,
+                };
+                (h, payload)
+            },
+        )
+}
+
+#[test]
+fn thousands_of_random_and_adversarial_raw_requests_never_get_a_go() {
+    let mut s = Setup::new(60);
+    s.extra = "default-threshold = 1e9".into();
+    let d = Daemon::start(&s);
+    let client = s.client();
+    for c in 0..2u32 {
+        let ex: Vec<_> = (0..4).map(|dr| traj(c, dr)).collect();
+        client.enroll(&format!("task{c}"), &ex).expect("enroll");
+    }
+    let raw = Raw::connect(&s);
+    let enrolled = RefCell::new(BTreeSet::from(["task0".to_string(), "task1".to_string()]));
+    let ask = |h: &RequestHeader, p: &[f32]| -> ResponseHeader {
+        let (r, _) = raw.call(h, p);
+        judge(&mut enrolled.borrow_mut(), h, p, &r).unwrap_or_else(|e| panic!("{e}"));
+        r
+    };
+
+    // Adversarial sizes: totals that overflow 64 bits (2 x (2^32 - 1) + 2 waypoints of 2^31
+    // channels wrap to exactly 0 floats), more waypoints than allowed, a payload longer
+    // than the largest legal request.
+    let good = flat(0, 20);
+    let n = (good.len() / 8) as u32;
+    for op in [Op::Enroll, Op::Check, Op::Identify] {
+        let mut h = header(1, op, b"task0", &[u32::MAX, u32::MAX, 2]);
+        h.channels = 1 << 31;
+        assert_eq!(ask(&h, &[]).status, Status::BadRequest as u32);
+        h.channels = u32::MAX;
+        h.waypoints[..3].copy_from_slice(&[u32::MAX; 3]);
+        assert_ne!(ask(&h, &good).status, Status::Ok as u32);
+        let mut h = header(2, op, b"task0", &[u32::MAX]);
+        h.channels = u32::MAX;
+        assert_ne!(ask(&h, &good).verdict, VerdictCode::Go as u32);
+    }
+    let many: Vec<f32> = good
+        .iter()
+        .copied()
+        .cycle()
+        .take((MAX_WAYPOINTS + 1) * CHANNELS)
+        .collect();
+    let r = ask(
+        &header(3, Op::Check, b"task0", &[MAX_WAYPOINTS as u32 + 1]),
+        &many,
+    );
+    assert_eq!(
+        (r.verdict, r.reason, r.invalid_index),
+        (
+            VerdictCode::NoGo as u32,
+            ReasonCode::InvalidTrajectory as u32,
+            MAX_WAYPOINTS as u32 + 1
+        )
+    );
+    let r = ask(
+        &header(4, Op::Identify, b"", &[MAX_WAYPOINTS as u32 + 1]),
+        &many,
+    );
+    assert_eq!(r.status, Status::InvalidTrajectory as u32);
+    let huge = vec![0.0f32; MAX_REQUEST_FLOATS + 8];
+    let w = [(MAX_WAYPOINTS + 1) as u32; MAX_EXAMPLES];
+    let r = ask(&header(5, Op::Enroll, b"task0", &w), &huge);
+    assert_eq!(r.status, Status::BadRequest as u32);
+    let r = ask(&header(6, Op::Check, b"task0", &[n]), &huge);
+    assert_eq!(r.status, Status::BadRequest as u32);
+
+    // Hostile names on the wire: not UTF-8, control characters, empty, an embedded NUL,
+    // all 64 bytes used; on enroll, check and forget.
+    let hostile: [&[u8]; 7] = [
+        b"\xff\xfe",
+        b"\xc3",
+        b"a\x1bb",
+        b"\x7f",
+        b"",
+        b"ab\0cd",
+        &[b'x'; NAME_BYTES],
+    ];
+    for (i, name) in hostile.iter().enumerate() {
+        for op in [Op::Enroll, Op::Check, Op::Forget] {
+            let w: &[u32] = if op == Op::Forget { &[] } else { &[n] };
+            let p: &[f32] = if op == Op::Forget { &[] } else { &good };
+            let r = ask(&header(10 + i as u64, op, name, w), p);
+            assert_eq!(r.status, Status::InvalidClassName as u32, "{name:?} {op:?}");
+        }
+    }
+
+    // Thousands of random requests; failures shrink to a minimal request.
+    let mut runner = TestRunner::new(Config {
+        cases: RANDOM_REQUESTS,
+        failure_persistence: None,
+        ..Config::default()
+    });
+    runner
+        .run(&request(), |(h, p)| {
+            let (r, _) = raw.call(&h, &p);
+            judge(&mut enrolled.borrow_mut(), &h, &p, &r)
+        })
+        .unwrap();
+
+    // Still serving, and a genuine check still gets its go (random forgets and enrolls may
+    // have changed task1: enroll it afresh).
+    let _ = client.forget("task1");
+    let ex: Vec<_> = (0..4).map(|dr| traj(1, dr)).collect();
+    client.enroll("task1", &ex).expect("enroll");
+    let v = client.check(&traj(1, 33), "task1").expect("check");
+    assert!(v.is_go(), "{v:?}");
+    let st = client.status().expect("status");
+    assert!(st.requests >= u64::from(RANDOM_REQUESTS));
+    assert!(!d.log().contains("panicked"), "{}", d.log());
+}
+
+/// Through the client library hostile names never reach the daemon: a typed error.
+/// A raw planner's hostile name comes back from the daemon as the same typed error.
+#[test]
+fn hostile_class_names_are_rejected_with_a_typed_error() {
+    let mut s = Setup::new(61);
+    s.extra = "default-threshold = 1e9".into();
+    let _d = Daemon::start(&s);
+    let client = s.client();
+    let t = traj(0, 1);
+    let names = [
+        "x".repeat(1 << 20),
+        "é".repeat(32),
+        String::new(),
+        "a\0b".into(),
+        "tab\there".into(),
+        "\u{1b}[31mred".into(),
+        "\u{85}".into(),
+    ];
+    for name in &names {
+        let check = client.check(&t, name);
+        assert!(
+            matches!(check, Err(CheckError::InvalidClassName(_))),
+            "{check:?}"
+        );
+        let enroll = client.enroll(name, std::slice::from_ref(&t));
+        assert!(
+            matches!(
+                enroll,
+                Err(EnrollError::Request(CheckError::InvalidClassName(_)))
+            ),
+            "{enroll:?}"
+        );
+        assert!(matches!(
+            client.forget(name),
+            Err(CheckError::InvalidClassName(_))
+        ));
+    }
+    assert!(matches!(
+        client.check(&t, &"x".repeat(64)),
+        Err(CheckError::InvalidClassName(ClassNameError::TooLong {
+            len: 64,
+            max: 63
+        }))
+    ));
+    // Nothing was enrolled.
+    assert!(client.classes().expect("classes").is_empty());
+
+    // The daemon's answer to a raw hostile name carries the typed reason.
+    let raw = Raw::connect(&s);
+    let good = flat(0, 2);
+    let (r, _) = raw.call(
+        &header(1, Op::Enroll, b"\xff\xfe", &[(good.len() / 8) as u32]),
+        &good,
+    );
+    assert_eq!(r.status, Status::InvalidClassName as u32);
+    assert_eq!(
+        decode_class_name(&r.class_name),
+        Err(ClassNameError::NotUtf8)
+    );
+    assert!(wire::decode_text(&r.message).contains("UTF-8"));
+}
