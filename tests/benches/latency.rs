@@ -37,6 +37,7 @@ use guardian_shared::trajectory::{STEPS, Waypoint};
 use guardian_shared::wire::{
     Op, ReasonCode, RequestHeader, VerdictCode, decode_text, encode_class_name,
 };
+use guardian_tests::harness::{guardiand_bin, workspace_root};
 use serde::{Deserialize, Serialize};
 
 /// Latin characters enrolled as task classes, drawers used to enroll, drawers checked.
@@ -48,10 +49,6 @@ struct Opts {
     model: Option<PathBuf>,
     strokes: PathBuf,
     quick: bool,
-}
-
-fn workspace_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
 }
 
 fn parse_opts() -> Result<Opts> {
@@ -191,42 +188,6 @@ fn load_drawings(strokes: &Path) -> Result<Drawings> {
 }
 
 // ---------------------------------------------------------------- guardiand
-
-/// The `guardiand` binary of this bench's profile (built on demand).
-fn guardiand_bin() -> Result<PathBuf> {
-    if let Some(p) = std::env::var_os("GUARDIAND_BIN") {
-        return Ok(p.into());
-    }
-    let exe = std::env::current_exe()?;
-    // target/<profile-dir>/deps/latency-<hash>
-    let profile_dir = exe
-        .parent()
-        .and_then(Path::parent)
-        .context("bench executable has no profile directory")?;
-    let dir_name = profile_dir
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let profile = match dir_name.as_str() {
-        "debug" => "dev".to_string(),
-        other => other.to_string(),
-    };
-    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-    let status = Command::new(cargo)
-        .args(["build", "-q", "-p", "guardian-daemon", "--bin", "guardiand"])
-        .args(["--profile", &profile])
-        .current_dir(workspace_root())
-        .status()
-        .context("running cargo build for guardiand")?;
-    if !status.success() {
-        bail!("building guardiand failed");
-    }
-    let bin = profile_dir.join("guardiand");
-    if !bin.exists() {
-        bail!("{} not found after the build", bin.display());
-    }
-    Ok(bin)
-}
 
 struct Deployment {
     dir: PathBuf,
