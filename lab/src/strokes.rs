@@ -228,6 +228,20 @@ fn sorted_entries(dir: &Path) -> Result<Vec<PathBuf>, ReadStrokesError> {
     Ok(out)
 }
 
+/// The drawing files (`*.txt`) of `<root>/<alphabet>/characterNN`, sorted by name (that is,
+/// by drawer).
+pub fn character_files(
+    root: &Path,
+    alphabet: &str,
+    character: u32,
+) -> Result<Vec<PathBuf>, ReadStrokesError> {
+    let dir = root.join(alphabet).join(format!("character{character:02}"));
+    Ok(sorted_entries(&dir)?
+        .into_iter()
+        .filter(|p| p.extension().is_some_and(|e| e == "txt"))
+        .collect())
+}
+
 /// Find every drawing under the roots (each `<root>/<Alphabet>/characterNN/NNNN_DD.txt`),
 /// sorted by alphabet, character, drawer. Hidden entries and files not ending in `.txt`
 /// are ignored; a `.txt` file with a name other than `NNNN_DD.txt` is an error.

@@ -2,24 +2,18 @@
 //! genuine dense joint path and fires on the same drawing corrupted the way it guards
 //! against; the geometry descriptor of a shifted / scaled drawing moves as expected.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use guardian_lab::dataset::convert_strokes;
 use guardian_lab::path::{Geometry, PathSolver};
-use guardian_lab::strokes::{Stroke, read_strokes};
+use guardian_lab::strokes::{Stroke, character_files, read_strokes};
 use guardian_models::workcell::{inspect, plan_geometry};
 use guardian_shared::trajectory::{JOINTS, Q_MAX, Q_MIN, Waypoint};
 use guardian_shared::workcell::{GeometryFeature, Workcell, WorkcellKind};
 
 fn drawing(character: u32, drawer: usize) -> Vec<Stroke> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/omniglot/strokes/Greek")
-        .join(format!("character{character:02}"));
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
-        .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
-        .map(|e| e.unwrap().path())
-        .collect();
-    files.sort();
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/omniglot/strokes");
+    let files = character_files(&root, "Greek", character).unwrap();
     read_strokes(&files[drawer]).unwrap()
 }
 

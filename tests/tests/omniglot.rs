@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use guardian_client::Trajectory;
 use guardian_lab::dataset::convert_strokes;
 use guardian_lab::path::{Geometry, PathSolver};
-use guardian_lab::strokes::read_strokes;
+use guardian_lab::strokes::{character_files, read_strokes};
 use guardian_models::bank::distance;
 use guardian_models::embedder::Embedder;
 use guardian_tests::harness;
@@ -19,15 +19,9 @@ fn strokes_dir() -> PathBuf {
 
 /// Drawing `drawer` (1-based) of `Latin/characterNN`.
 fn drawing(character: u32, drawer: u32) -> PathBuf {
-    let dir = strokes_dir()
-        .join("Latin")
-        .join(format!("character{character:02}"));
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
-        .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
-        .map(|e| e.unwrap().path())
-        .collect();
-    files.sort();
-    files[drawer as usize - 1].clone()
+    character_files(&strokes_dir(), "Latin", character).expect("character folder")
+        [drawer as usize - 1]
+        .clone()
 }
 
 #[test]

@@ -5,12 +5,10 @@
 //! enrolled through the daemon get descriptors, and the same drawing placed elsewhere on
 //! the canvas is answered `GeometryMismatch` naming the centre.
 
-use std::path::PathBuf;
-
 use guardian_client::{Decision, GeometryFeature, NoGoReason, Trajectory, WorkcellKind};
 use guardian_lab::dataset::convert_strokes;
 use guardian_lab::path::{Geometry, PathSolver};
-use guardian_lab::strokes::read_strokes;
+use guardian_lab::strokes::{character_files, read_strokes};
 use guardian_models::bank::{ClassBank, GeometryCalibration};
 use guardian_models::embedder::{EMBED_DIM, Embedder};
 use guardian_shared::trajectory::Waypoint;
@@ -21,14 +19,8 @@ fn drawing(character: u32, drawer: usize) -> Vec<Waypoint> {
 }
 
 fn drawing_on(geometry: &Geometry, character: u32, drawer: usize) -> Vec<Waypoint> {
-    let dir = harness::workspace_root()
-        .join("../shared/omniglot/strokes/Latin")
-        .join(format!("character{character:02}"));
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
-        .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
-        .map(|e| e.unwrap().path())
-        .collect();
-    files.sort();
+    let root = harness::workspace_root().join("../shared/omniglot/strokes");
+    let files = character_files(&root, "Latin", character).expect("character folder");
     let solver = PathSolver::new(geometry).expect("solver");
     convert_strokes(&solver, &read_strokes(&files[drawer]).unwrap())
         .unwrap()
