@@ -11,6 +11,11 @@ use std::time::{Duration, Instant};
 
 use guardian_client::{Client, ClientConfig, Trajectory};
 use guardian_models::embedder::Embedder;
+use guardian_shared::wire::{self, ClassEntry, RequestHeader, ResponseHeader};
+use iceoryx2::prelude::{
+    AllocationStrategy, FileName, Node, NodeBuilder, SemanticString, ServiceName,
+    SignalHandlingMode, ipc,
+};
 
 static COUNTER: AtomicU32 = AtomicU32::new(0);
 
@@ -332,4 +337,80 @@ pub fn traj(class: u32, drawer: u32) -> Trajectory {
 
 pub fn workspace_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// The request-response service of a test daemon, as a planner opens it.
+pub type RawRpc = iceoryx2::service::port_factory::request_response::PortFactory<
+    ipc::Service,
+    [f32],
+    RequestHeader,
+    [ClassEntry],
+    ResponseHeader,
+>;
+
+/// A client port on [`RawRpc`].
+pub type RawPort = iceoryx2::port::client::Client<
+    ipc::Service,
+    [f32],
+    RequestHeader,
+    [ClassEntry],
+    ResponseHeader,
+>;
+
+/// A planner that bypasses the client library (as a C planner would): its own iceoryx2 node
+/// on the test daemon's root path and prefix, the opened request-response service and a
+/// notifier on the request event. Fields drop in order, the node last.
+pub struct RawPlanner {
+    /// The opened request-response service.
+    pub rpc: RawRpc,
+    /// Notifier on `<service>/requests`.
+    pub wake: iceoryx2::port::notifier::Notifier<ipc::Service>,
+    /// The planner's node.
+    pub node: Node<ipc::Service>,
+}
+
+impl RawPlanner {
+    /// A new client port (payloads grow by powers of two from 8,192 floats).
+    pub fn client_port(&self) -> RawPort {
+        self.rpc
+            .client_builder()
+            .initial_max_slice_len(8192)
+            .allocation_strategy(AllocationStrategy::PowerOfTwo)
+            .create()
+            .expect("client port")
+    }
+}
+
+impl Setup {
+    /// Open this daemon's services as a raw planner (the daemon must be running).
+    pub fn raw_planner(&self) -> RawPlanner {
+        let mut ic = iceoryx2::config::Config::default();
+        let root = format!("{}/", self.dir.path().join("iox").display());
+        ic.global
+            .set_root_path(&iceoryx2::prelude::Path::new(root.as_bytes()).expect("root path"));
+        ic.global.prefix = FileName::new(self.prefix.as_bytes()).expect("prefix");
+        let node = NodeBuilder::new()
+            .config(&ic)
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<ipc::Service>()
+            .expect("node");
+        let rpc = node
+            .service_builder(&ServiceName::new(&self.service).expect("service name"))
+            .request_response::<[f32], [ClassEntry]>()
+            .request_user_header::<RequestHeader>()
+            .response_user_header::<ResponseHeader>()
+            .open()
+            .expect("open the request-response service");
+        let wake = node
+            .service_builder(
+                &ServiceName::new(&wire::request_event_name(&self.service)).expect("event name"),
+            )
+            .event()
+            .open()
+            .expect("open the request event")
+            .notifier_builder()
+            .create()
+            .expect("notifier");
+        RawPlanner { rpc, wake, node }
+    }
 }

@@ -15,66 +15,25 @@ use guardian_shared::wire::{
     self, ClassEntry, ClassNameError, MAX_EXAMPLES, MAX_REQUEST_FLOATS, NAME_BYTES, Op, ReasonCode,
     RequestHeader, ResponseHeader, Status, VerdictCode, decode_class_name, encode_class_name,
 };
-use guardian_tests::harness::{Daemon, PATIENCE, Setup, task, traj};
-use iceoryx2::prelude::*;
+use guardian_tests::harness::{Daemon, PATIENCE, RawPlanner, RawPort, Setup, task, traj};
 use proptest::prelude::*;
 use proptest::test_runner::{Config, TestRunner};
 
 /// Random raw requests sent to the daemon (each is one round trip to the real process).
 const RANDOM_REQUESTS: u32 = 3_000;
 
-type RawPort = iceoryx2::port::client::Client<
-    ipc::Service,
-    [f32],
-    RequestHeader,
-    [ClassEntry],
-    ResponseHeader,
->;
-
-/// A raw planner: its own node, client port and wake-up notifier, no validation.
+/// A raw planner with one client port (the port drops before the planner's node).
 struct Raw {
     port: RawPort,
-    wake: iceoryx2::port::notifier::Notifier<ipc::Service>,
-    _node: Node<ipc::Service>,
+    planner: RawPlanner,
 }
 
 impl Raw {
     fn connect(s: &Setup) -> Self {
-        let mut ic = iceoryx2::config::Config::default();
-        let root = format!("{}/", s.dir.path().join("iox").display());
-        ic.global
-            .set_root_path(&iceoryx2::prelude::Path::new(root.as_bytes()).unwrap());
-        ic.global.prefix = FileName::new(s.prefix.as_bytes()).unwrap();
-        let node = NodeBuilder::new()
-            .config(&ic)
-            .signal_handling_mode(SignalHandlingMode::Disabled)
-            .create::<ipc::Service>()
-            .unwrap();
-        let rpc = node
-            .service_builder(&ServiceName::new(&s.service).unwrap())
-            .request_response::<[f32], [ClassEntry]>()
-            .request_user_header::<RequestHeader>()
-            .response_user_header::<ResponseHeader>()
-            .open()
-            .unwrap();
-        let wake = node
-            .service_builder(&ServiceName::new(&wire::request_event_name(&s.service)).unwrap())
-            .event()
-            .open()
-            .unwrap()
-            .notifier_builder()
-            .create()
-            .unwrap();
-        let port = rpc
-            .client_builder()
-            .initial_max_slice_len(8192)
-            .allocation_strategy(AllocationStrategy::PowerOfTwo)
-            .create()
-            .unwrap();
+        let planner = s.raw_planner();
         Self {
-            port,
-            wake,
-            _node: node,
+            port: planner.client_port(),
+            planner,
         }
     }
 
@@ -83,7 +42,7 @@ impl Raw {
         let mut r = self.port.loan_slice_uninit(payload.len()).expect("loan");
         *r.user_header_mut() = *h;
         let pending = r.write_from_slice(payload).send().expect("send");
-        self.wake.notify().expect("notify");
+        self.planner.wake.notify().expect("notify");
         let start = Instant::now();
         loop {
             if let Some(resp) = pending.receive().expect("receive") {

@@ -465,46 +465,17 @@ fn busy_poll_and_spin_then_sleep_modes_serve() {
 #[test]
 fn raw_wire_requests_are_validated_by_the_daemon() {
     use guardian_shared::wire::{
-        self, ClassEntry, Op, ReasonCode, RequestHeader, ResponseHeader, Status, VerdictCode,
+        self, Op, ReasonCode, RequestHeader, ResponseHeader, Status, VerdictCode,
     };
-    use iceoryx2::prelude::*;
 
     let mut s = Setup::new(19);
     s.extra = "default-threshold = 1e9".into();
     let _d = Daemon::start(&s);
     enroll_classes(&s.client(), &[0]);
 
-    let mut ic = iceoryx2::config::Config::default();
-    let root = format!("{}/", s.dir.path().join("iox").display());
-    ic.global
-        .set_root_path(&Path::new(root.as_bytes()).unwrap());
-    ic.global.prefix = FileName::new(s.prefix.as_bytes()).unwrap();
-    let node = NodeBuilder::new()
-        .config(&ic)
-        .signal_handling_mode(SignalHandlingMode::Disabled)
-        .create::<ipc::Service>()
-        .unwrap();
-    let rpc = node
-        .service_builder(&ServiceName::new(&s.service).unwrap())
-        .request_response::<[f32], [ClassEntry]>()
-        .request_user_header::<RequestHeader>()
-        .response_user_header::<ResponseHeader>()
-        .open()
-        .unwrap();
-    let wake = node
-        .service_builder(&ServiceName::new(&wire::request_event_name(&s.service)).unwrap())
-        .event()
-        .open()
-        .unwrap()
-        .notifier_builder()
-        .create()
-        .unwrap();
-    let client = rpc
-        .client_builder()
-        .initial_max_slice_len(8192)
-        .allocation_strategy(AllocationStrategy::PowerOfTwo)
-        .create()
-        .unwrap();
+    let raw = s.raw_planner();
+    let wake = &raw.wake;
+    let client = raw.client_port();
     let call = |h: RequestHeader, payload: &[f32]| -> ResponseHeader {
         let mut r = client.loan_slice_uninit(payload.len()).unwrap();
         *r.user_header_mut() = h;
@@ -591,31 +562,8 @@ fn an_answer_wakes_only_its_client_and_legacy_clients_share_the_common_event() {
     let _d = Daemon::start(&s);
     enroll_classes(&s.client(), &[0]);
 
-    let mut ic = iceoryx2::config::Config::default();
-    let root = format!("{}/", s.dir.path().join("iox").display());
-    ic.global
-        .set_root_path(&Path::new(root.as_bytes()).unwrap());
-    ic.global.prefix = FileName::new(s.prefix.as_bytes()).unwrap();
-    let node = NodeBuilder::new()
-        .config(&ic)
-        .signal_handling_mode(SignalHandlingMode::Disabled)
-        .create::<ipc::Service>()
-        .unwrap();
-    let rpc = node
-        .service_builder(&ServiceName::new(&s.service).unwrap())
-        .request_response::<[f32], [ClassEntry]>()
-        .request_user_header::<RequestHeader>()
-        .response_user_header::<ResponseHeader>()
-        .open()
-        .unwrap();
-    let wake = node
-        .service_builder(&ServiceName::new(&wire::request_event_name(&s.service)).unwrap())
-        .event()
-        .open()
-        .unwrap()
-        .notifier_builder()
-        .create()
-        .unwrap();
+    let raw = s.raw_planner();
+    let (node, wake) = (&raw.node, &raw.wake);
     let shared = node
         .service_builder(&ServiceName::new(&wire::response_event_name(&s.service)).unwrap())
         .event()
@@ -624,13 +572,7 @@ fn an_answer_wakes_only_its_client_and_legacy_clients_share_the_common_event() {
         .listener_builder()
         .create()
         .unwrap();
-    let new_client = || {
-        rpc.client_builder()
-            .initial_max_slice_len(8192)
-            .allocation_strategy(AllocationStrategy::PowerOfTwo)
-            .create()
-            .unwrap()
-    };
+    let new_client = || raw.client_port();
     // Clients A and B with their own response event services, C without (an older client).
     let (a, b, c) = (new_client(), new_client(), new_client());
     let own = |client: u128| {
