@@ -18,11 +18,11 @@ use std::sync::{Arc, Barrier, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-use guardian_client::{Client, Decision, NoGoReason, Trajectory, Verdict, Waypoint};
+use guardian_client::{Client, Decision, NoGoReason, Trajectory, Waypoint};
 use guardian_lab::dataset::convert_strokes;
 use guardian_lab::path::{Geometry, PathSolver};
 use guardian_lab::strokes::read_strokes;
-use guardian_tests::harness::{Daemon, Setup, workspace_root};
+use guardian_tests::harness::{Daemon, Expected, Setup, workspace_root};
 
 /// Latin characters enrolled as task classes, drawers used to enroll, drawers checked.
 const CLASSES: u32 = 8;
@@ -77,37 +77,6 @@ fn drawing(strokes: &Path, character: u32, drawer: u32) -> Result<PathBuf> {
         .get(drawer as usize - 1)
         .cloned()
         .with_context(|| format!("{}: no drawer {drawer}", dir.display()))
-}
-
-/// What a request must be answered with: the decision and nearest class given by the
-/// daemon to the same request before the run, and the claimed distance.
-#[derive(Debug, Clone, PartialEq)]
-struct Expected {
-    decision: Decision,
-    nearest: Option<String>,
-    distance: Option<f32>,
-}
-
-impl Expected {
-    fn of(v: &Verdict) -> Self {
-        Self {
-            decision: v.decision.clone(),
-            nearest: v.nearest.first().map(|n| n.class.clone()),
-            distance: v.claimed_distance,
-        }
-    }
-
-    /// Same answer; distances may differ by float rounding between batched and single
-    /// forward passes.
-    fn matches(&self, v: &Verdict) -> bool {
-        let got = Self::of(v);
-        let close = match (self.distance, got.distance) {
-            (Some(a), Some(b)) => (a - b).abs() <= 1e-4 * a.abs().max(1.0),
-            (None, None) => true,
-            _ => false,
-        };
-        close && self.decision == got.decision && self.nearest == got.nearest
-    }
 }
 
 struct Request {

@@ -9,7 +9,7 @@ use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
-use guardian_client::{Client, ClientConfig, Trajectory};
+use guardian_client::{Client, ClientConfig, Decision, Trajectory, Verdict};
 use guardian_models::embedder::Embedder;
 use guardian_shared::wire::{self, ClassEntry, RequestHeader, ResponseHeader};
 use iceoryx2::prelude::{
@@ -412,5 +412,40 @@ impl Setup {
             .create()
             .expect("notifier");
         RawPlanner { rpc, wake, node }
+    }
+}
+
+/// The answer a request must get again: the decision and nearest class the daemon gave the
+/// same request before, and the claimed distance (load and soak compare every answer to it).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Expected {
+    /// Go or no-go with the reason.
+    pub decision: Decision,
+    /// Nearest class.
+    pub nearest: Option<String>,
+    /// Distance to the claimed class.
+    pub distance: Option<f32>,
+}
+
+impl Expected {
+    /// What `v` answered.
+    pub fn of(v: &Verdict) -> Self {
+        Self {
+            decision: v.decision.clone(),
+            nearest: v.nearest.first().map(|n| n.class.clone()),
+            distance: v.claimed_distance,
+        }
+    }
+
+    /// Same decision and nearest class; the distance may differ by float rounding between a
+    /// micro-batched and a single forward pass (1e-4 relative), far less than between plans.
+    pub fn matches(&self, v: &Verdict) -> bool {
+        let got = Self::of(v);
+        let close = match (self.distance, got.distance) {
+            (Some(a), Some(b)) => (a - b).abs() <= 1e-4 * a.abs().max(1.0),
+            (None, None) => true,
+            _ => false,
+        };
+        close && self.decision == got.decision && self.nearest == got.nearest
     }
 }

@@ -5,42 +5,12 @@
 
 use std::sync::{Arc, Barrier};
 
-use guardian_client::{Client, Decision, NoGoReason, Trajectory, Verdict};
-use guardian_tests::harness::{Daemon, Setup, task};
+use guardian_client::{Client, Decision, NoGoReason, Trajectory};
+use guardian_tests::harness::{Daemon, Expected, Setup, task};
 
 const THREADS: usize = 16;
 const PER_THREAD: usize = 10_000;
 const CLASSES: u32 = 16;
-
-/// The answer one request must get.
-#[derive(Debug, Clone, PartialEq)]
-struct Expected {
-    decision: Decision,
-    nearest: Option<String>,
-    distance: Option<f32>,
-}
-
-impl Expected {
-    fn of(v: &Verdict) -> Self {
-        Self {
-            decision: v.decision.clone(),
-            nearest: v.nearest.first().map(|n| n.class.clone()),
-            distance: v.claimed_distance,
-        }
-    }
-
-    /// Same decision and nearest class; the distance may differ by float rounding between a
-    /// micro-batched and a single forward pass, far less than between different plans.
-    fn matches(&self, v: &Verdict) -> bool {
-        let got = Self::of(v);
-        let close = match (self.distance, got.distance) {
-            (Some(a), Some(b)) => (a - b).abs() <= 1e-4 * a.abs().max(1.0),
-            (None, None) => true,
-            _ => false,
-        };
-        close && self.decision == got.decision && self.nearest == got.nearest
-    }
-}
 
 struct Request {
     plan: Trajectory,
