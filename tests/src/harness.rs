@@ -37,7 +37,19 @@ impl Setup {
     pub fn new(seed: u64) -> Self {
         let dir = tempfile::tempdir().expect("tempdir");
         let n = COUNTER.fetch_add(1, Ordering::SeqCst);
-        let tag = format!("{}x{n}", std::process::id());
+        // The temporary directory's random name keeps the iceoryx2 prefix unique even when a
+        // process id repeats and an earlier, killed test left segments in /dev/shm.
+        let unique: String = dir
+            .path()
+            .file_name()
+            .map(|f| {
+                f.to_string_lossy()
+                    .chars()
+                    .filter(char::is_ascii_alphanumeric)
+                    .collect()
+            })
+            .unwrap_or_default();
+        let tag = format!("{}x{n}{unique}", std::process::id());
         let model = dir.path().join("model.safetensors");
         Embedder::random(seed).save(&model).expect("save model");
         Self {
