@@ -733,15 +733,7 @@ impl PositionFk {
     pub fn positions_into(&self, waypoints: &[Waypoint], out: &mut [[f64; 3]]) {
         for (ws, os) in waypoints.chunks(FK_LANES).zip(out.chunks_mut(FK_LANES)) {
             let n = ws.len().min(os.len());
-            let mut s = [[0.0f64; FK_LANES]; JOINTS];
-            let mut c = [[0.0f64; FK_LANES]; JOINTS];
-            for j in 0..JOINTS {
-                let mut x = [0.0f64; FK_LANES];
-                for l in 0..n {
-                    x[l] = f64::from(ws[l][j]);
-                }
-                sin_cos_block(&x, &mut s[j], &mut c[j]);
-            }
+            let (s, c) = joint_sin_cos(&ws[..n]);
             for l in 0..n {
                 let mut v = self.tip;
                 for j in (0..JOINTS).rev() {
@@ -768,15 +760,7 @@ impl PositionFk {
             .zip(rotations.chunks_mut(FK_LANES));
         for ((ws, ps), rs) in chunks {
             let n = ws.len().min(ps.len()).min(rs.len());
-            let mut s = [[0.0f64; FK_LANES]; JOINTS];
-            let mut c = [[0.0f64; FK_LANES]; JOINTS];
-            for j in 0..JOINTS {
-                let mut x = [0.0f64; FK_LANES];
-                for l in 0..n {
-                    x[l] = f64::from(ws[l][j]);
-                }
-                sin_cos_block(&x, &mut s[j], &mut c[j]);
-            }
+            let (s, c) = joint_sin_cos(&ws[..n]);
             for l in 0..n {
                 let mut v = self.tip;
                 let [mut ax, mut az] = self.tool_axes;
@@ -791,6 +775,22 @@ impl PositionFk {
             }
         }
     }
+}
+
+/// Sines and cosines of every joint of a block of at most [`FK_LANES`] waypoints, per joint.
+type LaneTable = [[f64; FK_LANES]; JOINTS];
+
+fn joint_sin_cos(ws: &[Waypoint]) -> (LaneTable, LaneTable) {
+    let mut s = [[0.0f64; FK_LANES]; JOINTS];
+    let mut c = [[0.0f64; FK_LANES]; JOINTS];
+    for j in 0..JOINTS {
+        let mut x = [0.0f64; FK_LANES];
+        for (l, w) in ws.iter().take(FK_LANES).enumerate() {
+            x[l] = f64::from(w[j]);
+        }
+        sin_cos_block(&x, &mut s[j], &mut c[j]);
+    }
+    (s, c)
 }
 
 /// Sine and cosine of a block of angles, branch-free so the compiler vectorises it:
