@@ -639,7 +639,7 @@ pub struct PositionFk {
 
 /// Waypoints per block of [`PositionFk::positions_into`] (the sines and cosines of a block
 /// are computed together, which the compiler vectorises).
-const FK_LANES: usize = 8;
+pub const FK_LANES: usize = 8;
 
 impl PositionFk {
     fn from_panda(panda: &Panda) -> Option<Self> {
@@ -690,30 +690,62 @@ impl PositionFk {
         Some(fk)
     }
 
-    /// One joint, rotation only: direction `v` in the frame after joint `j` to the frame
-    /// before it.
+    /// One joint on a block of lanes: `v` in the frame after joint `j` to the frame before
+    /// it, with the joint origin's offset added when `offset` (a point) and without (a
+    /// direction). The same operations, in the same order, as [`PositionFk::position`] per
+    /// lane, so results are bit for bit those of the scalar chain.
     #[inline(always)]
-    fn turn(&self, j: usize, s: f64, c: f64, v: [f64; 3]) -> [f64; 3] {
-        let r = [c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]];
+    fn joint_lanes(
+        &self,
+        j: usize,
+        s: &[f64; FK_LANES],
+        c: &[f64; FK_LANES],
+        v: &Lanes,
+        offset: bool,
+    ) -> Lanes {
+        let mut r = [[0.0f64; FK_LANES]; 3];
+        for l in 0..FK_LANES {
+            r[0][l] = c[l] * v[0][l] - s[l] * v[1][l];
+            r[1][l] = s[l] * v[0][l] + c[l] * v[1][l];
+        }
+        r[2] = v[2];
         let m = &self.rotations[j];
-        [
-            m.sign[0] * r[m.src[0]],
-            m.sign[1] * r[m.src[1]],
-            m.sign[2] * r[m.src[2]],
-        ]
+        let t = if offset { Some(self.offsets[j]) } else { None };
+        // The axes as constants (one arm per permutation), so `r` stays in registers; a
+        // run-time index would keep it in memory.
+        match m.src {
+            [0, 1, 2] => permute_lanes::<0, 1, 2>(&r, m.sign, t),
+            [0, 2, 1] => permute_lanes::<0, 2, 1>(&r, m.sign, t),
+            [1, 0, 2] => permute_lanes::<1, 0, 2>(&r, m.sign, t),
+            [1, 2, 0] => permute_lanes::<1, 2, 0>(&r, m.sign, t),
+            [2, 0, 1] => permute_lanes::<2, 0, 1>(&r, m.sign, t),
+            // [2, 1, 0], the only permutation left (`AxisMap` holds permutations only).
+            _ => permute_lanes::<2, 1, 0>(&r, m.sign, t),
+        }
     }
 
-    /// One joint: `v` in the frame after joint `j` to the frame before it.
+    /// Pen-tip positions of a block of waypoints from their joint sines and cosines.
     #[inline(always)]
-    fn link(&self, j: usize, s: f64, c: f64, v: [f64; 3]) -> [f64; 3] {
-        let r = [c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]];
-        let m = &self.rotations[j];
-        let t = &self.offsets[j];
-        [
-            m.sign[0] * r[m.src[0]] + t[0],
-            m.sign[1] * r[m.src[1]] + t[1],
-            m.sign[2] * r[m.src[2]] + t[2],
-        ]
+    fn block_positions(&self, s: &LaneTable, c: &LaneTable) -> Lanes {
+        let mut v = self.tip.map(|x| [x; FK_LANES]);
+        for j in (0..JOINTS).rev() {
+            v = self.joint_lanes(j, &s[j], &c[j], &v, true);
+        }
+        v
+    }
+
+    /// Pen-tip positions and the tool's x and z axes (base frame) of a block of waypoints.
+    #[inline(always)]
+    fn block_poses(&self, s: &LaneTable, c: &LaneTable) -> PoseLanes {
+        let mut p = self.tip.map(|x| [x; FK_LANES]);
+        let mut x = self.tool_axes[0].map(|v| [v; FK_LANES]);
+        let mut z = self.tool_axes[1].map(|v| [v; FK_LANES]);
+        for j in (0..JOINTS).rev() {
+            p = self.joint_lanes(j, &s[j], &c[j], &p, true);
+            x = self.joint_lanes(j, &s[j], &c[j], &x, false);
+            z = self.joint_lanes(j, &s[j], &c[j], &z, false);
+        }
+        PoseLanes { p, x, z }
     }
 
     /// Pen-tip position (m, base frame) at `q`.
@@ -722,26 +754,35 @@ impl PositionFk {
         let mut v = self.tip;
         for j in (0..JOINTS).rev() {
             let (s, c) = q[j].sin_cos();
-            v = self.link(j, s, c, v);
+            let r = [c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]];
+            let m = &self.rotations[j];
+            let t = &self.offsets[j];
+            v = std::array::from_fn(|i| m.sign[i] * r[m.src[i]] + t[i]);
         }
         v
     }
 
+    /// Pen-tip positions and tool axes of a block of at most [`FK_LANES`] waypoints (lanes
+    /// past `ws.len()` hold the pose at all-zero joints). Inlined into its caller, so a
+    /// caller compiled for a wider SIMD instruction set (a [`pulp::WithSimd`] run under
+    /// [`pulp::Arch::dispatch`]) gets the block vectorised with it.
+    #[inline(always)]
+    pub fn pose_lanes(&self, ws: &[Waypoint]) -> PoseLanes {
+        let (s, c) = joint_sin_cos(ws);
+        self.block_poses(&s, &c)
+    }
+
     /// Pen-tip positions (m, base frame) of the joint parts of `waypoints` into `out`
-    /// (pairs up to the shorter of the two). Sines and cosines of blocks of waypoints are
-    /// computed together by [`sin_cos_block`]; allocates nothing.
+    /// (pairs up to the shorter of the two). Blocks of [`FK_LANES`] waypoints are evaluated
+    /// together (sines and cosines by [`sin_cos_block`], the chain lane by lane), compiled
+    /// for the widest SIMD instruction set this CPU has (runtime dispatch); allocates
+    /// nothing.
     pub fn positions_into(&self, waypoints: &[Waypoint], out: &mut [[f64; 3]]) {
-        for (ws, os) in waypoints.chunks(FK_LANES).zip(out.chunks_mut(FK_LANES)) {
-            let n = ws.len().min(os.len());
-            let (s, c) = joint_sin_cos(&ws[..n]);
-            for l in 0..n {
-                let mut v = self.tip;
-                for j in (0..JOINTS).rev() {
-                    v = self.link(j, s[j][l], c[j][l], v);
-                }
-                os[l] = v;
-            }
-        }
+        pulp::Arch::new().dispatch(PositionsOp {
+            fk: self,
+            waypoints,
+            out,
+        });
     }
 
     /// Pen-tip positions and tool rotations of `waypoints` (pairs up to the shortest of the
@@ -754,32 +795,115 @@ impl PositionFk {
         positions: &mut [[f64; 3]],
         rotations: &mut [Matrix3<f64>],
     ) {
-        let chunks = waypoints
+        pulp::Arch::new().dispatch(PosesOp {
+            fk: self,
+            waypoints,
+            positions,
+            rotations,
+        });
+    }
+}
+
+/// [`PositionFk::positions_into`] as a runtime-dispatched SIMD operation.
+struct PositionsOp<'a> {
+    fk: &'a PositionFk,
+    waypoints: &'a [Waypoint],
+    out: &'a mut [[f64; 3]],
+}
+
+impl pulp::WithSimd for PositionsOp<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        for (ws, os) in self
+            .waypoints
             .chunks(FK_LANES)
-            .zip(positions.chunks_mut(FK_LANES))
-            .zip(rotations.chunks_mut(FK_LANES));
-        for ((ws, ps), rs) in chunks {
-            let n = ws.len().min(ps.len()).min(rs.len());
+            .zip(self.out.chunks_mut(FK_LANES))
+        {
+            let n = ws.len().min(os.len());
             let (s, c) = joint_sin_cos(&ws[..n]);
+            let v = self.fk.block_positions(&s, &c);
+            for (l, o) in os[..n].iter_mut().enumerate() {
+                *o = [v[0][l], v[1][l], v[2][l]];
+            }
+        }
+    }
+}
+
+/// [`PositionFk::poses_into`] as a runtime-dispatched SIMD operation.
+struct PosesOp<'a> {
+    fk: &'a PositionFk,
+    waypoints: &'a [Waypoint],
+    positions: &'a mut [[f64; 3]],
+    rotations: &'a mut [Matrix3<f64>],
+}
+
+impl pulp::WithSimd for PosesOp<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let blocks = self
+            .waypoints
+            .chunks(FK_LANES)
+            .zip(self.positions.chunks_mut(FK_LANES))
+            .zip(self.rotations.chunks_mut(FK_LANES));
+        for ((ws, ps), rs) in blocks {
+            let n = ws.len().min(ps.len()).min(rs.len());
+            let b = self.fk.pose_lanes(&ws[..n]);
             for l in 0..n {
-                let mut v = self.tip;
-                let [mut ax, mut az] = self.tool_axes;
-                for j in (0..JOINTS).rev() {
-                    v = self.link(j, s[j][l], c[j][l], v);
-                    ax = self.turn(j, s[j][l], c[j][l], ax);
-                    az = self.turn(j, s[j][l], c[j][l], az);
-                }
-                ps[l] = v;
-                let (x, z) = (Vector3::from(ax), Vector3::from(az));
+                ps[l] = [b.p[0][l], b.p[1][l], b.p[2][l]];
+                let x = Vector3::new(b.x[0][l], b.x[1][l], b.x[2][l]);
+                let z = Vector3::new(b.z[0][l], b.z[1][l], b.z[2][l]);
                 rs[l] = Matrix3::from_columns(&[x, z.cross(&x), z]);
             }
         }
     }
 }
 
+/// `out[i] = sign[i] * r[src[i]] (+ t[i])` lane by lane with `src = [A, B, C]`: the same
+/// operations as [`PositionFk::position`].
+#[inline(always)]
+fn permute_lanes<const A: usize, const B: usize, const C: usize>(
+    r: &Lanes,
+    sign: [f64; 3],
+    t: Option<[f64; 3]>,
+) -> Lanes {
+    let mut out = [[0.0f64; FK_LANES]; 3];
+    for l in 0..FK_LANES {
+        out[0][l] = sign[0] * r[A][l];
+        out[1][l] = sign[1] * r[B][l];
+        out[2][l] = sign[2] * r[C][l];
+    }
+    if let Some(t) = t {
+        for (o, t) in out.iter_mut().zip(t) {
+            for v in o.iter_mut() {
+                *v += t;
+            }
+        }
+    }
+    out
+}
+
 /// Sines and cosines of every joint of a block of at most [`FK_LANES`] waypoints, per joint.
 type LaneTable = [[f64; FK_LANES]; JOINTS];
 
+/// A 3-vector per lane of a block: `v[axis][lane]`.
+pub type Lanes = [[f64; FK_LANES]; 3];
+
+/// Pen-tip positions and tool axes of a block of waypoints, lane by lane (base frame).
+#[derive(Debug, Clone, Copy)]
+pub struct PoseLanes {
+    /// Pen-tip positions (m).
+    pub p: Lanes,
+    /// The tool's x axis.
+    pub x: Lanes,
+    /// The tool's z axis.
+    pub z: Lanes,
+}
+
+#[inline(always)]
 fn joint_sin_cos(ws: &[Waypoint]) -> (LaneTable, LaneTable) {
     let mut s = [[0.0f64; FK_LANES]; JOINTS];
     let mut c = [[0.0f64; FK_LANES]; JOINTS];
@@ -798,6 +922,7 @@ fn joint_sin_cos(ws: &[Waypoint]) -> (LaneTable, LaneTable) {
 /// degree 17 (sine) and 18 (cosine), whose truncation error there is below 1e-19. Absolute
 /// error against `f64::sin_cos` is a few 1e-16 for `|x| <= 1e3` (tested over the joint
 /// range); larger or non-finite angles fall back to `f64::sin_cos`.
+#[inline(always)]
 fn sin_cos_block(x: &[f64; FK_LANES], s: &mut [f64; FK_LANES], c: &mut [f64; FK_LANES]) {
     // Adding and subtracting 1.5 * 2^52 rounds to the nearest integer (ties to even), and
     // the low bits of the sum are that integer modulo 4.
