@@ -20,8 +20,9 @@ use guardian_shared::trajectory::{self, InvalidTrajectory, Resampled, TOOL, Wayp
 use guardian_shared::workcell::{Workcell, WorkcellKind, WorkcellViolation};
 use nalgebra::{Matrix3, Vector3};
 
+use crate::features::PenPoint;
 use crate::geometry::PlanGeometry;
-use crate::kinematics::{Frame, Panda};
+use crate::kinematics::{FK_LANES, Frame, Panda, PositionFk};
 use crate::preprocess::{cumulative_lengths, default_panda};
 
 /// Result of [`inspect`].
@@ -46,8 +47,7 @@ pub fn commanded_rotation() -> Matrix3<f64> {
 
 /// Rotation angle (rad) between `r` and the commanded orientation.
 pub fn orientation_error(r: &Matrix3<f64>) -> f64 {
-    let f = (r - commanded_rotation()).norm();
-    2.0 * (f / (2.0 * std::f64::consts::SQRT_2)).min(1.0).asin()
+    angle_of_norm((r - commanded_rotation()).norm())
 }
 
 /// Normalised deviations of one pen-tip frame from the workcell rules, in rule order
@@ -59,9 +59,16 @@ fn deviations(
     pen_down: bool,
 ) -> [f64; 4] {
     let orient = orientation_error(rotation) / cell.orientation_tolerance;
+    let [height, canvas, hover] = position_deviations(cell, [p.x, p.y, p.z], pen_down);
+    [orient, height, canvas, hover]
+}
+
+/// The position part of [`deviations`]: pen height, canvas, hover height.
+#[inline(always)]
+fn position_deviations(cell: &Workcell, p: [f64; 3], pen_down: bool) -> [f64; 3] {
     let half = 0.5 * cell.canvas_side;
-    let outside = ((p.x - cell.canvas_x).abs() - half)
-        .max((p.y - cell.canvas_y).abs() - half)
+    let outside = ((p[0] - cell.canvas_x).abs() - half)
+        .max((p[1] - cell.canvas_y).abs() - half)
         .max(0.0);
     // 0 inside the square, 1 at the margin.
     let canvas = if cell.margin > 0.0 {
@@ -71,7 +78,7 @@ fn deviations(
     } else {
         0.0
     };
-    let dz = p.z - cell.canvas_z;
+    let dz = p[2] - cell.canvas_z;
     let (height, hover) = if pen_down {
         (dz.abs() / cell.height_tolerance, 0.0)
     } else {
@@ -85,7 +92,34 @@ fn deviations(
         };
         (0.0, below.max(above))
     };
-    [orient, height, canvas, hover]
+    [height, canvas, hover]
+}
+
+/// `‖R − R_cmd‖_F` of the rotation with columns `x`, `z × x`, `z` (what
+/// [`orientation_error`] takes the angle of), without building the matrix.
+#[inline(always)]
+fn orientation_norm(x: [f64; 3], z: [f64; 3]) -> f64 {
+    let y = [
+        z[1] * x[2] - z[2] * x[1],
+        z[2] * x[0] - z[0] * x[2],
+        z[0] * x[1] - z[1] * x[0],
+    ];
+    let sq = (x[0] - 1.0).powi(2)
+        + x[1] * x[1]
+        + x[2] * x[2]
+        + y[0] * y[0]
+        + (y[1] + 1.0).powi(2)
+        + y[2] * y[2]
+        + z[0] * z[0]
+        + z[1] * z[1]
+        + (z[2] + 1.0).powi(2);
+    sq.sqrt()
+}
+
+/// The orientation error (rad) of a rotation `f = ‖R − R_cmd‖_F` away from the commanded
+/// one, as in [`orientation_error`].
+fn angle_of_norm(f: f64) -> f64 {
+    2.0 * (f / (2.0 * std::f64::consts::SQRT_2)).min(1.0).asin()
 }
 
 const KINDS: [WorkcellKind; 4] = [
@@ -155,11 +189,13 @@ thread_local! {
     static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
 }
 
-/// [`inspect`] with a given robot. One pass of the specialised forward kinematics
-/// ([`Panda::pen_tip_poses_into`]) gives every waypoint's pen-tip position and tool
-/// rotation; the positions are those [`crate::preprocess::preprocess_with`] uses, summed the
-/// same way, so the model input is identical. Uses per-thread buffers: after the longest
-/// trajectory has been seen once, nothing is allocated.
+/// [`inspect`] with a given robot. One pass of the forward kinematics gives every
+/// waypoint's pen-tip position and tool axes; the positions are those
+/// [`crate::preprocess::preprocess_with`] uses, summed the same way, so the model input is
+/// identical. With the specialised FK ([`PositionFk`]) the pass and the rules run block by
+/// block under runtime SIMD dispatch ([`InspectOp`]); otherwise through the general chain and
+/// [`check_poses`]. Uses per-thread buffers: after the longest trajectory has been seen
+/// once, nothing is allocated.
 pub fn inspect_with(
     panda: &Panda,
     cell: &Workcell,
@@ -170,25 +206,33 @@ pub fn inspect_with(
     let run = |s: &mut Scratch| {
         if s.positions.len() < n {
             s.positions.resize(n, [0.0; 3]);
-            s.rotations.resize(n, Matrix3::zeros());
             s.lengths.resize(n, 0.0);
         }
-        let (positions, rotations, lengths) = (
-            &mut s.positions[..n],
-            &mut s.rotations[..n],
-            &mut s.lengths[..n],
-        );
-        panda.pen_tip_poses_into(raw, positions, rotations);
+        let (positions, lengths) = (&mut s.positions[..n], &mut s.lengths[..n]);
+        let (violation, score) = match panda.position_fk() {
+            Some(fk) => pulp::Arch::new().dispatch(InspectOp {
+                fk,
+                cell,
+                raw,
+                positions,
+            }),
+            None => {
+                if s.rotations.len() < n {
+                    s.rotations.resize(n, Matrix3::zeros());
+                }
+                let rotations = &mut s.rotations[..n];
+                panda.pen_tip_poses_into(raw, positions, rotations);
+                let poses = positions
+                    .iter()
+                    .zip(rotations.iter())
+                    .zip(raw)
+                    .map(|((p, r), w)| (Vector3::from(*p), *r, w[TOOL]));
+                check_poses(cell, poses)
+            }
+        };
         cumulative_lengths(positions, lengths);
-        let resampled = trajectory::resample(raw, lengths);
-        let poses = positions
-            .iter()
-            .zip(rotations.iter())
-            .zip(raw)
-            .map(|((p, r), w)| (Vector3::from(*p), *r, w[TOOL]));
-        let (violation, score) = check_poses(cell, poses);
         Inspection {
-            resampled,
+            resampled: trajectory::resample(raw, lengths),
             violation,
             score,
         }
@@ -199,10 +243,98 @@ pub fn inspect_with(
     }))
 }
 
+/// The specialised forward kinematics and the workcell rules of a whole trajectory, block
+/// by block, as one runtime-dispatched SIMD operation: pen-tip positions into `positions`,
+/// and [`check_poses`]'s answer. The orientation rule is decided on `‖R − R_cmd‖` (monotone
+/// in the angle), so no arc sine per waypoint; a waypoint near or past any limit is checked
+/// again exactly as [`check_poses`] does, which decides the violation reported.
+struct InspectOp<'a> {
+    fk: &'a PositionFk,
+    cell: &'a Workcell,
+    raw: &'a [Waypoint],
+    positions: &'a mut [[f64; 3]],
+}
+
+impl pulp::WithSimd for InspectOp<'_> {
+    type Output = (Option<WorkcellViolation>, f32);
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) -> Self::Output {
+        let cell = self.cell;
+        // The norm at the tolerance, with a little slack so that rounding near the limit is
+        // settled by the exact check; `None` (an unusual tolerance): check every waypoint.
+        let tol = cell.orientation_tolerance;
+        let bound = (tol.is_finite() && tol > 0.0 && tol < std::f64::consts::PI)
+            .then(|| 2.0 * std::f64::consts::SQRT_2 * (0.5 * tol).sin() * (1.0 - 1e-9));
+        let mut first = None;
+        let mut worst_norm = 0.0f64;
+        let mut worst_position = 0.0f64;
+        let blocks = self
+            .raw
+            .chunks(FK_LANES)
+            .zip(self.positions.chunks_mut(FK_LANES));
+        for (b, (ws, ps)) in blocks.enumerate() {
+            let n = ws.len().min(ps.len());
+            let lanes = self.fk.pose_lanes(&ws[..n]);
+            for (l, p) in ps[..n].iter_mut().enumerate() {
+                *p = [lanes.p[0][l], lanes.p[1][l], lanes.p[2][l]];
+            }
+            if !cell.enabled {
+                continue;
+            }
+            let mut norms = [0.0f64; FK_LANES];
+            for (l, f) in norms.iter_mut().enumerate() {
+                let x = [lanes.x[0][l], lanes.x[1][l], lanes.x[2][l]];
+                let z = [lanes.z[0][l], lanes.z[1][l], lanes.z[2][l]];
+                *f = orientation_norm(x, z);
+            }
+            for l in 0..n {
+                let pen_down = ws[l][TOOL] > 0.5;
+                let dev = position_deviations(cell, ps[l], pen_down);
+                // NaN counts as near (it is a violation).
+                let past = |v: f64, limit: f64| v > limit || v.is_nan();
+                let near =
+                    bound.is_none_or(|b| past(norms[l], b)) || dev.iter().any(|v| past(*v, 1.0));
+                if near && first.is_none() {
+                    let x = Vector3::new(lanes.x[0][l], lanes.x[1][l], lanes.x[2][l]);
+                    let z = Vector3::new(lanes.z[0][l], lanes.z[1][l], lanes.z[2][l]);
+                    let r = Matrix3::from_columns(&[x, z.cross(&x), z]);
+                    let exact = deviations(cell, Vector3::from(ps[l]), &r, pen_down);
+                    first = exact.iter().position(|v| *v > 1.0 || v.is_nan()).map(|k| {
+                        WorkcellViolation {
+                            kind: KINDS[k],
+                            index: u32::try_from(b * FK_LANES + l).unwrap_or(u32::MAX),
+                        }
+                    });
+                }
+                worst_norm = worst_norm.max(norms[l]);
+                for v in dev {
+                    worst_position = worst_position.max(if v.is_nan() { f64::INFINITY } else { v });
+                }
+            }
+        }
+        if !cell.enabled {
+            return (None, 0.0);
+        }
+        let orient = angle_of_norm(worst_norm) / tol;
+        let orient = if orient.is_nan() {
+            f64::INFINITY
+        } else {
+            orient
+        };
+        (first, worst_position.max(orient) as f32)
+    }
+}
+
 /// The plan geometry of a resampled trajectory (see [`PlanGeometry`]); `None` if the pen
 /// never touches the canvas.
 pub fn plan_geometry(x: &Resampled) -> Option<PlanGeometry> {
-    let path = crate::features::pen_path(x);
+    plan_geometry_of_path(&crate::features::pen_path(x))
+}
+
+/// [`plan_geometry`] of an already computed pen path ([`crate::features::pen_path`], e.g.
+/// the one [`crate::embedder::Embedder::embed_with_pen_path`] returns).
+pub fn plan_geometry_of_path(path: &[PenPoint]) -> Option<PlanGeometry> {
     PlanGeometry::from_pen_path(path.iter().map(|p| ([p[0], p[1]], p[2] > 0.5)))
 }
 
@@ -219,6 +351,86 @@ mod tests {
             let r = rc * nalgebra::Rotation3::from_euler_angles(0.0, a, 0.0).into_inner();
             assert!((orientation_error(&r) - a).abs() < 1e-9, "{a}");
         }
+    }
+
+    /// The block-wise SIMD inspection answers exactly like the rules applied to the general
+    /// chain's full frames ([`check_frames`]): same first violation, same score (to
+    /// rounding), on random walks from the ready pose under several rule settings (loose
+    /// ones, so that some walks obey the rules and the first violation falls mid-plan).
+    #[test]
+    fn block_inspection_matches_the_rules_on_general_frames() {
+        use rand::{Rng, SeedableRng};
+        let panda = default_panda();
+        let base = Workcell::default();
+        let ready = panda.pen_tip(&crate::kinematics::READY_POSE).translation;
+        let cells = [
+            base,
+            // Around the ready pose's pen tip, loose: violations appear mid-walk.
+            Workcell {
+                canvas_x: ready.x,
+                canvas_y: ready.y,
+                canvas_z: ready.z,
+                canvas_side: 0.3,
+                orientation_tolerance: 0.2,
+                height_tolerance: 0.05,
+                hover: 0.05,
+                margin: 0.02,
+                ..base
+            },
+            Workcell {
+                canvas_x: ready.x,
+                canvas_y: ready.y,
+                canvas_z: ready.z,
+                canvas_side: 1.0,
+                orientation_tolerance: 1.5,
+                height_tolerance: 0.5,
+                hover: 0.5,
+                margin: 0.0,
+                ..base
+            },
+        ];
+        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+        let (mut violations, mut clean) = (0, 0);
+        for round in 0..60 {
+            let cell = &cells[round % cells.len()];
+            let mut q = crate::kinematics::READY_POSE;
+            let len = rng.random_range(2..150);
+            let step = [0.002, 0.01, 0.03][round % 3];
+            let mut ws = Vec::with_capacity(len);
+            for _ in 0..len {
+                for (j, v) in q.iter_mut().enumerate() {
+                    *v = (*v + rng.random_range(-step..step)).clamp(
+                        guardian_shared::trajectory::Q_MIN[j] + 0.01,
+                        guardian_shared::trajectory::Q_MAX[j] - 0.01,
+                    );
+                }
+                let mut w = [0.0f32; 8];
+                for (j, v) in q.iter().enumerate() {
+                    w[j] = *v as f32;
+                }
+                w[TOOL] = if rng.random_bool(0.5) { 1.0 } else { 0.0 };
+                ws.push(w);
+            }
+            let fast = inspect_with(panda, cell, &ws).unwrap();
+            let frames: Vec<Frame> = ws
+                .iter()
+                .map(|w| panda.pen_tip(&crate::preprocess::joints_of(w)))
+                .collect();
+            let (violation, score) = check_frames(cell, &frames, ws.iter().map(|w| w[TOOL]));
+            assert_eq!(fast.violation, violation, "round {round}");
+            assert!(
+                (fast.score - score).abs() <= 1e-5 * score.abs().max(1.0),
+                "round {round}: {} vs {score}",
+                fast.score
+            );
+            if violation.is_some() {
+                violations += 1;
+            } else {
+                clean += 1;
+            }
+        }
+        // Both outcomes were exercised.
+        assert!(violations > 5 && clean > 5, "{violations} / {clean}");
     }
 
     #[test]
