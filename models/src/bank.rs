@@ -55,16 +55,63 @@ pub const OLDEST_FORMAT_VERSION: u32 = 1;
 pub const DEFAULT_THRESHOLD: f32 = 0.5;
 const MAGIC: &str = "guardian-class-bank";
 
-/// Euclidean distance between two embeddings of equal length.
+/// Accumulators of [`distance`]: independent partial sums, so the sum vectorises.
+const DISTANCE_LANES: usize = 16;
+
+/// Euclidean distance between two embeddings of equal length (pairs up to the shorter).
+/// Squares are summed in [`DISTANCE_LANES`] interleaved partial sums (element `i` into sum
+/// `i % 16`), combined in a fixed order: deterministic, and vectorised by the compiler
+/// (one running sum would be a chain of 128 dependent additions).
+#[inline(always)]
 pub fn distance(a: &[f32], b: &[f32]) -> f32 {
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| {
-            let d = x - y;
-            d * d
-        })
-        .sum::<f32>()
-        .sqrt()
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let mut acc = [0.0f32; DISTANCE_LANES];
+    let (ac, bc) = (
+        a.chunks_exact(DISTANCE_LANES),
+        b.chunks_exact(DISTANCE_LANES),
+    );
+    let (ar, br) = (ac.remainder(), bc.remainder());
+    for (x, y) in ac.zip(bc) {
+        for l in 0..DISTANCE_LANES {
+            let d = x[l] - y[l];
+            acc[l] += d * d;
+        }
+    }
+    for (l, (x, y)) in ar.iter().zip(br).enumerate() {
+        let d = x - y;
+        acc[l] += d * d;
+    }
+    // Pairwise combination: 16 -> 8 -> 4 -> 2 -> 1.
+    let mut width = DISTANCE_LANES;
+    while width > 1 {
+        width /= 2;
+        for l in 0..width {
+            acc[l] += acc[l + width];
+        }
+    }
+    acc[0].sqrt()
+}
+
+/// The distance of `query` to every class prototype, in name order, compiled for the widest
+/// SIMD instruction set this CPU has (runtime dispatch; the sums are the same on every
+/// instruction set, see [`distance`]).
+struct Distances<'a, 'b> {
+    bank: &'a ClassBank,
+    query: &'b [f32],
+    out: &'b mut Vec<(f32, &'a str)>,
+}
+
+impl pulp::WithSimd for Distances<'_, '_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        for (n, c) in &self.bank.classes {
+            self.out
+                .push((distance(self.query, &c.prototype), n.as_str()));
+        }
+    }
 }
 
 /// How a threshold was calibrated.
@@ -702,15 +749,33 @@ impl ClassBank {
 
     /// Every class with its distance to `query`, nearest first (ties by name).
     pub fn ranked(&self, query: &[f32]) -> Vec<Neighbour> {
-        let mut v: Vec<Neighbour> = self
-            .classes
-            .iter()
-            .map(|(n, c)| Neighbour {
-                name: n.clone(),
-                distance: distance(query, &c.prototype),
+        self.ranked_refs(query, usize::MAX)
+            .into_iter()
+            .map(|(distance, name)| Neighbour {
+                name: name.to_owned(),
+                distance,
             })
-            .collect();
-        v.sort_by(|a, b| a.distance.total_cmp(&b.distance).then(a.name.cmp(&b.name)));
+            .collect()
+    }
+
+    /// The first `m` entries of [`ClassBank::ranked`] (all with `usize::MAX`), without
+    /// copying the names.
+    fn ranked_refs(&self, query: &[f32], m: usize) -> Vec<(f32, &str)> {
+        let mut v: Vec<(f32, &str)> = Vec::with_capacity(self.classes.len());
+        pulp::Arch::new().dispatch(Distances {
+            bank: self,
+            query,
+            out: &mut v,
+        });
+        // Names are unique, so the order is total and unstable sorting is deterministic.
+        let order = |a: &(f32, &str), b: &(f32, &str)| a.0.total_cmp(&b.0).then(a.1.cmp(b.1));
+        if m < v.len() {
+            if m > 0 {
+                v.select_nth_unstable_by(m - 1, order);
+            }
+            v.truncate(m);
+        }
+        v.sort_unstable_by(order);
         v
     }
 
@@ -723,8 +788,17 @@ impl ClassBank {
 
     /// Apply the decision rule (see the module docs) to `query` claiming class `claimed`.
     pub fn decide(&self, query: &[f32], claimed: &str, k: usize) -> Decision {
-        let ranked = self.ranked(query);
-        let nearest: Vec<Neighbour> = ranked.iter().take(k).cloned().collect();
+        // The k nearest, and at least two: the nearest class other than the claimed one is
+        // among the first two.
+        let ranked = self.ranked_refs(query, k.max(1) + 1);
+        let nearest: Vec<Neighbour> = ranked
+            .iter()
+            .take(k)
+            .map(|&(distance, name)| Neighbour {
+                name: name.to_owned(),
+                distance,
+            })
+            .collect();
         let Some(class) = self.classes.get(claimed) else {
             return Decision {
                 outcome: Outcome::UnknownClass,
@@ -740,10 +814,10 @@ impl ClassBank {
         };
         let d = distance(query, &class.prototype);
         let threshold = class.threshold.unwrap_or(self.default_threshold);
-        let other = ranked.iter().find(|n| n.name != claimed);
+        let other = ranked.iter().find(|n| n.1 != claimed);
         let outcome = match other {
-            Some(o) if o.distance + self.wrong_task_tolerance < d => Outcome::WrongTask {
-                nearest: o.name.clone(),
+            Some(&(od, name)) if od + self.wrong_task_tolerance < d => Outcome::WrongTask {
+                nearest: name.to_owned(),
             },
             _ if d.is_nan() || d > threshold => Outcome::Outlier,
             _ => Outcome::Go,
@@ -753,7 +827,7 @@ impl ClassBank {
             claimed_distance: Some(d),
             threshold: Some(threshold),
             margin: Some(threshold - d),
-            gap: other.map(|o| o.distance - d),
+            gap: other.map(|o| o.0 - d),
             nearest,
             geometry_score: None,
             geometry_threshold: None,
@@ -993,6 +1067,31 @@ mod tests {
         b.enroll("a", &[vec![0.0, 0.0], vec![0.0, 2.0]]).unwrap();
         b.enroll("b", &[vec![10.0, 0.0]]).unwrap();
         b
+    }
+
+    #[test]
+    fn distance_matches_a_double_precision_sum() {
+        // Lengths around the 16 partial sums: empty, short, exact multiples, remainders.
+        for n in [0usize, 1, 5, 16, 17, 31, 128, 131] {
+            let a: Vec<f32> = (0..n)
+                .map(|i| ((i * 37 % 11) as f32 - 5.0) * 0.13)
+                .collect();
+            let b: Vec<f32> = (0..n).map(|i| ((i * 17 % 7) as f32 - 3.0) * 0.29).collect();
+            let exact = a
+                .iter()
+                .zip(&b)
+                .map(|(x, y)| (f64::from(*x) - f64::from(*y)).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            let d = f64::from(distance(&a, &b));
+            assert!(
+                (d - exact).abs() <= 1e-6 * exact.max(1.0),
+                "{n}: {d} vs {exact}"
+            );
+            assert_eq!(distance(&a, &a), 0.0);
+        }
+        // Unequal lengths: pairs up to the shorter.
+        assert_eq!(distance(&[3.0, 0.0, 9.0], &[0.0, 4.0]), 5.0);
     }
 
     #[test]
