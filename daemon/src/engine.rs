@@ -4,7 +4,8 @@
 use std::path::Path;
 
 use guardian_models::embedder::{EMBED_DIM, Embedder, Embedding, LoadModelError};
-use guardian_shared::trajectory::{InvalidTrajectory, Resampled, Waypoint};
+use guardian_models::features::PenPoint;
+use guardian_shared::trajectory::{InvalidTrajectory, Resampled, STEPS, Waypoint};
 
 /// Why a trajectory could not be embedded.
 #[derive(Debug)]
@@ -47,6 +48,16 @@ impl Engine {
     /// Embed already preprocessed trajectories in one forward pass (micro-batching).
     pub fn embed_resampled(&self, xs: &[Resampled]) -> Result<Vec<Embedding>, String> {
         self.embedder.embed_batch(xs).map_err(|e| e.to_string())
+    }
+
+    /// Embed one preprocessed trajectory and return the pen path its features came from.
+    pub fn embed_with_pen_path(
+        &self,
+        x: &Resampled,
+    ) -> Result<(Embedding, [PenPoint; STEPS]), String> {
+        self.embedder
+            .embed_with_pen_path(x)
+            .map_err(|e| e.to_string())
     }
 
     /// Validate, resample and embed raw waypoints.

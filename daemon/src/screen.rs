@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use guardian_models::bank::{ClassBank, DEFAULT_THRESHOLD, Outcome};
 use guardian_models::workcell::{self, Inspection};
-use guardian_shared::trajectory::{InvalidTrajectory, Waypoint, from_flat};
+use guardian_shared::trajectory::{CHANNELS, InvalidTrajectory, Waypoint, from_flat, validate};
 use guardian_shared::wire::{
     ClassEntry, MAX_EXAMPLES, Op, ReasonCode, RequestHeader, ResponseHeader, Status, VerdictCode,
     decode_class_name, encode_text,
@@ -282,9 +282,9 @@ impl Screen {
             if Op::from_u32(h.op) != Some(Op::Check) {
                 continue;
             }
-            if let Ok(Ok(mut t)) = Self::trajectories(h, payload, 1)
+            if let Ok(Ok(mut t)) = Self::trajectories(h, payload, 1, false)
                 && let Some(t) = t.pop()
-                && let Ok(inspection) = workcell::inspect(&self.workcell, &t)
+                && let Ok(inspection) = workcell::inspect(&self.workcell, t)
             {
                 if inspection.violation.is_none() {
                     which.push(i);
@@ -399,12 +399,15 @@ impl Screen {
             .map_err(|e| Fail::Status(Status::InvalidClassName, e.to_string()))
     }
 
-    /// Split the payload into the header's trajectories, validating each.
-    fn trajectories(
+    /// Split the payload into the header's trajectories, borrowed from it (no copy: a
+    /// waypoint is 8 consecutive floats), validating each when `check` (a caller passing
+    /// `false` must validate them itself before using them).
+    fn trajectories<'p>(
         h: &RequestHeader,
-        payload: &[f32],
+        payload: &'p [f32],
         max_examples: usize,
-    ) -> Result<Result<Vec<Vec<Waypoint>>, Fail>, Fail> {
+        check: bool,
+    ) -> Result<Result<Vec<&'p [Waypoint]>, Fail>, Fail> {
         let n = h.examples as usize;
         if n == 0 || n > max_examples {
             return Err(Fail::Status(
@@ -446,9 +449,18 @@ impl Screen {
             // An empty trajectory with a wrong channel count is reported as too few
             // waypoints, like any other empty one.
             let parsed = if w == 0 {
-                from_flat(&[], guardian_shared::trajectory::CHANNELS)
+                validate(&[]).map(|()| &[][..])
+            } else if h.channels as usize != CHANNELS {
+                // The shared contract's error for a wrong channel count.
+                from_flat(&[], h.channels as usize).map(|_| &[][..])
             } else {
-                from_flat(slice, h.channels as usize)
+                // `len` is a multiple of 8 here, so nothing is left over.
+                let (ws, _) = slice.as_chunks::<CHANNELS>();
+                if check {
+                    validate(ws).map(|()| ws)
+                } else {
+                    Ok(ws)
+                }
             };
             match parsed {
                 Ok(t) => out.push(t),
@@ -475,7 +487,8 @@ impl Screen {
         r: &mut ResponseHeader,
     ) -> Result<Vec<ClassEntry>, Fail> {
         let claimed = Self::class_name(h)?;
-        let mut t = match Self::trajectories(h, payload, 1)? {
+        // `inspect` validates (before anything else), so the split does not.
+        let mut t = match Self::trajectories(h, payload, 1, false)? {
             Ok(t) => t,
             Err(Fail::Invalid(inv, _)) => {
                 no_go_invalid(r, inv);
@@ -486,7 +499,7 @@ impl Screen {
         let t = t.pop().unwrap_or_default();
         let prepared = match self.batched.take() {
             Some(p) => p,
-            None => match workcell::inspect(&self.workcell, &t) {
+            None => match workcell::inspect(&self.workcell, t) {
                 Ok(inspection) => Prepared {
                     inspection,
                     embedding: None,
@@ -510,13 +523,11 @@ impl Screen {
             return Ok(Vec::new());
         }
         let x = prepared.inspection.resampled;
-        let e = match prepared.embedding {
-            Some(e) => e,
-            None => match self.engine.embed_resampled(std::slice::from_ref(&x)) {
-                Ok(mut es) if es.len() == 1 => es.remove(0).to_vec(),
-                Ok(_) => {
-                    return Err(Fail::Status(Status::Internal, "embedding failed".into()));
-                }
+        // The pen path comes with a single embedding (a batch computes it again below).
+        let (e, path) = match prepared.embedding {
+            Some(e) => (e, None),
+            None => match self.engine.embed_with_pen_path(&x) {
+                Ok((e, path)) => (e.to_vec(), Some(path)),
                 Err(msg) => {
                     tracing::error!(error = %msg, "embedding failed");
                     return Err(Fail::Status(
@@ -526,11 +537,11 @@ impl Screen {
                 }
             },
         };
-        // Plan geometry only when the bank can use it (128 forward-kinematics evaluations).
-        let geometry = self
-            .bank
-            .geometry_calibration()
-            .and_then(|_| workcell::plan_geometry(&x));
+        // Plan geometry only when the bank can use it.
+        let geometry = self.bank.geometry_calibration().and_then(|_| match &path {
+            Some(path) => workcell::plan_geometry_of_path(path),
+            None => workcell::plan_geometry(&x),
+        });
         let d = self
             .bank
             .decide_with_geometry(&e, geometry.as_ref(), &claimed, self.k);
@@ -558,9 +569,9 @@ impl Screen {
     }
 
     fn identify(&mut self, h: &RequestHeader, payload: &[f32]) -> Result<Vec<ClassEntry>, Fail> {
-        let mut t = Self::trajectories(h, payload, 1)??;
+        let mut t = Self::trajectories(h, payload, 1, true)??;
         let t = t.pop().unwrap_or_default();
-        let e = self.embed(&t)?;
+        let e = self.embed(t)?;
         if self.bank.is_empty() {
             return Err(Fail::Status(
                 Status::EmptyBank,
@@ -577,7 +588,7 @@ impl Screen {
 
     fn enroll(&mut self, h: &RequestHeader, payload: &[f32]) -> Result<Vec<ClassEntry>, Fail> {
         let name = Self::class_name(h)?;
-        let ts = Self::trajectories(h, payload, MAX_EXAMPLES)??;
+        let ts = Self::trajectories(h, payload, MAX_EXAMPLES, true)??;
         let mut embeddings = Vec::with_capacity(ts.len());
         let mut geometry = Vec::with_capacity(ts.len());
         for (i, t) in ts.iter().enumerate() {

@@ -18,7 +18,7 @@ use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 use sha2::{Digest, Sha256};
 
 use crate::fast::{FastNet, FastNetError, Scratch};
-use crate::features::{Augment, FeatureKind};
+use crate::features::{Augment, FeatureKind, PenPoint};
 use crate::net::{Net, NetConfig};
 
 /// Embedding dimension.
@@ -416,7 +416,20 @@ impl Embedder {
     /// Embed `xs` into `out` (same length) with the fast path, using per-thread scratch
     /// buffers: after the first call with the largest batch, no allocation.
     pub fn embed_into(&self, xs: &[Resampled], out: &mut [Embedding]) -> Result<(), EmbedError> {
-        self.embed_into_with(xs, out, false)
+        self.embed_into_with(xs, out, false, None)
+    }
+
+    /// [`Embedder::embed`], also returning the pen path ([`crate::features::pen_path`]) the
+    /// features were computed from, so a caller that needs the path too (the plan geometry)
+    /// does not run the forward kinematics of the 128 points a second time.
+    pub fn embed_with_pen_path(
+        &self,
+        x: &Resampled,
+    ) -> Result<(Embedding, [PenPoint; STEPS]), EmbedError> {
+        let mut out = [[0.0f32; EMBED_DIM]];
+        let mut path = [[0.0f32; 3]; STEPS];
+        self.embed_into_with(std::slice::from_ref(x), &mut out, false, Some(&mut path))?;
+        Ok((out[0], path))
     }
 
     /// [`Embedder::embed`] with the pen path through the general kinematic chain
@@ -425,15 +438,17 @@ impl Embedder {
     /// tested against (`lab/tests/embed_equivalence.rs`).
     pub fn embed_reference(&self, x: &Resampled) -> Result<Embedding, EmbedError> {
         let mut out = [[0.0f32; EMBED_DIM]];
-        self.embed_into_with(std::slice::from_ref(x), &mut out, true)?;
+        self.embed_into_with(std::slice::from_ref(x), &mut out, true, None)?;
         Ok(out[0])
     }
 
+    /// With `path` (one trajectory only), the pen path of `xs[0]` is written there.
     fn embed_into_with(
         &self,
         xs: &[Resampled],
         out: &mut [Embedding],
         reference: bool,
+        path: Option<&mut [PenPoint; STEPS]>,
     ) -> Result<(), EmbedError> {
         if out.len() != xs.len() {
             return Err(EmbedError::OutputLength {
@@ -446,9 +461,9 @@ impl Embedder {
         }
         check_finite(xs)?;
         SCRATCH.with(|cell| match cell.try_borrow_mut() {
-            Ok(mut s) => self.embed_fast(xs, out, &mut s, reference),
+            Ok(mut s) => self.embed_fast(xs, out, &mut s, reference, path),
             // Re-entered on this thread (cannot happen today): use a fresh scratch.
-            Err(_) => self.embed_fast(xs, out, &mut EmbedScratch::default(), reference),
+            Err(_) => self.embed_fast(xs, out, &mut EmbedScratch::default(), reference, path),
         })
     }
 
@@ -458,8 +473,9 @@ impl Embedder {
         out: &mut [Embedding],
         s: &mut EmbedScratch,
         reference: bool,
+        path: Option<&mut [PenPoint; STEPS]>,
     ) -> Result<(), EmbedError> {
-        let copies = self.features_into(xs, &mut s.feats, reference);
+        let copies = self.features_into(xs, &mut s.feats, reference, path);
         let rows = copies * xs.len();
         let raw = if s.raw.len() < rows * EMBED_DIM {
             s.raw.resize(rows * EMBED_DIM, 0.0);
@@ -499,8 +515,15 @@ impl Embedder {
     /// Write the network input for `xs` into `feats` (grown as needed): per trajectory one
     /// feature sequence, or two (forwards, then time-reversed) with reverse averaging.
     /// Returns the number of sequences per trajectory.
-    /// With `reference`, the pen path goes through the general kinematic chain.
-    fn features_into(&self, xs: &[Resampled], feats: &mut Vec<f32>, reference: bool) -> usize {
+    /// With `reference`, the pen path goes through the general kinematic chain. With
+    /// `path_out`, the pen path of the first trajectory is written there.
+    fn features_into(
+        &self,
+        xs: &[Resampled],
+        feats: &mut Vec<f32>,
+        reference: bool,
+        mut path_out: Option<&mut [PenPoint; STEPS]>,
+    ) -> usize {
         let kind = self.net.config().features;
         let c = kind.channels();
         let both = self.net.config().reverse_average && kind != FeatureKind::Joints;
@@ -517,6 +540,9 @@ impl Embedder {
         for (x, out) in xs.iter().zip(feats.chunks_exact_mut(copies * STEPS * c)) {
             if kind == FeatureKind::Joints {
                 crate::features::compute(kind, x, out);
+                if let Some(p) = path_out.take() {
+                    *p = crate::features::pen_path(x);
+                }
                 continue;
             }
             let path = if reference {
@@ -524,6 +550,9 @@ impl Embedder {
             } else {
                 crate::features::pen_path(x)
             };
+            if let Some(p) = path_out.take() {
+                *p = path;
+            }
             let (fwd, bwd) = out.split_at_mut(STEPS * c);
             crate::features::path_features(kind, &path, &Augment::default(), fwd);
             if both {
@@ -542,7 +571,7 @@ impl Embedder {
         check_finite(xs)?;
         let c = self.net.config().features.channels();
         let mut feats = Vec::new();
-        let copies = self.features_into(xs, &mut feats, false);
+        let copies = self.features_into(xs, &mut feats, false, None);
         let input = Tensor::from_vec(feats, (copies * xs.len(), STEPS, c), &Device::Cpu)?;
         let mut e = self.net.forward(&input)?;
         if copies == 2 {
