@@ -78,7 +78,6 @@ pub struct FastNet {
 /// Reusable intermediate buffers. Grows to the largest batch seen, then never allocates.
 #[derive(Debug, Default, Clone)]
 pub struct Scratch {
-    cols: Vec<f32>,
     act: Vec<f32>,
     next: Vec<f32>,
     pooled: Vec<f32>,
@@ -203,65 +202,52 @@ impl FastNet {
         }
         let k = self.kernel;
         let pad = k / 2;
-        let Scratch {
-            cols,
-            act,
-            next,
-            pooled,
-        } = scratch;
-        let act_len = batch
-            * len
-            * self
-                .convs
-                .iter()
-                .map(|c| c.c_out.max(c.c_in))
-                .max()
-                .unwrap_or(0);
-        let act_buf = grow(act, act_len);
-        act_buf[..x.len()].copy_from_slice(x);
-        // `h` holds a layer's input (then its pooled output), `spare` its convolution output.
-        let h = act_buf;
+        let Scratch { act, next, pooled } = scratch;
+        // Layer inputs are kept time-padded: sequence `b` occupies rows
+        // `b * (l + 2 pad) ..`, its `pad` first and last rows zero. The `k` taps of every
+        // channel of output step `t` are then the `k * c` consecutive values from row
+        // `b * (l + 2 pad) + t`, so the convolution is one GEMM whose left operand rows
+        // overlap (row stride `c`, width `k * c`): no im2col copy. The `2 pad` rows between
+        // two sequences produce output rows that are ignored.
+        let padded_len = |l: usize, c: usize| batch * (l + 2 * pad) * c;
+        let act_len = self
+            .convs
+            .iter()
+            .map(|c| padded_len(len, c.c_in.max(c.c_out)))
+            .max()
+            .unwrap_or(0);
+        let h = grow(act, act_len);
+        let f0 = self.convs.first().map_or(f, |c| c.c_in);
+        pad_rows(h, x, batch, len, pad, f0);
         let spare = grow(next, act_len);
         let mut l = len;
         let n_layers = self.convs.len();
         for (i, conv) in self.convs.iter().enumerate() {
             let (c, o) = (conv.c_in, conv.c_out);
-            let kc = k * c;
-            let rows = batch * l;
-            // im2col: row (b, t) holds taps t-pad..=t+pad of every channel, zero outside.
-            let colm = grow(cols, rows * kc);
-            for b in 0..batch {
-                let src = &h[b * l * c..(b + 1) * l * c];
-                for t in 0..l {
-                    let row = &mut colm[(b * l + t) * kc..(b * l + t + 1) * kc];
-                    for j in 0..k {
-                        let dst = &mut row[j * c..(j + 1) * c];
-                        let tt = t + j;
-                        if tt < pad || tt - pad >= l {
-                            dst.fill(0.0);
-                        } else {
-                            let s = tt - pad;
-                            dst.copy_from_slice(&src[s * c..(s + 1) * c]);
-                        }
-                    }
-                }
-            }
-            // y = bias + cols · W
+            let lp = l + 2 * pad;
+            let rows = batch * lp - 2 * pad;
+            // y = bias + taps · W
             let y = &mut spare[..rows * o];
             for row in y.chunks_exact_mut(o) {
                 row.copy_from_slice(&conv.b);
             }
-            sgemm(rows, o, kc, colm, &conv.w, y, true)?;
+            sgemm_rows(rows, o, k * c, &h[..batch * lp * c], c, &conv.w, y, true)?;
             if i + 1 < n_layers {
-                // ReLU + max pool of 2 (a trailing odd step is dropped); relu(max) = max(relu).
+                // ReLU + max pool of 2 (a trailing odd step is dropped); relu(max) = max(relu),
+                // into the next layer's padded input.
                 let half = l / 2;
+                let hp = half + 2 * pad;
+                let next_in = &mut h[..batch * hp * o];
                 for b in 0..batch {
+                    let seq = &mut next_in[b * hp * o..(b + 1) * hp * o];
+                    seq[..pad * o].fill(0.0);
+                    seq[(pad + half) * o..].fill(0.0);
                     for t in 0..half {
-                        let r0 = (b * l + 2 * t) * o;
+                        let r0 = (b * lp + 2 * t) * o;
                         let r1 = r0 + o;
-                        let d = (b * half + t) * o;
+                        let d = (pad + t) * o;
                         for ch in 0..o {
-                            h[d + ch] = y[r0 + ch].max(y[r1 + ch]).max(0.0);
+                            seq[d + ch] = y[r0 + ch].max(y[r1 + ch]).max(0.0);
                         }
                     }
                 }
@@ -275,7 +261,7 @@ impl FastNet {
                     mean.fill(0.0);
                     max.fill(f32::NEG_INFINITY);
                     for t in 0..l {
-                        let row = &y[(b * l + t) * o..(b * l + t + 1) * o];
+                        let row = &y[(b * lp + t) * o..(b * lp + t + 1) * o];
                         for ch in 0..o {
                             let v = row[ch].max(0.0);
                             mean[ch] += v;
@@ -304,6 +290,20 @@ impl FastNet {
     }
 }
 
+/// Copy `batch` sequences of `len` rows of `c` values from `x` into `h` with `pad` zero rows
+/// before and after each.
+fn pad_rows(h: &mut [f32], x: &[f32], batch: usize, len: usize, pad: usize, c: usize) {
+    let lp = len + 2 * pad;
+    for (seq, src) in h[..batch * lp * c]
+        .chunks_exact_mut(lp * c)
+        .zip(x.chunks_exact(len * c))
+    {
+        seq[..pad * c].fill(0.0);
+        seq[pad * c..(pad + len) * c].copy_from_slice(src);
+        seq[(pad + len) * c..].fill(0.0);
+    }
+}
+
 /// `dst [m, n] (+)= a [m, k] · b [k, n]`, all row-major and contiguous; with `accumulate`
 /// the product is added to `dst`, otherwise it replaces it. Single-threaded (batch-1 serving
 /// is fastest on one core here).
@@ -312,6 +312,22 @@ pub fn sgemm(
     n: usize,
     k: usize,
     a: &[f32],
+    b: &[f32],
+    dst: &mut [f32],
+    accumulate: bool,
+) -> Result<(), FastNetError> {
+    sgemm_rows(m, n, k, a, k, b, dst, accumulate)
+}
+
+/// [`sgemm`] with the rows of `a` `lda` values apart (`lda < k`: overlapping rows, the
+/// convolution's taps).
+#[allow(clippy::too_many_arguments)]
+fn sgemm_rows(
+    m: usize,
+    n: usize,
+    k: usize,
+    a: &[f32],
+    lda: usize,
     b: &[f32],
     dst: &mut [f32],
     accumulate: bool,
@@ -327,13 +343,15 @@ pub fn sgemm(
             Ok(())
         }
     };
-    check("gemm lhs", m * k, a.len())?;
+    let lhs_extent = if m == 0 { 0 } else { (m - 1) * lda + k };
+    check("gemm lhs", lhs_extent, a.len())?;
     check("gemm rhs", k * n, b.len())?;
     check("gemm dst", m * n, dst.len())?;
     if m == 0 || n == 0 {
         return Ok(());
     }
-    // SAFETY: `a` holds at least m*k values read with row stride k and column stride 1,
+    // SAFETY: `a` holds at least (m-1)*lda + k values read with row stride lda and column
+    // stride 1 (rows may overlap; gemm only reads them),
     // `b` at least k*n with row stride n, `dst` at least m*n with row stride n (checked
     // above); `dst` is borrowed mutably, so it aliases neither input. gemm neither keeps the
     // pointers nor reads past those extents.
@@ -349,7 +367,7 @@ pub fn sgemm(
             accumulate,
             a.as_ptr(),
             1,
-            k as isize,
+            lda as isize,
             b.as_ptr(),
             1,
             n as isize,
