@@ -1,6 +1,7 @@
 //! The inference fast path: the exact network of [`crate::net`] in plain Rust, with each
-//! convolution as im2col + one GEMM from the `gemm` crate (AVX-512 / AVX2 / SSE kernels
-//! chosen at run time, so the binary stays portable), ReLU fused into the pooling, and all
+//! convolution as one GEMM from the `gemm` crate (AVX-512 / AVX2 / SSE kernels chosen at run
+//! time, so the binary stays portable) whose left operand is the time-padded layer input
+//! read with overlapping rows (no im2col copy), ReLU fused into the pooling, and all
 //! intermediate buffers kept in a reusable [`Scratch`] (no allocation per call once the
 //! scratch has grown to the largest batch seen).
 //!

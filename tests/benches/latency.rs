@@ -1,8 +1,10 @@
 //! Latency and throughput of the go/no-go screen, all figures from one run:
 //!
 //! - the embedding forward pass, batch 1: candle (the reference) and the fast path
-//!   (`guardian_models::fast`), plus features + forward and the daemon's whole per-check
-//!   computation (validation, pen-path resampling, features, forward, bank decision);
+//!   (`guardian_models::fast`), plus features + forward and preprocessing + embedding;
+//! - `guardiand`'s compute per check in this process: its own `Screen` built from the same
+//!   configuration (shipped model and default bank, workcell rules on, the same classes
+//!   enrolled) answering whole check requests, and each stage alone;
 //! - the compute floor: model FLOPs / the GEMM rate measured here on one core;
 //! - the round trip planner -> `guardiand` -> verdict over iceoryx2 with a spawned daemon,
 //!   in `event` and `busy-poll` serving mode;
@@ -194,14 +196,17 @@ struct Deployment {
     service: String,
     prefix: String,
     model: PathBuf,
+    /// The shipped default bank (with its calibration) when the model is the shipped one.
+    default_bank: Option<PathBuf>,
 }
 
 impl Deployment {
     fn config_text(&self, mode: &str, max_batch: usize) -> String {
         format!(
-            "model = {:?}\ndefault-bank = \"\"\nstate-dir = {:?}\nservice-name = {:?}\n\
+            "model = {:?}\ndefault-bank = {:?}\nstate-dir = {:?}\nservice-name = {:?}\n\
              serving-mode = {mode:?}\nmax-batch = {max_batch}\nk-nearest = 3\n[iceoryx2]\nroot-path = {:?}\nprefix = {:?}\n",
             self.model,
+            self.default_bank.clone().unwrap_or_default(),
             self.dir.join("state"),
             self.service,
             self.dir.join("iox"),
@@ -359,6 +364,153 @@ fn throughput(
     })
 }
 
+// ---------------------------------------------------------------- guardiand's compute
+
+/// A request header and payload for `op` with the given trajectories.
+fn request(op: Op, class: &str, examples: &[&[Waypoint]]) -> Result<(RequestHeader, Vec<f32>)> {
+    let mut h = RequestHeader::new(1, op);
+    h.channels = 8;
+    h.examples = u32::try_from(examples.len())?;
+    for (slot, t) in h.waypoints.iter_mut().zip(examples) {
+        *slot = u32::try_from(t.len())?;
+    }
+    h.class_name = encode_class_name(class)?;
+    Ok((
+        h,
+        examples
+            .iter()
+            .flat_map(|t| t.iter().flatten())
+            .copied()
+            .collect(),
+    ))
+}
+
+/// What `guardiand` computes for a check, in this process: its own `Screen` built from the
+/// same configuration (model, shipped bank, workcell rules) with the same classes enrolled,
+/// answering whole requests, and each stage of a check alone.
+fn compute_breakdown(
+    dep: &Deployment,
+    drawings: &Drawings,
+    n: usize,
+) -> Result<Vec<(&'static str, Vec<Duration>)>> {
+    use guardian_models::workcell::{inspect, plan_geometry_of_path};
+    let config = Config::from_file(&dep.write_config("event", 16)?)?;
+    let engine = load_engine(&config)?;
+    let (bank, _) = load_bank(&config, &engine)?;
+    let state = dep.dir.join("in-process");
+    std::fs::create_dir_all(&state)?;
+    let mut screen = Screen::new(engine, bank, state.join("bank.gcb"), config.k_nearest);
+    screen.set_workcell(config.workcell);
+    for (class, ex) in &drawings.enroll {
+        let ws: Vec<Vec<Waypoint>> = ex
+            .iter()
+            .map(|t| guardian_shared::trajectory::from_flat(t.as_flat(), 8))
+            .collect::<Result<_, _>>()?;
+        let refs: Vec<&[Waypoint]> = ws.iter().map(Vec::as_slice).collect();
+        let (h, p) = request(Op::Enroll, class, &refs)?;
+        let (r, _) = screen.handle(&h, &p);
+        if r.status != 0 {
+            bail!("in-process enrolment of {class}: status {}", r.status);
+        }
+    }
+    let reqs: Vec<(RequestHeader, Vec<f32>)> = drawings
+        .checks
+        .iter()
+        .map(|(c, w)| request(Op::Check, c, &[w]))
+        .collect::<Result<_>>()?;
+    let len = reqs.len();
+    let (cell, bank, engine, k) = (
+        screen.workcell().clone(),
+        screen.bank().clone(),
+        screen.engine().clone(),
+        config.k_nearest,
+    );
+    // Each stage's input, computed once so each stage is timed alone.
+    let waypoints: Vec<Vec<Waypoint>> = reqs
+        .iter()
+        .map(|(_, p)| guardian_shared::trajectory::from_flat(p, 8))
+        .collect::<Result<_, _>>()?;
+    let resampled: Vec<_> = waypoints
+        .iter()
+        .map(|w| inspect(&cell, w).map(|i| i.resampled))
+        .collect::<Result<_, _>>()?;
+    let (embeddings, paths): (Vec<Vec<f32>>, Vec<_>) = resampled
+        .iter()
+        .map(|x| engine.embed_with_pen_path(x).map(|(e, p)| (e.to_vec(), p)))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| anyhow::anyhow!(e))?
+        .into_iter()
+        .unzip();
+    let geometry: Vec<_> = paths.iter().map(|p| plan_geometry_of_path(p)).collect();
+    let mut out = Vec::new();
+    let mut i = 0usize;
+    out.push((
+        "Screen::handle, a whole check",
+        time_n(50, n, || {
+            i += 1;
+            let (h, p) = &reqs[i % len];
+            std::hint::black_box(screen.handle(h, p));
+            Ok(())
+        })?,
+    ));
+    out.push((
+        "  validate, FK poses, workcell rules, resample",
+        time_n(50, n, || {
+            i += 1;
+            std::hint::black_box(inspect(&cell, &waypoints[i % len])?);
+            Ok(())
+        })?,
+    ));
+    out.push((
+        "  embed (pen path, features, fast forward)",
+        time_n(50, n, || {
+            i += 1;
+            let x = &resampled[i % len];
+            std::hint::black_box(
+                engine
+                    .embed_with_pen_path(x)
+                    .map_err(|e| anyhow::anyhow!(e))?,
+            );
+            Ok(())
+        })?,
+    ));
+    if bank.geometry_calibration().is_some() {
+        out.push((
+            "  plan geometry of that pen path",
+            time_n(50, n, || {
+                i += 1;
+                std::hint::black_box(plan_geometry_of_path(&paths[i % len]));
+                Ok(())
+            })?,
+        ));
+    }
+    out.push((
+        "  bank decision (k nearest, geometry score)",
+        time_n(50, n, || {
+            i += 1;
+            let j = i % len;
+            let class = &drawings.checks[j].0;
+            std::hint::black_box(bank.decide_with_geometry(
+                &embeddings[j],
+                geometry[j].as_ref(),
+                class,
+                k,
+            ));
+            Ok(())
+        })?,
+    ));
+    println!(
+        "  in-process screen: {} classes in the bank, geometry calibration {}",
+        bank.len(),
+        if bank.geometry_calibration().is_some() {
+            "on"
+        } else {
+            "off"
+        }
+    );
+    Ok(out)
+}
+
 // ---------------------------------------------------------------- UDS + JSON baseline
 
 #[derive(Serialize, Deserialize)]
@@ -392,6 +544,7 @@ fn uds_server(socket: &Path, config: &Path) -> Result<()> {
     let engine = load_engine(&config)?;
     let (bank, _) = load_bank(&config, &engine)?;
     let mut screen = Screen::new(engine, bank, config.bank_path(), config.k_nearest);
+    screen.set_workcell(config.workcell);
     let listener = UnixListener::bind(socket)?;
     // One connection at a time, served until it closes; "quit" ends the server.
     for stream in listener.incoming() {
@@ -665,7 +818,11 @@ fn run(o: Opts) -> Result<()> {
         service: format!("guardian-bench/{tag}/v1/rpc"),
         prefix: format!("gb{tag}_"),
         model: model_path.clone(),
+        default_bank: Some(workspace_root().join("models/default-bank.gcb")).filter(|b| {
+            b.exists() && o.model.is_none() && model_path.ends_with("models/embedder.safetensors")
+        }),
     };
+    let breakdown = compute_breakdown(&dep, &drawings, n_fwd)?;
     let checks: Arc<Vec<(String, Trajectory)>> = Arc::new(
         drawings
             .checks
@@ -751,7 +908,7 @@ fn run(o: Opts) -> Result<()> {
     print_header();
     let rows = [
         ("candle forward", stats(&candle_fwd)),
-        ("fast forward (im2col + gemm)", stats(&fast_fwd)),
+        ("fast forward (overlapping-row gemm)", stats(&fast_fwd)),
         ("embed: features + fast forward", stats(&embed)),
         ("preprocess + embed (daemon's compute)", stats(&full)),
         ("round trip iceoryx2, event mode", stats(&rt_event)),
@@ -787,6 +944,12 @@ fn run(o: Opts) -> Result<()> {
             "{:<8} {:>9} {:>10.0} {:>9.1} {:>9.1} {:>9.1} {:>9.1}",
             t.clients, t.max_batch, t.checks_per_s, t.lat.p50, t.lat.p99, t.lat.p999, t.lat.max
         );
+    }
+    println!();
+    println!("guardiand's compute per check, in process (its Screen and configuration):");
+    print_header();
+    for (name, v) in &breakdown {
+        print_row(name, &stats(v));
     }
     println!();
     println!("forward kinematics, specialised position FK vs the general chain (full frames):");
