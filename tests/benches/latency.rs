@@ -420,7 +420,7 @@ fn compute_breakdown(
         .collect::<Result<_>>()?;
     let len = reqs.len();
     let (cell, bank, engine, k) = (
-        screen.workcell().clone(),
+        *screen.workcell(),
         screen.bank().clone(),
         screen.engine().clone(),
         config.k_nearest,
