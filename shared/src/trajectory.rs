@@ -126,6 +126,20 @@ pub fn validate(waypoints: &[Waypoint]) -> Result<(), InvalidTrajectory> {
             waypoints.len(),
         ));
     }
+    // Branch-free pass first (vectorisable): the common case, a valid plan, needs nothing
+    // else; otherwise the loop below finds and reports the first problem.
+    let all_valid = waypoints.iter().fold(true, |ok, w| {
+        let mut good = w[TOOL] == 0.0 || w[TOOL] == 1.0;
+        for j in 0..JOINTS {
+            // NaN fails both comparisons; infinities fail the limits.
+            let q = f64::from(w[j]);
+            good &= q >= Q_MIN[j] && q <= Q_MAX[j];
+        }
+        ok & good
+    });
+    if all_valid {
+        return Ok(());
+    }
     for (i, w) in waypoints.iter().enumerate() {
         if w.iter().any(|v| !v.is_finite()) {
             return Err(InvalidTrajectory::new(InvalidKind::NonFinite, i));
@@ -171,10 +185,17 @@ pub fn resample(waypoints: &[Waypoint], cumulative: &[f64]) -> Resampled {
     let total = cum[n - 1] - start;
     let mut out = [[0.0f32; CHANNELS]; STEPS];
     let mut positions = [0.0f64; STEPS];
+    // The sample positions increase with k, so the segment index (the first cumulative
+    // length above the position, what `sample_at`'s binary search finds) only moves forward:
+    // one walk over the waypoints instead of a search per sample.
+    let mut above = 0usize;
     for (k, sample) in out.iter_mut().enumerate() {
         let s = start + total * k as f64 / (STEPS - 1) as f64;
         positions[k] = s;
-        *sample = sample_at(waypoints, cum, s);
+        while above < n && cum[above] <= s {
+            above += 1;
+        }
+        *sample = sample_in(waypoints, cum, s, above);
     }
     // Pen-down runs that received no sample.
     let mut i = 0;
@@ -211,12 +232,18 @@ pub fn resample(waypoints: &[Waypoint], cumulative: &[f64]) -> Resampled {
 }
 
 fn sample_at(waypoints: &[Waypoint], cum: &[f64], s: f64) -> Waypoint {
+    // First index whose cumulative length exceeds s.
+    sample_in(waypoints, cum, s, cum.partition_point(|&c| c <= s))
+}
+
+/// [`sample_at`] given `above`, the number of cumulative lengths `<= s` (the first index
+/// whose cumulative length exceeds `s`).
+fn sample_in(waypoints: &[Waypoint], cum: &[f64], s: f64, above: usize) -> Waypoint {
     let n = waypoints.len();
     if n == 1 {
         return waypoints[0];
     }
-    // First index whose cumulative length exceeds s.
-    let hi = cum.partition_point(|&c| c <= s).clamp(1, n - 1);
+    let hi = above.clamp(1, n - 1);
     let lo = hi - 1;
     let span = cum[hi] - cum[lo];
     let t = if span > 0.0 {
@@ -247,6 +274,31 @@ mod tests {
 
     fn wp(q: f32, tool: f32) -> Waypoint {
         [q, 0.0, 0.0, -1.5, 0.0, 1.5, 0.0, tool]
+    }
+
+    /// The forward walk finds the segments the binary search of `sample_at` finds,
+    /// including zero-length segments (repeated cumulative lengths) and the ends.
+    #[test]
+    fn resampling_walk_matches_the_search_per_sample() {
+        for n in [2usize, 3, 7, 128, 129, 300] {
+            // Pen up throughout, so the pen-down rule changes nothing.
+            let ws: Vec<Waypoint> = (0..n).map(|i| wp(0.01 * i as f32, 0.0)).collect();
+            let mut cum = Vec::with_capacity(n);
+            let mut total = 0.0f64;
+            for i in 0..n {
+                // Every third segment has length zero; others vary.
+                if i > 0 && i % 3 != 0 {
+                    total += 0.001 * (1 + i % 5) as f64;
+                }
+                cum.push(total);
+            }
+            let out = resample(&ws, &cum);
+            let span = cum[n - 1] - cum[0];
+            for (k, sample) in out.iter().enumerate() {
+                let s = cum[0] + span * k as f64 / (STEPS - 1) as f64;
+                assert_eq!(*sample, sample_at(&ws, &cum, s), "n {n}, k {k}");
+            }
+        }
     }
 
     #[test]
