@@ -245,10 +245,10 @@ impl FastNet {
                     seq[(pad + half) * o..].fill(0.0);
                     for t in 0..half {
                         let r0 = (b * lp + 2 * t) * o;
-                        let r1 = r0 + o;
+                        let (y0, y1) = y[r0..r0 + 2 * o].split_at(o);
                         let d = (pad + t) * o;
-                        for ch in 0..o {
-                            seq[d + ch] = y[r0 + ch].max(y[r1 + ch]).max(0.0);
+                        for ((v, a), c) in seq[d..d + o].iter_mut().zip(y0).zip(y1) {
+                            *v = a.max(*c).max(0.0);
                         }
                     }
                 }
@@ -263,10 +263,10 @@ impl FastNet {
                     max.fill(f32::NEG_INFINITY);
                     for t in 0..l {
                         let row = &y[(b * lp + t) * o..(b * lp + t + 1) * o];
-                        for ch in 0..o {
-                            let v = row[ch].max(0.0);
-                            mean[ch] += v;
-                            max[ch] = max[ch].max(v);
+                        for ((m, x), v) in mean.iter_mut().zip(max.iter_mut()).zip(row) {
+                            let v = v.max(0.0);
+                            *m += v;
+                            *x = x.max(v);
                         }
                     }
                     for m in mean.iter_mut() {
