@@ -13,6 +13,11 @@
 //! drew that way). The pooled spreads come from a validation alphabet (five shots cannot
 //! estimate a spread; a pooled scale can), and the threshold on the score is calibrated for a
 //! share of the false-reject budget (`bank::calibrate_geometry`).
+//!
+//! A joint score (one enrolled example for all features: `min_i max_k`, or an RMS over the
+//! features) was compared on the training alphabets and rejected: same threshold, same
+//! false rejects and detections for `max`, doubled false rejects for RMS
+//! (`docs/operating.md`, "Per-feature nearest example").
 
 use guardian_shared::workcell::{GEOMETRY_FEATURES, GeometryFeature};
 use serde::{Deserialize, Serialize};
