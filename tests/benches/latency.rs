@@ -455,60 +455,54 @@ fn compute_breakdown(
         .into_iter()
         .unzip();
     let geometry: Vec<_> = paths.iter().map(|p| plan_geometry_of_path(p)).collect();
-    let mut out = Vec::new();
-    let mut i = 0usize;
-    out.push((
-        "Screen::handle, a whole check",
+    // Each stage timed over the checks in turn.
+    let cycling = |f: &mut dyn FnMut(usize) -> Result<()>| {
+        let mut i = 0usize;
         time_n(50, n, || {
             i += 1;
-            let (h, p) = &reqs[i % len];
-            std::hint::black_box(screen.handle(h, p));
-            Ok(())
-        })?,
-    ));
-    out.push((
-        "  validate, FK poses, workcell rules, resample",
-        time_n(50, n, || {
-            i += 1;
-            std::hint::black_box(inspect(&cell, &waypoints[i % len])?);
-            Ok(())
-        })?,
-    ));
-    out.push((
-        "  embed (pen path, features, fast forward)",
-        time_n(50, n, || {
-            i += 1;
-            let x = &resampled[i % len];
-            std::hint::black_box(
-                engine
-                    .embed_with_pen_path(x)
-                    .map_err(|e| anyhow::anyhow!(e))?,
-            );
-            Ok(())
-        })?,
-    ));
+            f(i % len)
+        })
+    };
+    let mut out = vec![
+        (
+            "Screen::handle, a whole check",
+            cycling(&mut |j| {
+                let (h, p) = &reqs[j];
+                std::hint::black_box(screen.handle(h, p));
+                Ok(())
+            })?,
+        ),
+        (
+            "  validate, FK poses, workcell rules, resample",
+            cycling(&mut |j| {
+                std::hint::black_box(inspect(&cell, &waypoints[j])?);
+                Ok(())
+            })?,
+        ),
+        (
+            "  embed (pen path, features, fast forward)",
+            cycling(&mut |j| {
+                let e = engine.embed_with_pen_path(&resampled[j]);
+                std::hint::black_box(e.map_err(|e| anyhow::anyhow!(e))?);
+                Ok(())
+            })?,
+        ),
+    ];
     if bank.geometry_calibration().is_some() {
         out.push((
             "  plan geometry of that pen path",
-            time_n(50, n, || {
-                i += 1;
-                std::hint::black_box(plan_geometry_of_path(&paths[i % len]));
+            cycling(&mut |j| {
+                std::hint::black_box(plan_geometry_of_path(&paths[j]));
                 Ok(())
             })?,
         ));
     }
     out.push((
         "  bank decision (k nearest, geometry score)",
-        time_n(50, n, || {
-            i += 1;
-            let j = i % len;
+        cycling(&mut |j| {
             let class = &drawings.checks[j].0;
-            std::hint::black_box(bank.decide_with_geometry(
-                &embeddings[j],
-                geometry[j].as_ref(),
-                class,
-                k,
-            ));
+            let d = bank.decide_with_geometry(&embeddings[j], geometry[j].as_ref(), class, k);
+            std::hint::black_box(d);
             Ok(())
         })?,
     ));
@@ -1012,7 +1006,76 @@ fn run(o: Opts) -> Result<()> {
     let fastest = candle.p50.min(fastf.p50);
     println!();
     println!("{:<52} {:>8} {:>8}  result", "ratio", "measured", "target");
-    let ratio = |name: &str, v: f64, target: f64, le: bool| {
+    // (name, measured, target, whether the target is an upper bound)
+    let ratios = [
+        (
+            "candle forward p50 / compute floor",
+            candle.p50 / floor_us,
+            1.5,
+            true,
+        ),
+        (
+            "fastest forward p50 / compute floor",
+            fastest / floor_us,
+            1.5,
+            true,
+        ),
+        (
+            "candle forward p50 / fast forward p50",
+            candle.p50 / fastf.p50,
+            1.0,
+            false,
+        ),
+        (
+            "round trip p50 (event) / fastest forward p50",
+            ev.p50 / fastest,
+            1.3,
+            true,
+        ),
+        (
+            "round trip p50 (busy-poll) / fastest forward p50",
+            busy.p50 / fastest,
+            1.3,
+            true,
+        ),
+        (
+            "round trip p50 (event) / fast forward p50 alongside",
+            ev.p50 / fwd_ev.p50,
+            1.3,
+            true,
+        ),
+        (
+            "round trip p50 (busy-poll) / fast forward alongside",
+            busy.p50 / fwd_busy.p50,
+            1.3,
+            true,
+        ),
+        (
+            "UDS+JSON p50 / round trip p50 (event)",
+            json.p50 / ev.p50,
+            5.0,
+            false,
+        ),
+        (
+            "UDS+JSON p50 / round trip p50 (busy-poll)",
+            json.p50 / busy.p50,
+            5.0,
+            false,
+        ),
+        (
+            "busy-poll p99.9 / p50 (faster client variant)",
+            busy.p999 / busy.p50,
+            3.0,
+            true,
+        ),
+        (
+            "event p99.9 / p50 (no target)",
+            ev.p999 / ev.p50,
+            f64::INFINITY,
+            true,
+        ),
+    ];
+    for (name, v, target, le) in ratios {
         let ok = if le { v <= target } else { v >= target };
         println!(
             "{:<52} {:>8.2} {:>3}{:>5.1}  {}",
@@ -1022,73 +1085,7 @@ fn run(o: Opts) -> Result<()> {
             target,
             if ok { "met" } else { "MISSED" }
         );
-    };
-    ratio(
-        "candle forward p50 / compute floor",
-        candle.p50 / floor_us,
-        1.5,
-        true,
-    );
-    ratio(
-        "fastest forward p50 / compute floor",
-        fastest / floor_us,
-        1.5,
-        true,
-    );
-    ratio(
-        "candle forward p50 / fast forward p50",
-        candle.p50 / fastf.p50,
-        1.0,
-        false,
-    );
-    ratio(
-        "round trip p50 (event) / fastest forward p50",
-        ev.p50 / fastest,
-        1.3,
-        true,
-    );
-    ratio(
-        "round trip p50 (busy-poll) / fastest forward p50",
-        busy.p50 / fastest,
-        1.3,
-        true,
-    );
-    ratio(
-        "round trip p50 (event) / fast forward p50 alongside",
-        ev.p50 / fwd_ev.p50,
-        1.3,
-        true,
-    );
-    ratio(
-        "round trip p50 (busy-poll) / fast forward alongside",
-        busy.p50 / fwd_busy.p50,
-        1.3,
-        true,
-    );
-    ratio(
-        "UDS+JSON p50 / round trip p50 (event)",
-        json.p50 / ev.p50,
-        5.0,
-        false,
-    );
-    ratio(
-        "UDS+JSON p50 / round trip p50 (busy-poll)",
-        json.p50 / busy.p50,
-        5.0,
-        false,
-    );
-    ratio(
-        "busy-poll p99.9 / p50 (faster client variant)",
-        busy.p999 / busy.p50,
-        3.0,
-        true,
-    );
-    ratio(
-        "event p99.9 / p50 (no target)",
-        ev.p999 / ev.p50,
-        f64::INFINITY,
-        true,
-    );
+    }
     println!();
     println!("load average at end {}", loadavg());
     Ok(())
