@@ -14,7 +14,7 @@
 use guardian_models::preprocess::preprocess_with;
 use guardian_shared::trajectory::{JOINTS, Q_MAX, Q_MIN, Resampled, Waypoint};
 use rand::Rng;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::dataset::{ConvertError, convert_strokes};
 use crate::path::PathSolver;
@@ -26,7 +26,19 @@ pub const SEVERITIES: [f64; 3] = [0.25, 0.5, 1.0];
 pub const MODERATE: f64 = 0.5;
 
 /// A corruption of a genuine plan.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, clap::ValueEnum)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Hash,
+    PartialOrd,
+    Ord,
+    Serialize,
+    Deserialize,
+    clap::ValueEnum,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum Fault {
     /// Gaussian noise on every joint of every waypoint, sigma = 0.03 rad x severity.

@@ -22,10 +22,14 @@ use guardian_shared::trajectory::{Resampled, STEPS};
 use rand::rngs::StdRng;
 use rand::seq::{IndexedRandom, SliceRandom};
 use rand::{Rng, SeedableRng};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::dataset::Dataset;
 use crate::eval::{self, EpisodeSpec};
+use crate::faults::{self, Fault};
+use crate::path::PathSolver;
+use crate::strokes;
 
 /// Which loss trains the network.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -99,10 +103,35 @@ pub struct TrainConfig {
     pub early_stop_patience: usize,
     /// Feature augmentation (rotation, shear, scale, time reversal).
     pub augment: bool,
+    /// Time reversal among the augmentations (with `augment`).
+    #[serde(default = "yes")]
+    pub reverse_augment: bool,
     /// Seed of initialisation, batches and augmentation.
     pub seed: u64,
     /// Episodes of the per-epoch validation 5-way-1-shot accuracy.
     pub val_episodes: usize,
+    /// Fault negatives (outlier exposure): the chance that a batch sample brings one of its
+    /// own corrupted plans into the batch, labelled as a class of its own, so the loss
+    /// pushes corrupted plans away from the genuine class they were made from. 0 = off.
+    #[serde(default)]
+    pub fault_share: f64,
+    /// Corrupted plans made per training (and validation) drawing when `fault_share > 0`.
+    #[serde(default)]
+    pub fault_variants: usize,
+    /// Weight of the fault-negative triplet term (`loss::fault_triplet_loss`) added to the
+    /// main loss; 0 leaves corrupted plans as plain negatives of the main loss only.
+    #[serde(default)]
+    pub fault_weight: f64,
+    /// Margin of the fault-negative triplet term.
+    #[serde(default)]
+    pub fault_margin: f64,
+    /// The corruptions fault negatives are made with (empty: none).
+    #[serde(default)]
+    pub fault_kinds: Vec<Fault>,
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// `guardian-lab train`: train the embedding network.
@@ -168,6 +197,9 @@ pub struct Args {
     /// No augmentation.
     #[arg(long)]
     pub no_augment: bool,
+    /// Augment without time reversal (the other augmentations stay).
+    #[arg(long)]
+    pub no_reverse_augment: bool,
     /// Seed.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -181,6 +213,27 @@ pub struct Args {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+    /// Fault negatives: chance per batch sample of adding one of its corrupted plans
+    /// (missing / extra stroke, mirrored, truncated, rotated; `TRAIN_FAULTS`) as a
+    /// negative of its class. 0 trains on genuine plans only.
+    #[arg(long, default_value_t = 0.0)]
+    pub fault_share: f64,
+    /// Corrupted plans made per drawing for `--fault-share` (re-solved through the IK).
+    #[arg(long, default_value_t = 8)]
+    pub fault_variants: usize,
+    /// Weight of the fault-negative triplet term (anchor and positive of a class, one of
+    /// the class's corrupted plans as the negative) added to the main loss.
+    #[arg(long, default_value_t = 1.0)]
+    pub fault_weight: f64,
+    /// Margin of the fault-negative triplet term (squared embedding distance).
+    #[arg(long, default_value_t = 0.4)]
+    pub fault_margin: f64,
+    /// The corruptions fault negatives are made with (default: `TRAIN_FAULTS`).
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub fault_kinds: Vec<Fault>,
+    /// Omniglot stroke root the corrupted plans are made from (`--fault-share` only).
+    #[arg(long, default_value = "../shared/omniglot/strokes")]
+    pub strokes: PathBuf,
 }
 
 impl Args {
@@ -210,8 +263,30 @@ impl Args {
             min_lr: 1e-5,
             early_stop_patience: self.patience,
             augment: !self.no_augment,
+            reverse_augment: !self.no_reverse_augment,
             seed: self.seed,
             val_episodes: self.val_episodes,
+            fault_share: self.fault_share,
+            fault_variants: if self.fault_share > 0.0 {
+                self.fault_variants
+            } else {
+                0
+            },
+            fault_weight: if self.fault_share > 0.0 {
+                self.fault_weight
+            } else {
+                0.0
+            },
+            fault_margin: if self.fault_share > 0.0 {
+                self.fault_margin
+            } else {
+                0.0
+            },
+            fault_kinds: match (self.fault_share > 0.0, self.fault_kinds.is_empty()) {
+                (false, _) => Vec::new(),
+                (true, true) => TRAIN_FAULTS.to_vec(),
+                (true, false) => self.fault_kinds.clone(),
+            },
         }
     }
 }
@@ -303,6 +378,32 @@ pub struct TrainSummary {
     pub stopped: String,
 }
 
+/// The corruptions fault-negative training makes of a genuine drawing: the ones that change
+/// the drawn shape. Shift and scale are not among them (the pen features remove position
+/// and size by design; the plan-geometry check sees them), nor time reversal (training
+/// augments with it, since drawers of one character draw strokes in either direction),
+/// nor joint faults (the workcell rules catch every one of them).
+pub const TRAIN_FAULTS: [Fault; 5] = [
+    Fault::MissingStroke,
+    Fault::ExtraStroke,
+    Fault::Mirrored,
+    Fault::Truncated,
+    Fault::Rotated,
+];
+
+/// Labels of fault negatives in a batch count down from here (one label per corrupted
+/// plan, so it is a negative of every genuine sample and the positive of none).
+const FAULT_LABEL_TOP: u32 = u32::MAX;
+
+/// One sample of a batch: a genuine drawing, or one of its corrupted plans.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Item {
+    /// Sample `i` of the prepared set.
+    Genuine(usize),
+    /// Corrupted plan `v` of sample `i`.
+    Fault(usize, usize),
+}
+
 /// The training data in the form the batch sampler needs.
 pub struct Prepared {
     kind: FeatureKind,
@@ -313,6 +414,12 @@ pub struct Prepared {
     by_class: Vec<Vec<usize>>,
     /// Class label per sample (dense, 0..by_class.len()).
     labels: Vec<u32>,
+    /// Dataset index per sample.
+    data_index: Vec<usize>,
+    /// Pen paths of the corrupted plans of each sample (empty without fault negatives).
+    faults: Vec<Vec<[PenPoint; STEPS]>>,
+    /// Time reversal among the augmentations.
+    reverse_augment: bool,
 }
 
 impl Prepared {
@@ -327,6 +434,7 @@ impl Prepared {
         let mut by_class: Vec<Vec<usize>> = Vec::new();
         let mut raw = Vec::new();
         let mut labels = Vec::new();
+        let mut data_index = Vec::new();
         for i in 0..data.len() {
             if !ids.contains(&data.alphabet_ids[i]) {
                 continue;
@@ -339,19 +447,135 @@ impl Prepared {
             by_class[c].push(raw.len());
             raw.push(data.trajectories[i]);
             labels.push(c as u32);
+            data_index.push(i);
         }
         let pen = if kind != FeatureKind::Joints {
             raw.iter().map(features::pen_path).collect()
         } else {
             Vec::new()
         };
+        let faults = vec![Vec::new(); raw.len()];
         Ok(Self {
             kind,
             pen,
             raw,
             by_class,
             labels,
+            data_index,
+            faults,
+            reverse_augment: true,
         })
+    }
+
+    /// Make `variants` corrupted plans of every sample for fault-negative training: a random
+    /// fault of `kinds` at a random severity in [0.25, 1], made on the drawing's
+    /// Omniglot strokes (found under `strokes_root` by class and drawer) and re-solved
+    /// through the dataset's IK, exactly as the evaluation's faulty plans are. Deterministic
+    /// in `seed`. Returns how many were made (a drawing whose strokes are missing, or a
+    /// corruption that cannot be solved, gets fewer).
+    pub fn make_faults(
+        &mut self,
+        data: &Dataset,
+        strokes_root: &Path,
+        kinds: &[Fault],
+        variants: usize,
+        seed: u64,
+    ) -> Result<usize, TrainError> {
+        if kinds.is_empty() {
+            return Err(TrainError::Setup(
+                "no fault kinds to make negatives with".into(),
+            ));
+        }
+        if self.kind == FeatureKind::Joints {
+            return Err(TrainError::Setup(
+                "fault negatives need pen features".into(),
+            ));
+        }
+        let files = strokes::scan(&[strokes_root.to_path_buf()])
+            .map_err(|e| TrainError::Setup(format!("fault negatives: {e}")))?;
+        let by_key: BTreeMap<(String, i64), PathBuf> = files
+            .into_iter()
+            .map(|f| ((f.class_name(), i64::from(f.drawer)), f.path))
+            .collect();
+        let solver = PathSolver::new(&data.geometry)
+            .map_err(|e| TrainError::Setup(format!("fault negatives: {e}")))?;
+        let made: Vec<Vec<[PenPoint; STEPS]>> = self
+            .data_index
+            .par_iter()
+            .map(|&i| {
+                let class = usize::try_from(data.labels[i])
+                    .ok()
+                    .and_then(|c| data.classes.get(c));
+                let Some(st) = class
+                    .and_then(|c| by_key.get(&(c.clone(), data.drawer_ids[i])))
+                    .and_then(|p| strokes::read_strokes(p).ok())
+                else {
+                    return Vec::new();
+                };
+                let mut rng = StdRng::seed_from_u64(seed ^ (i as u64).wrapping_mul(0x9e37_79b9));
+                let mut out = Vec::with_capacity(variants);
+                let mut tries = 0;
+                while out.len() < variants && tries < 4 * variants {
+                    tries += 1;
+                    let fault = kinds[rng.random_range(0..kinds.len())];
+                    let severity = rng.random_range(0.25..=1.0);
+                    if let Ok(x) = faults::corrupt(&solver, fault, severity, &st, &mut rng) {
+                        out.push(features::pen_path(&x));
+                    }
+                }
+                out
+            })
+            .collect();
+        self.faults = made;
+        Ok(self.faults.iter().map(Vec::len).sum())
+    }
+
+    /// The source class of every item: `Some(class label)` for a corrupted plan, `None`
+    /// for a genuine sample (the `sources` of `loss::fault_triplet_loss`).
+    pub fn sources(&self, items: &[Item]) -> Vec<Option<u32>> {
+        items
+            .iter()
+            .map(|it| match *it {
+                Item::Genuine(_) => None,
+                Item::Fault(i, _) => Some(self.labels[i]),
+            })
+            .collect()
+    }
+
+    /// Number of corrupted plans of sample `i` (0 without fault negatives).
+    pub fn faults_of(&self, i: usize) -> usize {
+        self.faults.get(i).map_or(0, Vec::len)
+    }
+
+    /// The batch `idx` / `labels` with fault negatives added: each sample that has
+    /// corrupted plans brings one at random with probability `share`, labelled as a class
+    /// of its own. Draws nothing from `rng` when `share` is 0.
+    pub fn with_faults(
+        &self,
+        idx: &[usize],
+        labels: &[u32],
+        share: f64,
+        rng: &mut StdRng,
+    ) -> (Vec<Item>, Vec<u32>) {
+        let mut items: Vec<Item> = idx.iter().map(|&i| Item::Genuine(i)).collect();
+        let mut out = labels.to_vec();
+        if share > 0.0 {
+            let mut next = FAULT_LABEL_TOP;
+            for &i in idx {
+                let n = self.faults[i].len();
+                if n > 0 && rng.random_bool(share.min(1.0)) {
+                    items.push(Item::Fault(i, rng.random_range(0..n)));
+                    out.push(next);
+                    next -= 1;
+                }
+            }
+        }
+        (items, out)
+    }
+
+    /// Allow or forbid time reversal among the augmentations (allowed by default).
+    pub fn set_reverse_augment(&mut self, on: bool) {
+        self.reverse_augment = on;
     }
 
     /// Number of classes.
@@ -370,25 +594,39 @@ impl Prepared {
     }
 
     /// Feature tensor `[B, STEPS, F]` of samples `idx`, augmented when `rng` is given.
-    pub fn batch(
+    pub fn batch(&self, idx: &[usize], rng: Option<&mut StdRng>) -> candle_core::Result<Tensor> {
+        let items: Vec<Item> = idx.iter().map(|&i| Item::Genuine(i)).collect();
+        self.batch_items(&items, rng)
+    }
+
+    /// Feature tensor `[B, STEPS, F]` of genuine and corrupted samples, augmented when
+    /// `rng` is given.
+    pub fn batch_items(
         &self,
-        idx: &[usize],
+        items: &[Item],
         mut rng: Option<&mut StdRng>,
     ) -> candle_core::Result<Tensor> {
         let c = self.kind.channels();
-        let mut buf = vec![0.0f32; idx.len() * STEPS * c];
-        for (&i, out) in idx.iter().zip(buf.chunks_exact_mut(STEPS * c)) {
-            if self.kind == FeatureKind::Joints {
-                features::compute(self.kind, &self.raw[i], out);
-            } else {
-                let aug = match rng.as_deref_mut() {
-                    Some(r) => random_augment(r),
-                    None => Augment::default(),
-                };
-                features::path_features(self.kind, &self.pen[i], &aug, out);
-            }
+        let mut buf = vec![0.0f32; items.len() * STEPS * c];
+        for (&item, out) in items.iter().zip(buf.chunks_exact_mut(STEPS * c)) {
+            let path = match item {
+                Item::Genuine(i) if self.kind == FeatureKind::Joints => {
+                    features::compute(self.kind, &self.raw[i], out);
+                    continue;
+                }
+                Item::Genuine(i) => self.pen.get(i),
+                Item::Fault(i, v) => self.faults.get(i).and_then(|f| f.get(v)),
+            };
+            let Some(path) = path else {
+                candle_core::bail!("batch item {item:?} is not in the prepared set");
+            };
+            let aug = match rng.as_deref_mut() {
+                Some(r) => random_augment(r, self.reverse_augment),
+                None => Augment::default(),
+            };
+            features::path_features(self.kind, path, &aug, out);
         }
-        Tensor::from_vec(buf, (idx.len(), STEPS, c), &Device::Cpu)
+        Tensor::from_vec(buf, (items.len(), STEPS, c), &Device::Cpu)
     }
 
     /// A class-balanced batch: `p` classes, `k` samples each (fewer if a class is small).
@@ -419,13 +657,15 @@ impl Prepared {
     }
 }
 
-fn random_augment(rng: &mut StdRng) -> Augment {
+/// Random augmentation; with `reverse` false the draw for time reversal is made and
+/// ignored, so the other augmentations are the same as with it.
+fn random_augment(rng: &mut StdRng, reverse: bool) -> Augment {
     Augment {
         rotation: rng.random_range(-0.2..0.2),
         shear: rng.random_range(-0.2..0.2),
         scale_x: rng.random_range(0.85..1.15),
         scale_y: rng.random_range(0.85..1.15),
-        reverse: rng.random_bool(0.5),
+        reverse: rng.random_bool(0.5) && reverse,
     }
 }
 
@@ -458,13 +698,53 @@ pub fn batch_loss(
     rng: &mut StdRng,
 ) -> candle_core::Result<(Tensor, f32, usize)> {
     let e = net.forward(x)?;
+    embedding_loss(&e, labels, kind, margin, rng)
+}
+
+/// The training objective of one batch of items: the main loss of `cfg`, plus the
+/// fault-negative term (weighted) when the batch has corrupted plans. Returns `(loss to
+/// optimise, validation-comparable loss, active fraction, mined triplets)`; the
+/// validation-comparable loss takes batch-all's mean over all valid triplets rather than
+/// over the active ones (which stays flat as fewer triplets stay active), for both terms.
+pub fn objective(
+    net: &Net,
+    x: &Tensor,
+    labels: &[u32],
+    sources: &[Option<u32>],
+    cfg: &TrainConfig,
+    rng: &mut StdRng,
+) -> candle_core::Result<(Tensor, f64, f32, usize)> {
+    let e = net.forward(x)?;
+    let (l, active, n) = embedding_loss(&e, labels, cfg.loss, cfg.margin, rng)?;
+    let lv = f64::from(l.to_scalar::<f32>()?);
+    let mut comparable = if cfg.loss == LossKind::BatchAll {
+        lv * f64::from(active)
+    } else {
+        lv
+    };
+    let mut total = l;
+    if cfg.fault_weight > 0.0 && sources.iter().any(Option::is_some) {
+        let (lf, af, _) = loss::fault_triplet_loss(&e, labels, sources, cfg.fault_margin)?;
+        comparable += cfg.fault_weight * f64::from(lf.to_scalar::<f32>()?) * f64::from(af);
+        total = (total + (lf * cfg.fault_weight)?)?;
+    }
+    Ok((total, comparable, active, n))
+}
+
+fn embedding_loss(
+    e: &Tensor,
+    labels: &[u32],
+    kind: LossKind,
+    margin: f64,
+    rng: &mut StdRng,
+) -> candle_core::Result<(Tensor, f32, usize)> {
     match kind {
         LossKind::BatchHard => {
-            let (l, a) = loss::batch_hard_triplet_loss(&e, labels, margin)?;
+            let (l, a) = loss::batch_hard_triplet_loss(e, labels, margin)?;
             Ok((l, a, labels.len()))
         }
         LossKind::BatchAll => {
-            let (l, a) = loss::batch_all_triplet_loss(&e, labels, margin)?;
+            let (l, a) = loss::batch_all_triplet_loss(e, labels, margin)?;
             let n = labels.len();
             let mut valid = 0;
             for i in 0..n {
@@ -507,7 +787,7 @@ pub fn batch_loss(
             Ok((l, frac, m))
         }
         LossKind::Contrastive => {
-            let l = loss::contrastive_loss(&e, labels, margin)?;
+            let l = loss::contrastive_loss(e, labels, margin)?;
             let n = labels.len();
             Ok((l, 1.0, n * (n - 1) / 2))
         }
@@ -569,10 +849,12 @@ impl AdamW {
 }
 
 /// Train as configured, writing into `out`. With `resume`, continue from the checkpoint
-/// there (the configuration must match).
+/// there (the configuration must match). `strokes` is the Omniglot stroke root the fault
+/// negatives are made from (needed only when `cfg.fault_share > 0`).
 pub fn train(
     data: &Dataset,
     cfg: &TrainConfig,
+    strokes: Option<&Path>,
     out: &Path,
     resume: bool,
     quiet: bool,
@@ -592,9 +874,39 @@ pub fn train(
             )));
         }
     }
+    if !(0.0..=1.0).contains(&cfg.fault_share) || (cfg.fault_share > 0.0 && cfg.fault_variants == 0)
+    {
+        return Err(TrainError::Setup(format!(
+            "fault share {} must be in [0, 1], with at least one variant",
+            cfg.fault_share
+        )));
+    }
     std::fs::create_dir_all(out).map_err(io_err(out))?;
-    let train_set = Prepared::new(data, &cfg.train_alphabets, cfg.net.features)?;
-    let val_set = Prepared::new(data, &cfg.val_alphabets, cfg.net.features)?;
+    let mut train_set = Prepared::new(data, &cfg.train_alphabets, cfg.net.features)?;
+    train_set.set_reverse_augment(cfg.reverse_augment);
+    let mut val_set = Prepared::new(data, &cfg.val_alphabets, cfg.net.features)?;
+    if cfg.fault_share > 0.0 {
+        let root = strokes.ok_or_else(|| {
+            TrainError::Setup("fault negatives need the Omniglot stroke root".into())
+        })?;
+        let t0 = Instant::now();
+        let kinds = &cfg.fault_kinds;
+        let n_train = train_set.make_faults(data, root, kinds, cfg.fault_variants, cfg.seed)?;
+        let n_val =
+            val_set.make_faults(data, root, kinds, cfg.fault_variants, cfg.seed ^ 0x7a11)?;
+        if n_train == 0 {
+            return Err(TrainError::Setup(format!(
+                "no fault negatives could be made from {}",
+                root.display()
+            )));
+        }
+        if !quiet {
+            eprintln!(
+                "fault negatives: {n_train} training and {n_val} validation plans solved in {:.1} s",
+                t0.elapsed().as_secs_f64()
+            );
+        }
+    }
     if train_set.classes() < cfg.p_classes.min(2) || val_set.classes() < 5 {
         return Err(TrainError::Setup(format!(
             "too few classes: train {}, val {} (val needs >= 5)",
@@ -688,8 +1000,11 @@ pub fn train(
 
     // Fixed validation batches and episodes.
     let mut vrng = StdRng::seed_from_u64(cfg.seed ^ 0x005e_ed0f_7a11);
-    let val_batches: Vec<(Vec<usize>, Vec<u32>)> = (0..10)
-        .map(|_| val_set.sample_pk(cfg.p_classes, cfg.k_samples, &mut vrng))
+    let val_batches: Vec<(Vec<Item>, Vec<u32>)> = (0..10)
+        .map(|_| {
+            let (idx, labels) = val_set.sample_pk(cfg.p_classes, cfg.k_samples, &mut vrng);
+            val_set.with_faults(&idx, &labels, cfg.fault_share, &mut vrng)
+        })
         .collect();
     let val_labels: Vec<u32> = val_set.labels().to_vec();
     let val_spec = EpisodeSpec {
@@ -728,14 +1043,15 @@ pub fn train(
         let (mut loss_sum, mut active_sum, mut samples, mut triplets) = (0.0, 0.0, 0usize, 0usize);
         for _ in 0..cfg.steps_per_epoch {
             let (idx, labels) = train_set.sample_pk(cfg.p_classes, cfg.k_samples, &mut rng);
-            let x = train_set.batch(&idx, cfg.augment.then_some(&mut rng))?;
-            let (l, active, n_trip) =
-                batch_loss(&net, &x, &labels, cfg.loss, cfg.margin, &mut rng)?;
+            let (items, labels) = train_set.with_faults(&idx, &labels, cfg.fault_share, &mut rng);
+            let x = train_set.batch_items(&items, cfg.augment.then_some(&mut rng))?;
+            let sources = train_set.sources(&items);
+            let (l, _, active, n_trip) = objective(&net, &x, &labels, &sources, cfg, &mut rng)?;
             let grads = l.backward()?;
             opt.step(&grads, state.lr)?;
             loss_sum += f64::from(l.to_scalar::<f32>()?);
             active_sum += f64::from(active);
-            samples += idx.len();
+            samples += items.len();
             triplets += n_trip;
             bar.inc(1);
         }
@@ -745,17 +1061,10 @@ pub fn train(
         // Validation.
         let mut val_loss = 0.0;
         let mut dummy = StdRng::seed_from_u64(0);
-        for (idx, labels) in &val_batches {
-            let x = val_set.batch(idx, None)?;
-            let (l, active, _) = batch_loss(&net, &x, labels, cfg.loss, cfg.margin, &mut dummy)?;
-            let l = f64::from(l.to_scalar::<f32>()?);
-            // Batch-all trains on the mean over active triplets, which stays flat as fewer
-            // triplets stay active; validate on the mean over all valid triplets instead.
-            val_loss += if cfg.loss == LossKind::BatchAll {
-                l * f64::from(active)
-            } else {
-                l
-            };
+        for (items, labels) in &val_batches {
+            let x = val_set.batch_items(items, None)?;
+            let sources = val_set.sources(items);
+            val_loss += objective(&net, &x, labels, &sources, cfg, &mut dummy)?.1;
         }
         val_loss /= val_batches.len() as f64;
         let embs = embed_all(&net, &val_set)?;
@@ -895,7 +1204,14 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         cfg.val_alphabets,
         rayon::current_num_threads()
     );
-    let summary = train(&data, &cfg, &args.out, args.resume, args.quiet)?;
+    let summary = train(
+        &data,
+        &cfg,
+        Some(&args.strokes),
+        &args.out,
+        args.resume,
+        args.quiet,
+    )?;
     println!("{}", serde_json::to_string_pretty(&summary)?);
     Ok(())
 }

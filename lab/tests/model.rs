@@ -11,12 +11,12 @@ use guardian_lab::dataset::{Dataset, generate_files};
 use guardian_lab::eval::{self, Baseline, EpisodeSpec, Pool};
 use guardian_lab::path::Geometry;
 use guardian_lab::strokes::scan;
-use guardian_lab::train::{self, AdamW, LossKind, Prepared, TrainConfig};
+use guardian_lab::train::{self, AdamW, Item, LossKind, Prepared, TrainConfig};
 use guardian_models::embedder::{Embedder, sq_dist};
 use guardian_models::features::FeatureKind;
 use guardian_models::net::{Net, NetConfig};
-use rand::SeedableRng;
 use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
 
 /// `<workspace root>/../shared/omniglot/strokes`.
 fn shared_strokes() -> PathBuf {
@@ -57,6 +57,36 @@ fn tiny_net() -> NetConfig {
         embed_dim: guardian_models::embedder::EMBED_DIM,
         l2_normalize: true,
         reverse_average: false,
+    }
+}
+
+/// The training configuration of the pipeline tests: a tiny network, Latin / Greek.
+fn tiny_config() -> TrainConfig {
+    TrainConfig {
+        net: tiny_net(),
+        loss: LossKind::BatchHard,
+        margin: 0.2,
+        train_alphabets: vec!["Latin".into()],
+        val_alphabets: vec!["Greek".into()],
+        p_classes: 6,
+        k_samples: 4,
+        steps_per_epoch: 5,
+        max_epochs: 2,
+        lr: 3e-3,
+        weight_decay: 1e-4,
+        plateau_patience: 3,
+        lr_factor: 0.5,
+        min_lr: 1e-5,
+        early_stop_patience: 10,
+        augment: true,
+        reverse_augment: true,
+        seed: 1,
+        val_episodes: 50,
+        fault_share: 0.0,
+        fault_variants: 0,
+        fault_weight: 0.0,
+        fault_margin: 0.0,
+        fault_kinds: Vec::new(),
     }
 }
 
@@ -133,30 +163,11 @@ fn a_few_steps_lower_the_loss_and_separate_classes() {
 fn the_training_pipeline_checkpoints_resumes_and_ships_a_loadable_model() {
     let data = small_dataset();
     let dir = tempfile::tempdir().expect("tempdir");
-    let mut cfg = TrainConfig {
-        net: tiny_net(),
-        loss: LossKind::BatchHard,
-        margin: 0.2,
-        train_alphabets: vec!["Latin".into()],
-        val_alphabets: vec!["Greek".into()],
-        p_classes: 6,
-        k_samples: 4,
-        steps_per_epoch: 5,
-        max_epochs: 2,
-        lr: 3e-3,
-        weight_decay: 1e-4,
-        plateau_patience: 3,
-        lr_factor: 0.5,
-        min_lr: 1e-5,
-        early_stop_patience: 10,
-        augment: true,
-        seed: 1,
-        val_episodes: 50,
-    };
-    let s = train::train(data, &cfg, dir.path(), false, true).expect("train");
+    let mut cfg = tiny_config();
+    let s = train::train(data, &cfg, None, dir.path(), false, true).expect("train");
     assert_eq!(s.epochs, 2);
     cfg.max_epochs = 3;
-    let s = train::train(data, &cfg, dir.path(), true, true).expect("resume");
+    let s = train::train(data, &cfg, None, dir.path(), true, true).expect("resume");
     assert_eq!(s.epochs, 3);
     let lines = std::fs::read_to_string(dir.path().join("metrics.jsonl")).expect("metrics");
     let rows: Vec<serde_json::Value> = lines
@@ -172,7 +183,7 @@ fn the_training_pipeline_checkpoints_resumes_and_ships_a_loadable_model() {
     }
     // A different configuration cannot resume this run.
     cfg.margin = 0.5;
-    assert!(train::train(data, &cfg, dir.path(), true, true).is_err());
+    assert!(train::train(data, &cfg, None, dir.path(), true, true).is_err());
     // The best model loads through the serving API and embeds real trajectories.
     let model = Embedder::load(&dir.path().join("model.safetensors")).expect("load");
     assert_eq!(model.version(), s.model_version);
@@ -219,4 +230,150 @@ fn evaluator_baselines_on_real_data() {
     // Episodes only draw classes of the requested alphabets.
     assert_eq!(pool.class_names.len(), 8);
     assert!(pool.class_names.iter().all(|c| c.starts_with("Latin/")));
+}
+
+/// Mean over the samples with corrupted plans of (distance of a corrupted plan to its
+/// class's prototype) / (distance of the genuine samples to their class's prototype).
+fn fault_to_genuine_ratio(net: &Net, set: &Prepared) -> f64 {
+    let e = train::embed_all(net, set).expect("embed");
+    let labels = set.labels();
+    let dim = e[0].len();
+    let mut protos = vec![vec![0.0f64; dim]; set.classes()];
+    let mut counts = vec![0usize; set.classes()];
+    for (v, &l) in e.iter().zip(labels) {
+        counts[l as usize] += 1;
+        for (p, x) in protos[l as usize].iter_mut().zip(v) {
+            *p += f64::from(*x);
+        }
+    }
+    for (p, &n) in protos.iter_mut().zip(&counts) {
+        p.iter_mut().for_each(|x| *x /= n as f64);
+    }
+    let d = |v: &[f32], p: &[f64]| -> f64 {
+        v.iter()
+            .zip(p)
+            .map(|(a, b)| (f64::from(*a) - b).powi(2))
+            .sum()
+    };
+    let genuine: f64 = e
+        .iter()
+        .zip(labels)
+        .map(|(v, &l)| d(v, &protos[l as usize]))
+        .sum::<f64>()
+        / e.len() as f64;
+    let items: Vec<Item> = (0..set.len())
+        .filter(|&i| set.faults_of(i) > 0)
+        .map(|i| Item::Fault(i, 0))
+        .collect();
+    let x = set.batch_items(&items, None).expect("batch");
+    let f = net
+        .forward(&x)
+        .expect("forward")
+        .to_vec2::<f32>()
+        .expect("vec");
+    let faulty: f64 = items
+        .iter()
+        .zip(&f)
+        .map(|(it, v)| match it {
+            Item::Fault(i, _) => d(v, &protos[labels[*i] as usize]),
+            Item::Genuine(_) => unreachable!("only corrupted plans were embedded"),
+        })
+        .sum::<f64>()
+        / f.len() as f64;
+    faulty / genuine
+}
+
+#[test]
+fn fault_negatives_are_solved_corruptions_and_training_pushes_them_away() {
+    let data = small_dataset();
+    let mut set = Prepared::new(data, &["Latin".to_string()], FeatureKind::Pen).expect("prepare");
+    let made = set
+        .make_faults(data, &shared_strokes(), &train::TRAIN_FAULTS, 3, 7)
+        .expect("make faults");
+    // Every corruption applies to most drawings (a missing stroke needs two strokes; the
+    // generator then picks another fault), so nearly all 3 per drawing are made.
+    assert!(
+        made >= 3 * set.len() * 9 / 10,
+        "{made} of {}",
+        3 * set.len()
+    );
+    // A corrupted plan is not its genuine drawing.
+    let genuine = set.batch(&[0], None).expect("batch").flatten_all().unwrap();
+    let faulty = set
+        .batch_items(&[Item::Fault(0, 0)], None)
+        .expect("batch")
+        .flatten_all()
+        .unwrap();
+    let diff: f32 = (genuine - faulty)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .sum_all()
+        .unwrap()
+        .to_scalar()
+        .unwrap();
+    assert!(diff > 1.0, "corrupted plan equals the genuine one ({diff})");
+
+    // Share 0: the batch is unchanged and the RNG untouched; share 1: one corrupted plan
+    // per sample, each with a label of its own, never a class label.
+    let mut rng = StdRng::seed_from_u64(3);
+    let (idx, labels) = set.sample_pk(4, 3, &mut rng);
+    let mut probe = rng.clone();
+    let (items, l0) = set.with_faults(&idx, &labels, 0.0, &mut rng);
+    assert_eq!(l0, labels);
+    assert!(items.iter().all(|i| matches!(i, Item::Genuine(_))));
+    assert_eq!(rng.random::<u64>(), probe.random::<u64>());
+    let (items, l1) = set.with_faults(&idx, &labels, 1.0, &mut rng);
+    assert_eq!(items.len(), 2 * idx.len());
+    let extra = &l1[idx.len()..];
+    let mut uniq = extra.to_vec();
+    uniq.dedup();
+    assert_eq!(uniq.len(), extra.len(), "labels of corrupted plans repeat");
+    assert!(extra.iter().all(|l| *l as usize >= set.classes()));
+    for (it, &i) in items[idx.len()..].iter().zip(&idx) {
+        assert!(matches!(it, Item::Fault(j, v) if *j == i && *v < set.faults_of(i)));
+    }
+
+    // The same tiny network trained the same way with and without fault negatives (as
+    // plain negatives of the batch-all loss plus the weighted fault-negative term): with
+    // them, corrupted plans end farther from their class relative to genuine ones.
+    let cfg = TrainConfig {
+        loss: LossKind::BatchAll,
+        fault_share: 1.0,
+        fault_variants: 3,
+        fault_weight: 1.0,
+        fault_margin: 0.4,
+        ..tiny_config()
+    };
+    let run = |share: f64| -> f64 {
+        let net = Net::random(tiny_net(), 11, DType::F32).expect("net");
+        let vars: Vec<Var> = net
+            .params()
+            .iter()
+            .map(|t| Var::from_tensor(t).expect("var"))
+            .collect();
+        let net = Net::new(
+            tiny_net(),
+            vars.iter().map(|v| v.as_tensor().clone()).collect(),
+        )
+        .expect("net");
+        let mut opt = AdamW::new(vars, 1e-4).expect("opt");
+        let mut rng = StdRng::seed_from_u64(5);
+        for _ in 0..60 {
+            let (idx, labels) = set.sample_pk(8, 4, &mut rng);
+            let (items, labels) = set.with_faults(&idx, &labels, share, &mut rng);
+            let x = set.batch_items(&items, Some(&mut rng)).expect("batch");
+            let sources = set.sources(&items);
+            let (l, _, _, _) =
+                train::objective(&net, &x, &labels, &sources, &cfg, &mut rng).expect("loss");
+            let grads = l.backward().expect("backward");
+            opt.step(&grads, 3e-3).expect("step");
+        }
+        fault_to_genuine_ratio(&net, &set)
+    };
+    let (without, with) = (run(0.0), run(1.0));
+    eprintln!(
+        "corrupted / genuine distance to the class prototype: {without:.3} without, {with:.3} with fault negatives"
+    );
+    assert!(with > without, "{with} <= {without}");
 }

@@ -5,6 +5,8 @@
 //! * [`batch_hard_triplet_loss`] / [`batch_all_triplet_loss`] — online mining over a batch of
 //!   labelled embeddings (class-balanced P x K batches): every sample is an anchor with its
 //!   hardest positive and hardest negative, or every valid triplet averaged over the active ones.
+//! * [`fault_triplet_loss`] — fault negatives: corrupted plans made from a class's drawings
+//!   pushed farther from the class's anchors than its positives.
 //! * [`contrastive_loss`] — the Siamese baseline's pair loss:
 //!   `y * d + (1 - y) * max(0, margin - sqrt(d))^2` over all pairs of the batch.
 
@@ -107,6 +109,58 @@ pub fn batch_all_triplet_loss(
     Ok((loss, active as f32 / n_valid.max(1.0)))
 }
 
+/// Fault-negative triplet loss: every `(a, p, f)` where `a != p` are genuine samples of one
+/// class `c` (`sources[a] == sources[p] == None`, `labels[a] == labels[p] == c`) and `f` is
+/// a corrupted plan made from a drawing of class `c` (`sources[f] == Some(c)`):
+/// `max(0, d(a, p) − d(a, f) + margin)`, averaged over the active triplets, so the loss
+/// keeps pushing while only a few corrupted plans are still too close. Returns `(loss,
+/// fraction of valid triplets that are active, valid triplets)`; a batch without a valid
+/// triplet has loss 0.
+pub fn fault_triplet_loss(
+    e: &Tensor,
+    labels: &[u32],
+    sources: &[Option<u32>],
+    margin: f64,
+) -> candle_core::Result<(Tensor, f32, usize)> {
+    let b = labels.len();
+    if sources.len() != b {
+        candle_core::bail!("{} sources for {b} labels", sources.len());
+    }
+    let mut pos = vec![0.0f32; b * b];
+    let mut fneg = vec![0.0f32; b * b];
+    for a in 0..b {
+        if sources[a].is_some() {
+            continue;
+        }
+        for j in 0..b {
+            if j != a && sources[j].is_none() && labels[j] == labels[a] {
+                pos[a * b + j] = 1.0;
+            }
+            if sources[j] == Some(labels[a]) {
+                fneg[a * b + j] = 1.0;
+            }
+        }
+    }
+    let (dev, dt) = (e.device(), e.dtype());
+    let pos = Tensor::from_vec(pos, (b, b), dev)?.to_dtype(dt)?;
+    let fneg = Tensor::from_vec(fneg, (b, b), dev)?.to_dtype(dt)?;
+    let d = pairwise_sq_dist(e)?;
+    let t = (d.unsqueeze(2)?.broadcast_sub(&d.unsqueeze(1)?)? + margin)?.relu()?;
+    let valid = pos.unsqueeze(2)?.broadcast_mul(&fneg.unsqueeze(1)?)?;
+    let t = (t * &valid)?;
+    let flat = t
+        .flatten_all()?
+        .to_dtype(candle_core::DType::F32)?
+        .to_vec1::<f32>()?;
+    let active = flat.iter().filter(|&&v| v > 1e-12).count();
+    let n_valid = valid
+        .to_dtype(candle_core::DType::F32)?
+        .sum_all()?
+        .to_scalar::<f32>()? as usize;
+    let loss = (t.sum_all()? / (active.max(1) as f64))?;
+    Ok((loss, active as f32 / n_valid.max(1) as f32, n_valid))
+}
+
 /// Contrastive (Siamese) loss over all pairs of the batch: same-class pairs are pulled
 /// together (`d`), different-class pairs pushed beyond `margin` in distance
 /// (`max(0, margin - sqrt(d))^2`).
@@ -159,6 +213,32 @@ mod tests {
         let sep = t(&[[0.0, 0.0], [0.0, 0.0], [5.0, 0.0], [5.0, 0.0]]);
         let l = contrastive_loss(&sep, &[0, 0, 1, 1], 1.0)?.to_scalar::<f32>()?;
         assert!(l.abs() < 1e-3, "{l}");
+        Ok(())
+    }
+
+    #[test]
+    fn fault_triplet_loss_on_a_known_case() -> candle_core::Result<()> {
+        // Class 0: samples 0 and 1 (d 1); sample 2 a corrupted plan of class 0 at d 4 from
+        // sample 0 and 5 from sample 1; sample 3 of class 1; sample 4 a corrupted plan of
+        // class 1 (no class-1 pair: no triplet).
+        let e = t(&[[0.0, 0.0], [1.0, 0.0], [0.0, 2.0], [0.0, 3.0], [3.0, 3.0]]);
+        let labels = [0, 0, 7, 1, 8];
+        let sources = [None, None, Some(0), None, Some(1)];
+        // Triplets (0,1,2): 1 - 4 + m; (1,0,2): 1 - 5 + m. m = 3.5 -> 0.5 and 0 -> mean
+        // over active = 0.5; m = 5 -> 2 and 1 -> 1.5.
+        let (l, active, n) = fault_triplet_loss(&e, &labels, &sources, 3.5)?;
+        assert_eq!(n, 2);
+        assert_eq!(active, 0.5);
+        assert!((l.to_scalar::<f32>()? - 0.5).abs() < 1e-6);
+        let (l, active, _) = fault_triplet_loss(&e, &labels, &sources, 5.0)?;
+        assert_eq!(active, 1.0);
+        assert!((l.to_scalar::<f32>()? - 1.5).abs() < 1e-6);
+        // Far enough: 0. No corrupted plans: no valid triplet, loss 0.
+        let (l, _, _) = fault_triplet_loss(&e, &labels, &sources, 0.5)?;
+        assert_eq!(l.to_scalar::<f32>()?, 0.0);
+        let (l, _, n) = fault_triplet_loss(&e, &labels, &[None; 5], 3.5)?;
+        assert_eq!((l.to_scalar::<f32>()?, n), (0.0, 0));
+        assert!(fault_triplet_loss(&e, &labels, &[None; 4], 3.5).is_err());
         Ok(())
     }
 }
