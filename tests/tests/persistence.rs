@@ -78,6 +78,7 @@ fn sigkill_during_enrollment_persistence_leaves_the_old_or_the_new_bank() {
     };
     let mut expected = bank_names(&ClassBank::load(&path).unwrap());
     assert!(expected.contains("warm-up"));
+    let window_us = (enroll_time.as_micros() as u64 * 3 / 2).max(10_000);
 
     let (mut old, mut new, mut mid_write, mut missed) = (0, 0, 0, 0);
     // (round, class, persisted in that round, the client's answer)
@@ -103,7 +104,10 @@ fn sigkill_during_enrollment_persistence_leaves_the_old_or_the_new_bank() {
         });
         ready.recv().expect("client connected");
         // Aim at the write: wait for the daemon's temporary file to appear, then kill after a
-        // random 0-10 ms, so the kill lands while it writes, syncs or renames, or just after.
+        // random delay, so the kill lands while it writes, syncs or renames, or just after.
+        // The window scales with the measured enrollment (at least 10 ms): on a slow disk a
+        // fixed 10 ms never reaches the rename (seen: 108 ms enrollments, 100 of 100 kills
+        // before it).
         let start = Instant::now();
         while temporaries(&state).is_empty() && !enroll.is_finished() {
             assert!(
@@ -115,7 +119,7 @@ fn sigkill_during_enrollment_persistence_leaves_the_old_or_the_new_bank() {
         }
         let aimed = !enroll.is_finished();
         if aimed {
-            std::thread::sleep(Duration::from_micros(rng % 10_000));
+            std::thread::sleep(Duration::from_micros(rng % window_us));
         }
         d.signal("KILL");
         d.wait_exit();
