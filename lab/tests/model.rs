@@ -60,6 +60,22 @@ fn tiny_net() -> NetConfig {
     }
 }
 
+/// A tiny network (seed 11) whose parameters are trainable variables, and its optimiser.
+fn trainable_tiny_net() -> (Net, AdamW) {
+    let net = Net::random(tiny_net(), 11, DType::F32).expect("net");
+    let vars: Vec<Var> = net
+        .params()
+        .iter()
+        .map(|t| Var::from_tensor(t).expect("var"))
+        .collect();
+    let net = Net::new(
+        tiny_net(),
+        vars.iter().map(|v| v.as_tensor().clone()).collect(),
+    )
+    .expect("net");
+    (net, AdamW::new(vars, 1e-4).expect("opt"))
+}
+
 /// The training configuration of the pipeline tests: a tiny network, Latin / Greek.
 fn tiny_config() -> TrainConfig {
     TrainConfig {
@@ -117,18 +133,7 @@ fn a_few_steps_lower_the_loss_and_separate_classes() {
     let data = small_dataset();
     let set = Prepared::new(data, &["Latin".to_string()], FeatureKind::Pen).expect("prepare");
     assert_eq!(set.classes(), 8);
-    let net = Net::random(tiny_net(), 11, DType::F32).expect("net");
-    let vars: Vec<Var> = net
-        .params()
-        .iter()
-        .map(|t| Var::from_tensor(t).expect("var"))
-        .collect();
-    let net = Net::new(
-        tiny_net(),
-        vars.iter().map(|v| v.as_tensor().clone()).collect(),
-    )
-    .expect("net");
-    let mut opt = AdamW::new(vars, 1e-4).expect("opt");
+    let (net, mut opt) = trainable_tiny_net();
     let mut rng = StdRng::seed_from_u64(5);
     // A fixed evaluation batch: every class, 6 samples each.
     let mut erng = StdRng::seed_from_u64(9);
@@ -346,18 +351,7 @@ fn fault_negatives_are_solved_corruptions_and_training_pushes_them_away() {
         ..tiny_config()
     };
     let run = |share: f64| -> f64 {
-        let net = Net::random(tiny_net(), 11, DType::F32).expect("net");
-        let vars: Vec<Var> = net
-            .params()
-            .iter()
-            .map(|t| Var::from_tensor(t).expect("var"))
-            .collect();
-        let net = Net::new(
-            tiny_net(),
-            vars.iter().map(|v| v.as_tensor().clone()).collect(),
-        )
-        .expect("net");
-        let mut opt = AdamW::new(vars, 1e-4).expect("opt");
+        let (net, mut opt) = trainable_tiny_net();
         let mut rng = StdRng::seed_from_u64(5);
         for _ in 0..60 {
             let (idx, labels) = set.sample_pk(8, 4, &mut rng);

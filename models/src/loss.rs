@@ -88,10 +88,21 @@ pub fn batch_all_triplet_loss(
     labels: &[u32],
     margin: f64,
 ) -> candle_core::Result<(Tensor, f32)> {
-    let b = labels.len();
     let d = pairwise_sq_dist(e)?;
     let (pos, neg) = masks(labels, e.device(), e.dtype())?;
-    // t[a, p, n] = d[a, p] - d[a, n] + margin, valid where pos[a, p] * neg[a, n].
+    let (loss, active, valid) = mean_over_active_triplets(&d, &pos, &neg, margin)?;
+    Ok((loss, active as f32 / valid.max(1) as f32))
+}
+
+/// `max(0, d[a, p] − d[a, n] + margin)` over the valid triplets (`pos[a, p] · neg[a, n]`
+/// = 1), averaged over the active ones (a positive loss). Returns `(loss, active triplets,
+/// valid triplets)`; the loss is 0 without an active triplet.
+fn mean_over_active_triplets(
+    d: &Tensor,
+    pos: &Tensor,
+    neg: &Tensor,
+    margin: f64,
+) -> candle_core::Result<(Tensor, usize, usize)> {
     let t = (d.unsqueeze(2)?.broadcast_sub(&d.unsqueeze(1)?)? + margin)?.relu()?;
     let valid = pos.unsqueeze(2)?.broadcast_mul(&neg.unsqueeze(1)?)?;
     let t = (t * &valid)?;
@@ -100,13 +111,12 @@ pub fn batch_all_triplet_loss(
         .to_dtype(candle_core::DType::F32)?
         .to_vec1::<f32>()?;
     let active = flat.iter().filter(|&&v| v > 1e-12).count();
-    let n_valid: f32 = valid
+    let n_valid = valid
         .to_dtype(candle_core::DType::F32)?
         .sum_all()?
-        .to_scalar()?;
+        .to_scalar::<f32>()? as usize;
     let loss = (t.sum_all()? / (active.max(1) as f64))?;
-    let _ = b;
-    Ok((loss, active as f32 / n_valid.max(1.0)))
+    Ok((loss, active, n_valid))
 }
 
 /// Fault-negative triplet loss: every `(a, p, f)` where `a != p` are genuine samples of one
@@ -145,19 +155,7 @@ pub fn fault_triplet_loss(
     let pos = Tensor::from_vec(pos, (b, b), dev)?.to_dtype(dt)?;
     let fneg = Tensor::from_vec(fneg, (b, b), dev)?.to_dtype(dt)?;
     let d = pairwise_sq_dist(e)?;
-    let t = (d.unsqueeze(2)?.broadcast_sub(&d.unsqueeze(1)?)? + margin)?.relu()?;
-    let valid = pos.unsqueeze(2)?.broadcast_mul(&fneg.unsqueeze(1)?)?;
-    let t = (t * &valid)?;
-    let flat = t
-        .flatten_all()?
-        .to_dtype(candle_core::DType::F32)?
-        .to_vec1::<f32>()?;
-    let active = flat.iter().filter(|&&v| v > 1e-12).count();
-    let n_valid = valid
-        .to_dtype(candle_core::DType::F32)?
-        .sum_all()?
-        .to_scalar::<f32>()? as usize;
-    let loss = (t.sum_all()? / (active.max(1) as f64))?;
+    let (loss, active, n_valid) = mean_over_active_triplets(&d, &pos, &fneg, margin)?;
     Ok((loss, active as f32 / n_valid.max(1) as f32, n_valid))
 }
 
