@@ -33,6 +33,33 @@ pub enum ConvertError {
     Invalid(#[from] InvalidTrajectory),
 }
 
+/// Where the Omniglot stroke file of each dataset drawing is, by class name and drawer (from
+/// a scan of the stroke roots): the way back from a dataset sample to the strokes it was
+/// drawn from, for corrupting it.
+#[derive(Debug, Clone, Default)]
+pub struct StrokeIndex(BTreeMap<(String, i64), PathBuf>);
+
+impl StrokeIndex {
+    /// Index every drawing under `roots` (see [`strokes::scan`]).
+    pub fn scan(roots: &[PathBuf]) -> Result<Self, ReadStrokesError> {
+        Ok(Self(
+            strokes::scan(roots)?
+                .into_iter()
+                .map(|f| ((f.class_name(), i64::from(f.drawer)), f.path))
+                .collect(),
+        ))
+    }
+
+    /// The strokes of drawing `i` of `data`; `None` if its file is not indexed or unreadable.
+    pub fn strokes_of(&self, data: &Dataset, i: usize) -> Option<Vec<Stroke>> {
+        let class = usize::try_from(*data.labels.get(i)?)
+            .ok()
+            .and_then(|c| data.classes.get(c))?;
+        let path = self.0.get(&(class.clone(), *data.drawer_ids.get(i)?))?;
+        strokes::read_strokes(path).ok()
+    }
+}
+
 /// One converted drawing.
 #[derive(Debug, Clone)]
 pub struct Converted {

@@ -52,7 +52,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::calibrate::split;
-use crate::dataset::Dataset;
+use crate::dataset::{Dataset, StrokeIndex};
 use crate::eval::{Pool, standardised_raw};
 use crate::faults::{self, Fault, SEVERITIES};
 use crate::path::PathSolver;
@@ -406,11 +406,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     anyhow::ensure!(didx.len() == pool.xs.len(), "pool index mismatch");
 
     // Corruption sources.
-    let files = strokes::scan(std::slice::from_ref(&args.strokes))?;
-    let by_key: BTreeMap<(String, i64), PathBuf> = files
-        .into_iter()
-        .map(|f| ((f.class_name(), i64::from(f.drawer)), f.path))
-        .collect();
+    let index = StrokeIndex::scan(std::slice::from_ref(&args.strokes))?;
     let mut rng = StdRng::seed_from_u64(args.seed);
     let mut order: Vec<usize> = (0..pool.xs.len()).collect();
     order.shuffle(&mut rng);
@@ -432,14 +428,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     }
     let source_strokes: Vec<Option<Vec<strokes::Stroke>>> = order
         .iter()
-        .map(|&p| {
-            let i = didx[p];
-            let class = usize::try_from(data.labels[i])
-                .ok()
-                .and_then(|c| data.classes.get(c))?;
-            let path = by_key.get(&(class.clone(), data.drawer_ids[i]))?;
-            strokes::read_strokes(path).ok()
-        })
+        .map(|&p| index.strokes_of(&data, didx[p]))
         .collect();
     let t0 = std::time::Instant::now();
     let made: Vec<(usize, usize, Fault, f64, Option<Resampled>)> = jobs

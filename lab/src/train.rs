@@ -25,11 +25,10 @@ use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::dataset::Dataset;
+use crate::dataset::{Dataset, StrokeIndex};
 use crate::eval::{self, EpisodeSpec};
 use crate::faults::{self, Fault};
 use crate::path::PathSolver;
-use crate::strokes;
 
 /// Which loss trains the network.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -239,6 +238,7 @@ pub struct Args {
 impl Args {
     /// The training configuration these arguments describe.
     pub fn config(&self) -> TrainConfig {
+        let faults = self.fault_share > 0.0;
         TrainConfig {
             net: NetConfig {
                 features: self.features.into(),
@@ -267,22 +267,11 @@ impl Args {
             seed: self.seed,
             val_episodes: self.val_episodes,
             fault_share: self.fault_share,
-            fault_variants: if self.fault_share > 0.0 {
-                self.fault_variants
-            } else {
-                0
-            },
-            fault_weight: if self.fault_share > 0.0 {
-                self.fault_weight
-            } else {
-                0.0
-            },
-            fault_margin: if self.fault_share > 0.0 {
-                self.fault_margin
-            } else {
-                0.0
-            },
-            fault_kinds: match (self.fault_share > 0.0, self.fault_kinds.is_empty()) {
+            // Without fault negatives the other fault settings are recorded as off.
+            fault_variants: if faults { self.fault_variants } else { 0 },
+            fault_weight: if faults { self.fault_weight } else { 0.0 },
+            fault_margin: if faults { self.fault_margin } else { 0.0 },
+            fault_kinds: match (faults, self.fault_kinds.is_empty()) {
                 (false, _) => Vec::new(),
                 (true, true) => TRAIN_FAULTS.to_vec(),
                 (true, false) => self.fault_kinds.clone(),
@@ -491,25 +480,15 @@ impl Prepared {
                 "fault negatives need pen features".into(),
             ));
         }
-        let files = strokes::scan(&[strokes_root.to_path_buf()])
+        let index = StrokeIndex::scan(&[strokes_root.to_path_buf()])
             .map_err(|e| TrainError::Setup(format!("fault negatives: {e}")))?;
-        let by_key: BTreeMap<(String, i64), PathBuf> = files
-            .into_iter()
-            .map(|f| ((f.class_name(), i64::from(f.drawer)), f.path))
-            .collect();
         let solver = PathSolver::new(&data.geometry)
             .map_err(|e| TrainError::Setup(format!("fault negatives: {e}")))?;
         let made: Vec<Vec<[PenPoint; STEPS]>> = self
             .data_index
             .par_iter()
             .map(|&i| {
-                let class = usize::try_from(data.labels[i])
-                    .ok()
-                    .and_then(|c| data.classes.get(c));
-                let Some(st) = class
-                    .and_then(|c| by_key.get(&(c.clone(), data.drawer_ids[i])))
-                    .and_then(|p| strokes::read_strokes(p).ok())
-                else {
+                let Some(st) = index.strokes_of(data, i) else {
                     return Vec::new();
                 };
                 let mut rng = StdRng::seed_from_u64(seed ^ (i as u64).wrapping_mul(0x9e37_79b9));
