@@ -1,89 +1,294 @@
-//! Training throughput of the embedding network: samples/s and mined triplets/s for the
-//! default architecture and P x K batches, with forward / backward / optimiser time split.
-//! Data: a slice of the real shared Omniglot set converted through the dataset generator.
+//! Training throughput of the embedding network: samples/s of one training step (forward +
+//! loss + backward + optimiser; one sample = one embedding forward + backward + its share of
+//! the optimiser) for the shipped architecture on batches of 16 classes x 4 real drawings,
+//! with 1 and 2 threads:
 //!
-//! `RAYON_NUM_THREADS=2 cargo bench -p guardian-lab --bench train_throughput`
-//! (compare with the guide's PyTorch figure, ~770 triplets/s on 2 threads).
+//! - guardian's training path (`guardian_models::grad`: hand-written backward on `gemm`,
+//!   batch-all triplet loss in candle, AdamW over the flat weights);
+//! - the previous path, candle autograd through `Net::forward` (forward + loss + backward;
+//!   its optimiser is not timed), measured in the same run;
+//! - when `python3 -c "import torch"` works, the same network, batches, loss and optimiser in
+//!   PyTorch eager (`train_throughput.py` beside this file, fed the very same batches), and
+//!   the ratio `training throughput ratio guardian/pytorch (2 threads): X`.
+//!
+//! Rounds alternate between the implementations so that each ratio compares figures taken
+//! under the same load; the median round is reported.
+//!
+//! `cargo bench -p guardian-lab --bench train_throughput`
+//! (`BENCH_STEPS` steps per round, default 40; `BENCH_ROUNDS`, default 3;
+//! `BENCH_CHANNELS`, default the shipped 32,64,128).
 
+use std::io::Write as _;
 use std::path::Path;
+use std::process::Command;
 use std::time::Instant;
 
-use candle_core::{DType, Var};
+use candle_core::{DType, Tensor, Var};
 use guardian_lab::dataset::generate_files;
 use guardian_lab::path::Geometry;
 use guardian_lab::strokes::scan;
-use guardian_lab::train::{AdamW, LossKind, Prepared, batch_loss};
+use guardian_lab::train::{Learner, LossKind, Prepared, batch_loss};
+use guardian_models::fast::FastNet;
 use guardian_models::features::FeatureKind;
 use guardian_models::net::{Net, NetConfig};
+use guardian_shared::trajectory::STEPS;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
-fn main() -> anyhow::Result<()> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/omniglot/strokes");
-    let files: Vec<_> = scan(&[root])?
-        .into_iter()
-        .filter(|f| f.alphabet == "Latin")
-        .collect();
-    let (data, _) = generate_files(&files, &Geometry::default(), &|| {})?;
-    let set = Prepared::new(&data, &["Latin".to_string()], FeatureKind::Pen)?;
-    let steps: usize = std::env::var("BENCH_STEPS")
+const MARGIN: f64 = 0.2;
+const LR: f64 = 2e-3;
+const WEIGHT_DECAY: f64 = 1e-4;
+
+struct Batch {
+    x: Tensor,
+    labels: Vec<u32>,
+}
+
+fn env_usize(name: &str, default: usize) -> usize {
+    std::env::var(name)
         .ok()
         .and_then(|s| s.parse().ok())
-        .unwrap_or(30);
-    for (loss, p, k) in [
-        (LossKind::BatchAll, 16, 4),
-        (LossKind::BatchHard, 16, 4),
-        (LossKind::Triplet, 16, 4),
-    ] {
-        let mut config = NetConfig::default();
-        if let Ok(c) = std::env::var("BENCH_CHANNELS") {
-            config.channels = c.split(',').filter_map(|v| v.parse().ok()).collect();
+        .unwrap_or(default)
+}
+
+fn pool(threads: usize) -> anyhow::Result<rayon::ThreadPool> {
+    Ok(rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()?)
+}
+
+/// guardian's training path: samples/s and the time split of one step (ms).
+fn guardian(
+    config: &NetConfig,
+    batches: &[Batch],
+    steps: usize,
+    threads: usize,
+) -> anyhow::Result<(f64, [f64; 2])> {
+    pool(threads)?.install(|| {
+        let mut learner = Learner::new(FastNet::random(config.clone(), 1)?, WEIGHT_DECAY);
+        let mut rng = StdRng::seed_from_u64(1);
+        let (mut samples, mut secs, mut loss_secs) = (0usize, 0.0, 0.0);
+        for step in 0..steps + 3 {
+            let b = &batches[step % batches.len()];
+            let t0 = Instant::now();
+            let mut t_loss = 0.0;
+            learner.step(&b.x, LR, |e| {
+                let t = Instant::now();
+                let (l, _, _) = batch_loss(e, &b.labels, LossKind::BatchAll, MARGIN, &mut rng)?;
+                t_loss = t.elapsed().as_secs_f64();
+                Ok((l, ()))
+            })?;
+            if step >= 3 {
+                secs += t0.elapsed().as_secs_f64();
+                loss_secs += t_loss;
+                samples += b.labels.len();
+            }
         }
+        let per_step = 1e3 * secs / steps as f64;
+        Ok((
+            samples as f64 / secs,
+            [per_step, 1e3 * loss_secs / steps as f64],
+        ))
+    })
+}
+
+/// The previous path: candle autograd through `Net::forward` (no optimiser).
+fn candle_autograd(
+    config: &NetConfig,
+    batches: &[Batch],
+    steps: usize,
+    threads: usize,
+) -> anyhow::Result<f64> {
+    pool(threads)?.install(|| {
         let net = Net::random(config.clone(), 1, DType::F32)?;
         let vars: Vec<Var> = net
             .params()
             .iter()
             .map(Var::from_tensor)
             .collect::<Result<_, _>>()?;
-        let net = Net::new(config, vars.iter().map(|v| v.as_tensor().clone()).collect())?;
-        let mut opt = AdamW::new(vars, 1e-4)?;
+        let net = Net::new(
+            config.clone(),
+            vars.iter().map(|v| v.as_tensor().clone()).collect(),
+        )?;
         let mut rng = StdRng::seed_from_u64(1);
-        let (mut t_data, mut t_fwd, mut t_bwd, mut t_opt) = (0.0, 0.0, 0.0, 0.0);
-        let (mut samples, mut triplets) = (0usize, 0usize);
-        for step in 0..steps + 3 {
+        let (mut samples, mut secs) = (0usize, 0.0);
+        for step in 0..steps + 1 {
+            let b = &batches[step % batches.len()];
             let t0 = Instant::now();
-            let (idx, labels) = set.sample_pk(p, k, &mut rng);
-            let x = set.batch(&idx, Some(&mut rng))?;
-            let t1 = Instant::now();
-            let (l, _, n) = batch_loss(&net, &x, &labels, loss, 0.2, &mut rng)?;
-            let _ = l.to_scalar::<f32>()?;
-            let t2 = Instant::now();
-            let grads = l.backward()?;
-            let t3 = Instant::now();
-            opt.step(&grads, 1e-3)?;
-            let t4 = Instant::now();
-            if step >= 3 {
-                t_data += (t1 - t0).as_secs_f64();
-                t_fwd += (t2 - t1).as_secs_f64();
-                t_bwd += (t3 - t2).as_secs_f64();
-                t_opt += (t4 - t3).as_secs_f64();
-                samples += idx.len();
-                triplets += n;
+            let e = net.forward(&b.x)?;
+            let (l, _, _) = batch_loss(&e, &b.labels, LossKind::BatchAll, MARGIN, &mut rng)?;
+            let _grads = l.backward()?;
+            if step >= 1 {
+                secs += t0.elapsed().as_secs_f64();
+                samples += b.labels.len();
             }
         }
-        let total = t_data + t_fwd + t_bwd + t_opt;
+        Ok(samples as f64 / secs)
+    })
+}
+
+/// The batches as one little-endian file for the PyTorch reference: a header of u32
+/// (batches, batch size, steps, channels), then per batch its f32 features and u32 labels.
+fn write_batches(path: &Path, batches: &[Batch]) -> anyhow::Result<()> {
+    let mut f = std::io::BufWriter::new(std::fs::File::create(path)?);
+    let (b, l, c) = batches[0].x.dims3()?;
+    for v in [batches.len(), b, l, c] {
+        f.write_all(&u32::try_from(v)?.to_le_bytes())?;
+    }
+    for batch in batches {
+        for v in batch.x.flatten_all()?.to_vec1::<f32>()? {
+            f.write_all(&v.to_le_bytes())?;
+        }
+        for v in &batch.labels {
+            f.write_all(&v.to_le_bytes())?;
+        }
+    }
+    Ok(f.flush()?)
+}
+
+/// Samples/s of the PyTorch reference, or why it did not run.
+fn pytorch(
+    script: &Path,
+    data: &Path,
+    config: &NetConfig,
+    steps: usize,
+    threads: usize,
+) -> Result<f64, String> {
+    let channels: Vec<String> = config.channels.iter().map(usize::to_string).collect();
+    let out = Command::new("python3")
+        .arg(script)
+        .arg(data)
+        .args(["--threads", &threads.to_string()])
+        .args(["--steps", &steps.to_string()])
+        .args(["--channels", &channels.join(",")])
+        .args(["--kernel", &config.kernel.to_string()])
+        .args(["--embed-dim", &config.embed_dim.to_string()])
+        .args(["--margin", &MARGIN.to_string()])
+        .args(["--lr", &LR.to_string()])
+        .args(["--weight-decay", &WEIGHT_DECAY.to_string()])
+        .output()
+        .map_err(|e| format!("python3: {e}"))?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    text.lines()
+        .find_map(|l| l.strip_prefix("samples/s ")?.trim().parse().ok())
+        .ok_or_else(|| {
+            format!(
+                "the reference printed no figure: {}",
+                String::from_utf8_lossy(&out.stderr).trim()
+            )
+        })
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn main() -> anyhow::Result<()> {
+    let here = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let root = here.join("../../shared/omniglot/strokes");
+    let files: Vec<_> = scan(&[root])?
+        .into_iter()
+        .filter(|f| f.alphabet == "Latin")
+        .collect();
+    let (data, _) = generate_files(&files, &Geometry::default(), &|| {})?;
+    let set = Prepared::new(&data, &["Latin".to_string()], FeatureKind::Pen)?;
+    let steps = env_usize("BENCH_STEPS", 40);
+    let rounds = env_usize("BENCH_ROUNDS", 3).max(1);
+    let mut config = NetConfig {
+        channels: vec![32, 64, 128],
+        ..NetConfig::default()
+    };
+    if let Ok(c) = std::env::var("BENCH_CHANNELS") {
+        config.channels = c.split(',').filter_map(|v| v.parse().ok()).collect();
+    }
+    let (p, k) = (16, 4);
+    let mut rng = StdRng::seed_from_u64(7);
+    let batches: Vec<Batch> = (0..8)
+        .map(|_| {
+            let (idx, labels) = set.sample_pk(p, k, &mut rng);
+            let x = set.batch(&idx, Some(&mut rng))?;
+            Ok(Batch { x, labels })
+        })
+        .collect::<anyhow::Result<_>>()?;
+    let flops = FastNet::<f32>::random(config.clone(), 1)?.flops(STEPS);
+    println!(
+        "network: pen features ({} channels), channels {:?}, kernel {}, embed {}; forward {:.2} MFLOP per sequence; batch {p} classes x {k} drawings of real Latin drawings; batch-all loss, margin {MARGIN}; AdamW lr {LR}, weight decay {WEIGHT_DECAY}; {steps} steps x {rounds} rounds",
+        config.in_channels(),
+        config.channels,
+        config.kernel,
+        config.embed_dim,
+        flops as f64 / 1e6
+    );
+
+    let script = here.join("benches/train_throughput.py");
+    let torch = Command::new("python3")
+        .args(["-c", "import torch"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    let data_file = std::env::temp_dir().join(format!("guardian-bench-{}.bin", std::process::id()));
+    if torch {
+        write_batches(&data_file, &batches)?;
+    } else {
         println!(
-            "{loss:?} P{p}xK{k} channels {:?}: {:.0} samples/s, {:.0} triplets/s (one per anchor: {:.0}/s); per step data {:.1} ms, forward {:.1} ms, backward {:.1} ms, optimiser {:.1} ms; {} rayon threads",
-            net.config().channels,
-            samples as f64 / total,
-            triplets as f64 / total,
-            samples as f64 / total,
-            1e3 * t_data / steps as f64,
-            1e3 * t_fwd / steps as f64,
-            1e3 * t_bwd / steps as f64,
-            1e3 * t_opt / steps as f64,
-            rayon::current_num_threads()
+            "PyTorch reference skipped: `python3 -c \"import torch\"` fails (pip install torch)"
         );
     }
+    println!(
+        "{:>7} {:>12} {:>12} {:>14} {:>12} {:>10} {:>10}",
+        "threads", "guardian/s", "step ms", "of which loss", "candle/s", "pytorch/s", "~GFLOP/s"
+    );
+    for threads in [1, 2] {
+        let (mut g, mut c, mut t, mut split) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for _ in 0..rounds {
+            let (rate, s) = guardian(&config, &batches, steps, threads)?;
+            g.push(rate);
+            split.push((rate, s));
+            c.push(candle_autograd(
+                &config,
+                &batches,
+                steps.div_ceil(4),
+                threads,
+            )?);
+            if torch {
+                match pytorch(&script, &data_file, &config, steps, threads) {
+                    Ok(v) => t.push(v),
+                    Err(e) => println!("PyTorch reference failed: {e}"),
+                }
+            }
+        }
+        let gm = median(g.clone());
+        // The time split of the median round.
+        split.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let step = split[split.len() / 2].1;
+        let tm = (!t.is_empty()).then(|| median(t.clone()));
+        println!(
+            "{threads:>7} {gm:>12.0} {:>12.2} {:>14.2} {:>12.0} {:>10} {:>10.1}",
+            step[0],
+            step[1],
+            median(c.clone()),
+            tm.map_or("-".to_string(), |v| format!("{v:.0}")),
+            gm * 3.0 * flops as f64 / 1e9
+        );
+        println!(
+            "  rounds: guardian {:?}, candle {:?}, pytorch {:?}",
+            g.iter().map(|v| v.round()).collect::<Vec<_>>(),
+            c.iter().map(|v| v.round()).collect::<Vec<_>>(),
+            t.iter().map(|v| v.round()).collect::<Vec<_>>()
+        );
+        println!(
+            "training throughput ratio guardian/candle-autograd ({threads} thread{}): {:.2}",
+            if threads == 1 { "" } else { "s" },
+            gm / median(c)
+        );
+        if let Some(tm) = tm {
+            println!(
+                "training throughput ratio guardian/pytorch ({threads} thread{}): {:.2}",
+                if threads == 1 { "" } else { "s" },
+                gm / tm
+            );
+        }
+    }
+    let _ = std::fs::remove_file(&data_file);
     Ok(())
 }

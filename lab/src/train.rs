@@ -13,11 +13,13 @@ use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use candle_core::{DType, Device, Tensor, Var};
+use candle_core::{Device, Tensor, Var};
 use guardian_models::embedder::Embedder;
+use guardian_models::fast::{FastNet, FastNetError};
 use guardian_models::features::{self, Augment, FeatureKind, PenPoint};
+use guardian_models::grad::{Grads, Trainable};
 use guardian_models::loss;
-use guardian_models::net::{Net, NetConfig};
+use guardian_models::net::NetConfig;
 use guardian_shared::trajectory::{Resampled, STEPS};
 use rand::rngs::StdRng;
 use rand::seq::{IndexedRandom, SliceRandom};
@@ -287,6 +289,9 @@ pub enum TrainError {
     /// A tensor operation failed.
     #[error("tensor operation: {0}")]
     Candle(#[from] candle_core::Error),
+    /// The network's forward or backward pass failed.
+    #[error("network: {0}")]
+    Net(#[from] FastNetError),
     /// The configuration or data cannot be used.
     #[error("invalid training setup: {0}")]
     Setup(String),
@@ -667,34 +672,32 @@ pub fn alphabet_ids(data: &Dataset, names: &[String]) -> Result<Vec<i64>, TrainE
         .collect()
 }
 
-/// The loss of one batch. Returns `(loss, active fraction, mined triplets)`.
+/// The loss of one batch of embeddings `e [B, embed_dim]`. Returns `(loss, active
+/// fraction, mined triplets)`.
 pub fn batch_loss(
-    net: &Net,
-    x: &Tensor,
+    e: &Tensor,
     labels: &[u32],
     kind: LossKind,
     margin: f64,
     rng: &mut StdRng,
 ) -> candle_core::Result<(Tensor, f32, usize)> {
-    let e = net.forward(x)?;
-    embedding_loss(&e, labels, kind, margin, rng)
+    embedding_loss(e, labels, kind, margin, rng)
 }
 
-/// The training objective of one batch of items: the main loss of `cfg`, plus the
-/// fault-negative term (weighted) when the batch has corrupted plans. Returns `(loss to
-/// optimise, validation-comparable loss, active fraction, mined triplets)`; the
-/// validation-comparable loss takes batch-all's mean over all valid triplets rather than
-/// over the active ones (which stays flat as fewer triplets stay active), for both terms.
+/// The training objective of one batch of embeddings `e [B, embed_dim]` of items: the main
+/// loss of `cfg`, plus the fault-negative term (weighted) when the batch has corrupted
+/// plans. Returns `(loss to optimise, validation-comparable loss, active fraction, mined
+/// triplets)`; the validation-comparable loss takes batch-all's mean over all valid
+/// triplets rather than over the active ones (which stays flat as fewer triplets stay
+/// active), for both terms.
 pub fn objective(
-    net: &Net,
-    x: &Tensor,
+    e: &Tensor,
     labels: &[u32],
     sources: &[Option<u32>],
     cfg: &TrainConfig,
     rng: &mut StdRng,
 ) -> candle_core::Result<(Tensor, f64, f32, usize)> {
-    let e = net.forward(x)?;
-    let (l, active, n) = embedding_loss(&e, labels, cfg.loss, cfg.margin, rng)?;
+    let (l, active, n) = embedding_loss(e, labels, cfg.loss, cfg.margin, rng)?;
     let lv = f64::from(l.to_scalar::<f32>()?);
     let mut comparable = if cfg.loss == LossKind::BatchAll {
         lv * f64::from(active)
@@ -703,11 +706,21 @@ pub fn objective(
     };
     let mut total = l;
     if cfg.fault_weight > 0.0 && sources.iter().any(Option::is_some) {
-        let (lf, af, _) = loss::fault_triplet_loss(&e, labels, sources, cfg.fault_margin)?;
+        let (lf, af, _) = loss::fault_triplet_loss(e, labels, sources, cfg.fault_margin)?;
         comparable += cfg.fault_weight * f64::from(lf.to_scalar::<f32>()?) * f64::from(af);
         total = (total + (lf * cfg.fault_weight)?)?;
     }
     Ok((total, comparable, active, n))
+}
+
+/// Embeddings `[B, embed_dim]` of a feature batch `x [B, STEPS, F]` (no gradient).
+pub fn embed(net: &FastNet, x: &Tensor) -> Result<Tensor, TrainError> {
+    let (b, l, _) = x.dims3()?;
+    let flat = x.flatten_all()?.to_vec1::<f32>()?;
+    let e = net.config().embed_dim;
+    let mut out = vec![0.0f32; b * e];
+    net.forward(&flat, b, l, &mut Default::default(), &mut out)?;
+    Ok(Tensor::from_vec(out, (b, e), &Device::Cpu)?)
 }
 
 fn embedding_loss(
@@ -773,57 +786,113 @@ fn embedding_loss(
     }
 }
 
-/// AdamW with decoupled weight decay whose moments can be saved (for exact `--resume`).
+/// AdamW with decoupled weight decay whose moments can be saved (for exact `--resume`),
+/// over the flat parameters of a [`FastNet`].
 pub struct AdamW {
-    vars: Vec<Var>,
-    m: Vec<Tensor>,
-    v: Vec<Tensor>,
+    m: Vec<Vec<f32>>,
+    v: Vec<Vec<f32>>,
     step: usize,
     weight_decay: f64,
 }
 
 impl AdamW {
-    /// Fresh optimiser for `vars`.
-    pub fn new(vars: Vec<Var>, weight_decay: f64) -> candle_core::Result<Self> {
-        let m = vars
-            .iter()
-            .map(|v| v.as_tensor().zeros_like())
-            .collect::<candle_core::Result<Vec<_>>>()?;
-        let v = m.clone();
-        Ok(Self {
-            vars,
+    /// Fresh optimiser for the parameters of `net`.
+    pub fn new(net: &FastNet, weight_decay: f64) -> Self {
+        let m: Vec<Vec<f32>> = net.params().iter().map(|p| vec![0.0; p.len()]).collect();
+        Self {
+            v: m.clone(),
             m,
-            v,
             step: 0,
             weight_decay,
-        })
+        }
     }
 
-    /// One update with learning rate `lr`.
-    pub fn step(
-        &mut self,
-        grads: &candle_core::backprop::GradStore,
-        lr: f64,
-    ) -> candle_core::Result<()> {
-        let (b1, b2, eps) = (0.9, 0.999, 1e-8);
+    /// One update of `params` (in [`NetConfig::param_shapes`] order) along `grads` with
+    /// learning rate `lr`.
+    pub fn step(&mut self, params: Vec<&mut [f32]>, grads: &Grads, lr: f64) {
+        let (b1, b2, eps) = (0.9f64, 0.999f64, 1e-8f32);
         self.step += 1;
-        let c1 = 1.0 / (1.0 - f64::powi(b1, self.step as i32));
-        let c2 = 1.0 / (1.0 - f64::powi(b2, self.step as i32));
-        for i in 0..self.vars.len() {
-            let theta = &self.vars[i];
-            let Some(g) = grads.get(theta.as_tensor()) else {
-                continue;
-            };
-            let m = ((&self.m[i] * b1)? + (g * (1.0 - b1))?)?;
-            let v = ((&self.v[i] * b2)? + (g.sqr()? * (1.0 - b2))?)?;
-            let upd = ((&m * c1)? / ((&v * c2)?.sqrt()? + eps)?)?;
-            let next = ((theta.as_tensor() * (1.0 - lr * self.weight_decay))? - (upd * lr)?)?;
-            theta.set(&next)?;
-            // Detach: the moments must not keep the autograd history of every step alive.
-            self.m[i] = m.detach();
-            self.v[i] = v.detach();
+        let c1 = (1.0 / (1.0 - f64::powi(b1, self.step as i32))) as f32;
+        let c2 = (1.0 / (1.0 - f64::powi(b2, self.step as i32))) as f32;
+        let (b1, b2) = (b1 as f32, b2 as f32);
+        let (lr, decay) = (lr as f32, (1.0 - lr * self.weight_decay) as f32);
+        for (((theta, g), m), v) in params
+            .into_iter()
+            .zip(grads.params())
+            .zip(&mut self.m)
+            .zip(&mut self.v)
+        {
+            for (((t, g), m), v) in theta.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
+                *m = *m * b1 + g * (1.0 - b1);
+                *v = *v * b2 + g * g * (1.0 - b2);
+                let upd = (*m * c1) / ((*v * c2).sqrt() + eps);
+                *t = *t * decay - upd * lr;
+            }
         }
-        Ok(())
+    }
+}
+
+/// A network in training: the fast path's weights with a workspace per thread
+/// ([`Trainable`]) and its optimiser. One [`Learner::step`] embeds a batch, takes the loss of
+/// the embeddings with candle's autograd, backpropagates through the network by hand and
+/// updates the weights.
+pub struct Learner {
+    model: Trainable,
+    opt: AdamW,
+    emb: Vec<f32>,
+}
+
+impl Learner {
+    /// Train `net` with AdamW (`weight_decay`), on as many threads as rayon has.
+    pub fn new(net: FastNet, weight_decay: f64) -> Self {
+        Self {
+            opt: AdamW::new(&net, weight_decay),
+            model: Trainable::new(net),
+            emb: Vec::new(),
+        }
+    }
+
+    /// The network with its current weights.
+    pub fn net(&self) -> &FastNet {
+        self.model.net()
+    }
+
+    /// The gradients of `loss` on the embeddings of `x [B, STEPS, F]`, without updating
+    /// anything. Returns the gradients, the loss and what `loss` returned besides it.
+    pub fn gradients<R>(
+        &mut self,
+        x: &Tensor,
+        loss: impl FnOnce(&Tensor) -> candle_core::Result<(Tensor, R)>,
+    ) -> Result<(&Grads, f32, R), TrainError> {
+        let (b, l, _) = x.dims3()?;
+        let flat = x.flatten_all()?.to_vec1::<f32>()?;
+        let e = self.model.net().config().embed_dim;
+        self.emb.resize(b * e, 0.0);
+        self.model.forward(&flat, b, l, &mut self.emb)?;
+        let emb = Var::from_slice(&self.emb, (b, e), &Device::Cpu)?;
+        let (value, extra) = loss(emb.as_tensor())?;
+        let store = value.backward()?;
+        let d_out = match store.get(emb.as_tensor()) {
+            Some(g) => g.flatten_all()?.to_vec1::<f32>()?,
+            // The loss does not depend on the embeddings (no valid triplet): zero gradient.
+            None => vec![0.0; b * e],
+        };
+        let value = value.to_scalar::<f32>()?;
+        Ok((self.model.backward(&d_out)?, value, extra))
+    }
+
+    /// One training step on `x` with learning rate `lr`: gradients of `loss` (see
+    /// [`Learner::gradients`]) and one AdamW update. Returns the loss and `loss`'s extra.
+    pub fn step<R>(
+        &mut self,
+        x: &Tensor,
+        lr: f64,
+        loss: impl FnOnce(&Tensor) -> candle_core::Result<(Tensor, R)>,
+    ) -> Result<(f32, R), TrainError> {
+        let (_, value, extra) = self.gradients(x, loss)?;
+        let (params, grads) = self.model.params_and_grads();
+        self.opt.step(params, grads, lr);
+        Ok((value, extra))
     }
 }
 
@@ -925,11 +994,16 @@ pub fn train(
         write_json(&config_path, cfg)?;
         let last = Embedder::load(&last_path)?;
         let opt = load_opt(&opt_path)?;
-        (last.net().clone(), state, Some(opt))
+        let params = last.fast().params().iter().map(|p| p.to_vec()).collect();
+        (
+            FastNet::from_params(cfg.net.clone(), params)?,
+            state,
+            Some(opt),
+        )
     } else {
         write_json(&config_path, cfg)?;
         let _ = std::fs::remove_file(&metrics_path);
-        let net = Net::random(cfg.net.clone(), cfg.seed, DType::F32)?;
+        let net = FastNet::random(cfg.net.clone(), cfg.seed)?;
         let state = State {
             epoch: 0,
             lr: cfg.lr,
@@ -956,14 +1030,13 @@ pub fn train(
             stopped: "already finished".into(),
         });
     }
-    let vars = net
-        .params()
-        .iter()
-        .map(Var::from_tensor)
-        .collect::<candle_core::Result<Vec<_>>>()?;
-    let mut opt = AdamW::new(vars.clone(), cfg.weight_decay)?;
+    let mut learner = Learner::new(net, cfg.weight_decay);
     if let Some((m, v)) = opt_state {
-        if m.len() != opt.m.len() {
+        let opt = &mut learner.opt;
+        let shapes_match = |saved: &[Vec<f32>], own: &[Vec<f32>]| {
+            saved.len() == own.len() && saved.iter().zip(own).all(|(a, b)| a.len() == b.len())
+        };
+        if !shapes_match(&m, &opt.m) || !shapes_match(&v, &opt.v) {
             return Err(TrainError::Setup(
                 "optimizer checkpoint does not match".into(),
             ));
@@ -972,10 +1045,6 @@ pub fn train(
         opt.v = v;
         opt.step = state.adam_step;
     }
-    let net = Net::new(
-        cfg.net.clone(),
-        vars.iter().map(|v| v.as_tensor().clone()).collect(),
-    )?;
 
     // Fixed validation batches and episodes.
     let mut vrng = StdRng::seed_from_u64(cfg.seed ^ 0x005e_ed0f_7a11);
@@ -1025,10 +1094,11 @@ pub fn train(
             let (items, labels) = train_set.with_faults(&idx, &labels, cfg.fault_share, &mut rng);
             let x = train_set.batch_items(&items, cfg.augment.then_some(&mut rng))?;
             let sources = train_set.sources(&items);
-            let (l, _, active, n_trip) = objective(&net, &x, &labels, &sources, cfg, &mut rng)?;
-            let grads = l.backward()?;
-            opt.step(&grads, state.lr)?;
-            loss_sum += f64::from(l.to_scalar::<f32>()?);
+            let (l, (active, n_trip)) = learner.step(&x, state.lr, |e| {
+                let (l, _, active, n) = objective(e, &labels, &sources, cfg, &mut rng)?;
+                Ok((l, (active, n)))
+            })?;
+            loss_sum += f64::from(l);
             active_sum += f64::from(active);
             samples += items.len();
             triplets += n_trip;
@@ -1043,10 +1113,11 @@ pub fn train(
         for (items, labels) in &val_batches {
             let x = val_set.batch_items(items, None)?;
             let sources = val_set.sources(items);
-            val_loss += objective(&net, &x, labels, &sources, cfg, &mut dummy)?.1;
+            let e = embed(learner.net(), &x)?;
+            val_loss += objective(&e, labels, &sources, cfg, &mut dummy)?.1;
         }
         val_loss /= val_batches.len() as f64;
-        let embs = embed_all(&net, &val_set)?;
+        let embs = embed_all(learner.net(), &val_set)?;
         let val_acc =
             eval::run_episodes(&val_labels, &val_spec, &mut eval::Scorer::Prototype(&embs))?
                 .accuracy;
@@ -1073,7 +1144,7 @@ pub fn train(
         }
 
         // Best model, schedule, early stopping.
-        let current = Embedder::from_trained(&net)?;
+        let current = Embedder::from_trained(&learner.net().to_net()?)?;
         if val_loss < state.best_val_loss {
             state.best_val_loss = val_loss;
             state.epochs_since_best = 0;
@@ -1090,7 +1161,7 @@ pub fn train(
             state.epochs_since_lr_change = 0;
         }
         state.epoch = epoch;
-        state.adam_step = opt.step;
+        state.adam_step = learner.opt.step;
         state.train_seconds += t0.elapsed().as_secs_f64();
         let stop = state.epochs_since_best >= cfg.early_stop_patience;
         if stop {
@@ -1101,7 +1172,7 @@ pub fn train(
         }
         state.finished = stop || state.epoch >= cfg.max_epochs;
         current.save(&last_path)?;
-        save_opt(&opt_path, &opt)?;
+        save_opt(&opt_path, &learner.opt)?;
         write_json(&state_path, &state)?;
         if stop {
             break;
@@ -1119,12 +1190,12 @@ pub fn train(
 }
 
 /// Embeddings of every sample of a prepared set (no augmentation), in order.
-pub fn embed_all(net: &Net, set: &Prepared) -> candle_core::Result<Vec<Vec<f32>>> {
+pub fn embed_all(net: &FastNet, set: &Prepared) -> Result<Vec<Vec<f32>>, TrainError> {
     let mut out = Vec::with_capacity(set.len());
     let idx: Vec<usize> = (0..set.len()).collect();
     for chunk in idx.chunks(256) {
         let x = set.batch(chunk, None)?;
-        let e = net.forward(&x)?.to_vec2::<f32>()?;
+        let e = embed(net, &x)?.to_vec2::<f32>()?;
         out.extend(e);
     }
     Ok(out)
@@ -1145,15 +1216,21 @@ fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), TrainError> {
 fn save_opt(path: &Path, opt: &AdamW) -> Result<(), TrainError> {
     let mut map = std::collections::HashMap::new();
     for (i, (m, v)) in opt.m.iter().zip(&opt.v).enumerate() {
-        map.insert(format!("m{i}"), m.clone());
-        map.insert(format!("v{i}"), v.clone());
+        map.insert(
+            format!("m{i}"),
+            Tensor::from_slice(m, m.len(), &Device::Cpu)?,
+        );
+        map.insert(
+            format!("v{i}"),
+            Tensor::from_slice(v, v.len(), &Device::Cpu)?,
+        );
     }
     let tmp = path.with_extension("tmp");
     candle_core::safetensors::save(&map, &tmp)?;
     std::fs::rename(&tmp, path).map_err(io_err(path))
 }
 
-type Moments = (Vec<Tensor>, Vec<Tensor>);
+type Moments = (Vec<Vec<f32>>, Vec<Vec<f32>>);
 
 fn load_opt(path: &Path) -> Result<Moments, TrainError> {
     let bytes = std::fs::read(path).map_err(io_err(path))?;
@@ -1162,10 +1239,11 @@ fn load_opt(path: &Path) -> Result<Moments, TrainError> {
     let mut m = Vec::with_capacity(n);
     let mut v = Vec::with_capacity(n);
     for i in 0..n {
-        let get = |k: String| {
-            map.get(&k)
-                .cloned()
-                .ok_or_else(|| TrainError::Setup(format!("{}: missing {k}", path.display())))
+        let get = |k: String| -> Result<Vec<f32>, TrainError> {
+            let t = map
+                .get(&k)
+                .ok_or_else(|| TrainError::Setup(format!("{}: missing {k}", path.display())))?;
+            Ok(t.flatten_all()?.to_vec1::<f32>()?)
         };
         m.push(get(format!("m{i}"))?);
         v.push(get(format!("v{i}"))?);

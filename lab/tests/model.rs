@@ -6,17 +6,19 @@
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use candle_core::{DType, Var};
 use guardian_lab::dataset::{Dataset, generate_files};
 use guardian_lab::eval::{self, Baseline, EpisodeSpec, Pool};
 use guardian_lab::path::Geometry;
 use guardian_lab::strokes::scan;
-use guardian_lab::train::{self, AdamW, Item, LossKind, Prepared, TrainConfig};
+use guardian_lab::train::{self, Item, Learner, LossKind, Prepared, TrainConfig};
 use guardian_models::embedder::{Embedder, sq_dist};
+use guardian_models::fast::FastNet;
 use guardian_models::features::FeatureKind;
 use guardian_models::net::{Net, NetConfig};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
+
+use candle_core::Var;
 
 /// `<workspace root>/../shared/omniglot/strokes`.
 fn shared_strokes() -> PathBuf {
@@ -60,20 +62,9 @@ fn tiny_net() -> NetConfig {
     }
 }
 
-/// A tiny network (seed 11) whose parameters are trainable variables, and its optimiser.
-fn trainable_tiny_net() -> (Net, AdamW) {
-    let net = Net::random(tiny_net(), 11, DType::F32).expect("net");
-    let vars: Vec<Var> = net
-        .params()
-        .iter()
-        .map(|t| Var::from_tensor(t).expect("var"))
-        .collect();
-    let net = Net::new(
-        tiny_net(),
-        vars.iter().map(|v| v.as_tensor().clone()).collect(),
-    )
-    .expect("net");
-    (net, AdamW::new(vars, 1e-4).expect("opt"))
+/// A tiny network (seed 11) in training, with its optimiser.
+fn trainable_tiny_net() -> Learner {
+    Learner::new(FastNet::random(tiny_net(), 11).expect("net"), 1e-4)
 }
 
 /// The training configuration of the pipeline tests: a tiny network, Latin / Greek.
@@ -133,29 +124,38 @@ fn a_few_steps_lower_the_loss_and_separate_classes() {
     let data = small_dataset();
     let set = Prepared::new(data, &["Latin".to_string()], FeatureKind::Pen).expect("prepare");
     assert_eq!(set.classes(), 8);
-    let (net, mut opt) = trainable_tiny_net();
+    let mut learner = trainable_tiny_net();
     let mut rng = StdRng::seed_from_u64(5);
     // A fixed evaluation batch: every class, 6 samples each.
     let mut erng = StdRng::seed_from_u64(9);
     let (eidx, elabels) = set.sample_pk(8, 6, &mut erng);
     let ex = set.batch(&eidx, None).expect("batch");
-    let loss_on_fixed = |net: &Net, rng: &mut StdRng| -> f32 {
+    let loss_on_fixed = |net: &FastNet, rng: &mut StdRng| -> f32 {
+        let e = train::embed(net, &ex).expect("embed");
         let (l, _, _) =
-            train::batch_loss(net, &ex, &elabels, LossKind::BatchAll, 0.2, rng).expect("loss");
+            train::batch_loss(&e, &elabels, LossKind::BatchAll, 0.2, rng).expect("loss");
         l.to_scalar::<f32>().expect("scalar")
     };
-    let before = loss_on_fixed(&net, &mut rng);
-    let (i0, x0) = intra_inter(&train::embed_all(&net, &set).expect("embed"), set.labels());
+    let before = loss_on_fixed(learner.net(), &mut rng);
+    let (i0, x0) = intra_inter(
+        &train::embed_all(learner.net(), &set).expect("embed"),
+        set.labels(),
+    );
     for _ in 0..60 {
         let (idx, labels) = set.sample_pk(8, 4, &mut rng);
         let x = set.batch(&idx, Some(&mut rng)).expect("batch");
-        let (l, _, _) =
-            train::batch_loss(&net, &x, &labels, LossKind::BatchAll, 0.2, &mut rng).expect("loss");
-        let grads = l.backward().expect("backward");
-        opt.step(&grads, 3e-3).expect("step");
+        learner
+            .step(&x, 3e-3, |e| {
+                let (l, _, _) = train::batch_loss(e, &labels, LossKind::BatchAll, 0.2, &mut rng)?;
+                Ok((l, ()))
+            })
+            .expect("step");
     }
-    let after = loss_on_fixed(&net, &mut rng);
-    let (i1, x1) = intra_inter(&train::embed_all(&net, &set).expect("embed"), set.labels());
+    let after = loss_on_fixed(learner.net(), &mut rng);
+    let (i1, x1) = intra_inter(
+        &train::embed_all(learner.net(), &set).expect("embed"),
+        set.labels(),
+    );
     eprintln!("fixed-batch loss {before} -> {after}");
     assert!(after < 0.8 * before, "loss {before} -> {after}");
     eprintln!("intra/inter {i0}/{x0} -> {i1}/{x1}");
@@ -239,7 +239,7 @@ fn evaluator_baselines_on_real_data() {
 
 /// Mean over the samples with corrupted plans of (distance of a corrupted plan to its
 /// class's prototype) / (distance of the genuine samples to their class's prototype).
-fn fault_to_genuine_ratio(net: &Net, set: &Prepared) -> f64 {
+fn fault_to_genuine_ratio(net: &FastNet, set: &Prepared) -> f64 {
     let e = train::embed_all(net, set).expect("embed");
     let labels = set.labels();
     let dim = e[0].len();
@@ -271,8 +271,7 @@ fn fault_to_genuine_ratio(net: &Net, set: &Prepared) -> f64 {
         .map(|i| Item::Fault(i, 0))
         .collect();
     let x = set.batch_items(&items, None).expect("batch");
-    let f = net
-        .forward(&x)
+    let f = train::embed(net, &x)
         .expect("forward")
         .to_vec2::<f32>()
         .expect("vec");
@@ -351,23 +350,122 @@ fn fault_negatives_are_solved_corruptions_and_training_pushes_them_away() {
         ..tiny_config()
     };
     let run = |share: f64| -> f64 {
-        let (net, mut opt) = trainable_tiny_net();
+        let mut learner = trainable_tiny_net();
         let mut rng = StdRng::seed_from_u64(5);
         for _ in 0..60 {
             let (idx, labels) = set.sample_pk(8, 4, &mut rng);
             let (items, labels) = set.with_faults(&idx, &labels, share, &mut rng);
             let x = set.batch_items(&items, Some(&mut rng)).expect("batch");
             let sources = set.sources(&items);
-            let (l, _, _, _) =
-                train::objective(&net, &x, &labels, &sources, &cfg, &mut rng).expect("loss");
-            let grads = l.backward().expect("backward");
-            opt.step(&grads, 3e-3).expect("step");
+            learner
+                .step(&x, 3e-3, |e| {
+                    let (l, _, _, _) = train::objective(e, &labels, &sources, &cfg, &mut rng)?;
+                    Ok((l, ()))
+                })
+                .expect("step");
         }
-        fault_to_genuine_ratio(&net, &set)
+        fault_to_genuine_ratio(learner.net(), &set)
     };
     let (without, with) = (run(0.0), run(1.0));
     eprintln!(
         "corrupted / genuine distance to the class prototype: {without:.3} without, {with:.3} with fault negatives"
     );
     assert!(with > without, "{with} <= {without}");
+}
+
+/// `||a - b|| / ||b||`.
+fn rel_diff(a: &[f32], b: &[f32]) -> f64 {
+    let num: f64 = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| (f64::from(*x) - f64::from(*y)).powi(2))
+        .sum();
+    let den: f64 = b.iter().map(|y| f64::from(*y).powi(2)).sum();
+    (num / den.max(1e-30)).sqrt()
+}
+
+/// The training path (hand-written backward) gives candle autograd's gradients through
+/// `Net::forward` on real batches: augmented drawings of real characters with their
+/// corrupted plans, the shipped recipe's objective (batch-all + fault term), for the shipped
+/// model's weights and for a fresh initialisation of its architecture.
+#[test]
+fn training_gradients_match_candle_autograd_on_real_batches() {
+    let data = small_dataset();
+    let mut set = Prepared::new(data, &["Latin".to_string()], FeatureKind::Pen).expect("prepare");
+    set.make_faults(data, &shared_strokes(), &train::TRAIN_FAULTS, 2, 3)
+        .expect("faults");
+    let shipped = Embedder::load(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/embedder.safetensors"),
+    )
+    .expect("the shipped model loads");
+    let config = shipped.config().clone();
+    let cfg = TrainConfig {
+        net: config.clone(),
+        loss: LossKind::BatchAll,
+        fault_share: 1.0,
+        fault_variants: 2,
+        fault_weight: 1.0,
+        fault_margin: 0.4,
+        ..tiny_config()
+    };
+    let nets = [
+        ("shipped", shipped.fast().clone()),
+        ("random", FastNet::random(config.clone(), 3).expect("net")),
+    ];
+    let mut rng = StdRng::seed_from_u64(21);
+    let mut compared = 0;
+    for (name, fast) in nets {
+        for _ in 0..2 {
+            let (idx, labels) = set.sample_pk(8, 4, &mut rng);
+            let (items, labels) = set.with_faults(&idx, &labels, 1.0, &mut rng);
+            let x = set.batch_items(&items, Some(&mut rng)).expect("batch");
+            let sources = set.sources(&items);
+            // candle autograd.
+            let net = fast.to_net().expect("net");
+            let vars: Vec<Var> = net
+                .params()
+                .iter()
+                .map(|t| Var::from_tensor(t).expect("var"))
+                .collect();
+            let net = Net::new(
+                config.clone(),
+                vars.iter().map(|v| v.as_tensor().clone()).collect(),
+            )
+            .expect("net");
+            let e = net.forward(&x).expect("forward");
+            let mut dummy = StdRng::seed_from_u64(0);
+            let (want_loss, _, _, _) =
+                train::objective(&e, &labels, &sources, &cfg, &mut dummy).expect("loss");
+            let store = want_loss.backward().expect("backward");
+            let want_loss = want_loss.to_scalar::<f32>().expect("scalar");
+            // The training path.
+            let mut learner = Learner::new(fast.clone(), 0.0);
+            let (grads, got_loss, _) = learner
+                .gradients(&x, |e| {
+                    let (l, _, _, _) = train::objective(e, &labels, &sources, &cfg, &mut dummy)?;
+                    Ok((l, ()))
+                })
+                .expect("gradients");
+            assert!(
+                (got_loss - want_loss).abs() <= 1e-5 * (1.0 + want_loss.abs()),
+                "{name}: loss {got_loss} vs {want_loss}"
+            );
+            assert!(want_loss > 0.0, "{name}: a batch without active triplets");
+            let shapes = config.param_shapes();
+            for ((var, got), (pname, _)) in vars.iter().zip(grads.params()).zip(&shapes) {
+                let want = store
+                    .get(var.as_tensor())
+                    .expect("every parameter gets a gradient")
+                    .flatten_all()
+                    .expect("flat")
+                    .to_vec1::<f32>()
+                    .expect("vec");
+                let d = rel_diff(got, &want);
+                eprintln!("{name} {pname}: relative difference {d:.2e}");
+                assert!(d <= 1e-4, "{name} {pname}: relative difference {d:e}");
+                compared += 1;
+            }
+        }
+    }
+    assert_eq!(compared, 4 * config.param_shapes().len());
 }

@@ -21,8 +21,7 @@ use crate::fast::{FastNet, FastNetError, Scratch};
 use crate::features::{Augment, FeatureKind, PenPoint};
 use crate::net::{Net, NetConfig};
 
-/// Embedding dimension.
-pub const EMBED_DIM: usize = 128;
+pub use crate::net::EMBED_DIM;
 /// One embedding.
 pub type Embedding = [f32; EMBED_DIM];
 

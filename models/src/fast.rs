@@ -13,7 +13,7 @@
 //! pointers; [`sgemm`] checks every slice length first. It is here because of a measured
 //! need: see `docs/performance.md`.
 
-use candle_core::DType;
+use candle_core::{DType, Device, Tensor};
 
 use crate::net::{Net, NetConfig};
 
@@ -57,41 +57,80 @@ pub enum FastNetError {
     },
 }
 
+/// Element type of the fast path: `f32` for serving and training, `f64` for the gradient
+/// checks against finite differences. The arithmetic is the same code for both.
+pub trait Real:
+    num_traits::Float + Default + std::iter::Sum + std::fmt::Debug + Send + Sync + 'static
+{
+}
+impl Real for f32 {}
+impl Real for f64 {}
+
 /// One convolution layer: `w [k*c_in, c_out]` (row `j*c_in + c` = tap `j` of channel `c`).
 #[derive(Debug, Clone)]
-struct Conv {
-    c_in: usize,
-    c_out: usize,
-    w: Vec<f32>,
-    b: Vec<f32>,
+pub(crate) struct Conv<T> {
+    pub(crate) c_in: usize,
+    pub(crate) c_out: usize,
+    pub(crate) w: Vec<T>,
+    pub(crate) b: Vec<T>,
 }
 
-/// The embedding network with its weights in plain `Vec<f32>`s.
+/// The embedding network with its weights in plain `Vec`s (`f32` unless stated).
 #[derive(Debug, Clone)]
-pub struct FastNet {
+pub struct FastNet<T = f32> {
     config: NetConfig,
-    kernel: usize,
-    convs: Vec<Conv>,
-    fc_w: Vec<f32>,
-    fc_b: Vec<f32>,
+    pub(crate) kernel: usize,
+    pub(crate) convs: Vec<Conv<T>>,
+    pub(crate) fc_w: Vec<T>,
+    pub(crate) fc_b: Vec<T>,
 }
 
-/// Reusable intermediate buffers. Grows to the largest batch seen, then never allocates.
-#[derive(Debug, Default, Clone)]
-pub struct Scratch {
-    act: Vec<f32>,
-    next: Vec<f32>,
-    pooled: Vec<f32>,
+/// Reusable intermediate buffers of a forward pass, kept per layer so that
+/// [`FastNet::backward`](crate::grad) can read them. Grows to the largest batch seen, then
+/// never allocates.
+#[derive(Debug, Clone)]
+pub struct Scratch<T = f32> {
+    /// Per layer: its input, time-padded (see [`FastNet::forward`]).
+    pub(crate) inputs: Vec<Vec<T>>,
+    /// Per layer: its convolution output before ReLU, one row per padded input row
+    /// (`batch * (l + 2 pad) - 2 pad` rows; the rows between two sequences are unused).
+    pub(crate) outputs: Vec<Vec<T>>,
+    /// Global mean and max over time of the last layer, `[batch, 2 * c_last]`.
+    pub(crate) pooled: Vec<T>,
+    /// The network output of the last forward, `[batch, embed_dim]`.
+    pub(crate) emb: Vec<T>,
+    /// Per sequence: the L2 norm the output was divided by.
+    pub(crate) norms: Vec<T>,
+    /// `(batch, len)` of the last forward.
+    pub(crate) shape: (usize, usize),
 }
 
-fn grow(v: &mut Vec<f32>, n: usize) -> &mut [f32] {
+impl<T> Default for Scratch<T> {
+    fn default() -> Self {
+        Self {
+            inputs: Vec::new(),
+            outputs: Vec::new(),
+            pooled: Vec::new(),
+            emb: Vec::new(),
+            norms: Vec::new(),
+            shape: (0, 0),
+        }
+    }
+}
+
+pub(crate) fn grow<T: Real>(v: &mut Vec<T>, n: usize) -> &mut [T] {
     if v.len() < n {
-        v.resize(n, 0.0);
+        v.resize(n, T::zero());
     }
     &mut v[..n]
 }
 
-impl FastNet {
+/// `v` as `T` (exact for every value an `f32` or `f64` network holds).
+pub(crate) fn real<T: Real>(v: f64) -> T {
+    T::from(v).unwrap_or_else(T::nan)
+}
+
+impl FastNet<f32> {
     /// Copy the weights of a candle network.
     pub fn from_net(net: &Net) -> Result<Self, FastNetError> {
         let params = net
@@ -102,8 +141,23 @@ impl FastNet {
         Self::from_params(net.config().clone(), params)
     }
 
+    /// The weights as a candle network (for saving as an [`crate::embedder::Embedder`] and
+    /// for the reference path).
+    pub fn to_net(&self) -> candle_core::Result<Net> {
+        let tensors = self
+            .config
+            .param_shapes()
+            .into_iter()
+            .zip(self.params())
+            .map(|((_, shape), p)| Tensor::from_slice(p, shape, &Device::Cpu))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        Net::new(self.config.clone(), tensors)
+    }
+}
+
+impl<T: Real> FastNet<T> {
     /// Build from flat parameters in [`NetConfig::param_shapes`] order.
-    pub fn from_params(config: NetConfig, params: Vec<Vec<f32>>) -> Result<Self, FastNetError> {
+    pub fn from_params(config: NetConfig, params: Vec<Vec<T>>) -> Result<Self, FastNetError> {
         config.check().map_err(FastNetError::Config)?;
         let shapes = config.param_shapes();
         if shapes.len() != params.len() {
@@ -147,9 +201,44 @@ impl FastNet {
         })
     }
 
+    /// Deterministic initial weights of `config` for `seed` (the values of
+    /// [`NetConfig::init`], as `T`).
+    pub fn random(config: NetConfig, seed: u64) -> Result<Self, FastNetError> {
+        let params = config
+            .init(seed)
+            .into_iter()
+            .map(|(_, _, d)| d.into_iter().map(|v| real(f64::from(v))).collect())
+            .collect();
+        Self::from_params(config, params)
+    }
+
     /// The architecture.
     pub fn config(&self) -> &NetConfig {
         &self.config
+    }
+
+    /// The parameters, in [`NetConfig::param_shapes`] order.
+    pub fn params(&self) -> Vec<&[T]> {
+        let mut out = Vec::with_capacity(2 * self.convs.len() + 2);
+        for c in &self.convs {
+            out.push(c.w.as_slice());
+            out.push(c.b.as_slice());
+        }
+        out.push(&self.fc_w);
+        out.push(&self.fc_b);
+        out
+    }
+
+    /// The parameters, mutable (an optimiser's view), in [`NetConfig::param_shapes`] order.
+    pub fn params_mut(&mut self) -> Vec<&mut [T]> {
+        let mut out = Vec::with_capacity(2 * self.convs.len() + 2);
+        for c in &mut self.convs {
+            out.push(c.w.as_mut_slice());
+            out.push(c.b.as_mut_slice());
+        }
+        out.push(&mut self.fc_w);
+        out.push(&mut self.fc_b);
+        out
     }
 
     /// Floating-point operations (multiply and add counted separately) of one forward pass
@@ -169,14 +258,15 @@ impl FastNet {
     }
 
     /// Embed `batch` feature sequences `x [batch, len, in_channels]` (row-major) into
-    /// `out [batch, embed_dim]`, exactly as [`Net::forward`] does.
+    /// `out [batch, embed_dim]`, exactly as [`Net::forward`] does. `scratch` keeps every
+    /// layer's input and output for [`FastNet::backward`].
     pub fn forward(
         &self,
-        x: &[f32],
+        x: &[T],
         batch: usize,
         len: usize,
-        scratch: &mut Scratch,
-        out: &mut [f32],
+        scratch: &mut Scratch<T>,
+        out: &mut [T],
     ) -> Result<(), FastNetError> {
         let f = self.config.in_channels();
         let e = self.config.embed_dim;
@@ -198,57 +288,66 @@ impl FastNet {
         if len >> pools == 0 {
             return Err(FastNetError::TooShort { len, pools });
         }
+        scratch.shape = (0, 0);
         if batch == 0 {
             return Ok(());
         }
         let k = self.kernel;
         let pad = k / 2;
-        let Scratch { act, next, pooled } = scratch;
+        let n_layers = self.convs.len();
+        let Scratch {
+            inputs,
+            outputs,
+            pooled,
+            emb,
+            norms,
+            shape,
+        } = scratch;
+        inputs.resize_with(n_layers, Vec::new);
+        outputs.resize_with(n_layers, Vec::new);
         // Layer inputs are kept time-padded: sequence `b` occupies rows
         // `b * (l + 2 pad) ..`, its `pad` first and last rows zero. The `k` taps of every
         // channel of output step `t` are then the `k * c` consecutive values from row
         // `b * (l + 2 pad) + t`, so the convolution is one GEMM whose left operand rows
         // overlap (row stride `c`, width `k * c`): no im2col copy. The `2 pad` rows between
         // two sequences produce output rows that are ignored.
-        let padded_len = |l: usize, c: usize| batch * (l + 2 * pad) * c;
-        let act_len = self
-            .convs
-            .iter()
-            .map(|c| padded_len(len, c.c_in.max(c.c_out)))
-            .max()
-            .unwrap_or(0);
-        let h = grow(act, act_len);
-        let f0 = self.convs.first().map_or(f, |c| c.c_in);
-        pad_rows(h, x, batch, len, pad, f0);
-        let spare = grow(next, act_len);
+        pad_rows(
+            grow(&mut inputs[0], batch * (len + 2 * pad) * f),
+            x,
+            batch,
+            len,
+            pad,
+            f,
+        );
         let mut l = len;
-        let n_layers = self.convs.len();
         for (i, conv) in self.convs.iter().enumerate() {
             let (c, o) = (conv.c_in, conv.c_out);
             let lp = l + 2 * pad;
             let rows = batch * lp - 2 * pad;
+            let (done, rest) = inputs.split_at_mut(i + 1);
+            let h = &done[i][..batch * lp * c];
             // y = bias + taps · W
-            let y = &mut spare[..rows * o];
+            let y = grow(&mut outputs[i], rows * o);
             for row in y.chunks_exact_mut(o) {
                 row.copy_from_slice(&conv.b);
             }
-            sgemm_rows(rows, o, k * c, &h[..batch * lp * c], c, &conv.w, y, true)?;
+            conv_rows(rows, o, k * c, h, c, &conv.w, y)?;
             if i + 1 < n_layers {
                 // ReLU + max pool of 2 (a trailing odd step is dropped); relu(max) = max(relu),
                 // into the next layer's padded input.
                 let half = l / 2;
                 let hp = half + 2 * pad;
-                let next_in = &mut h[..batch * hp * o];
+                let next_in = grow(&mut rest[0], batch * hp * o);
                 for b in 0..batch {
                     let seq = &mut next_in[b * hp * o..(b + 1) * hp * o];
-                    seq[..pad * o].fill(0.0);
-                    seq[(pad + half) * o..].fill(0.0);
+                    seq[..pad * o].fill(T::zero());
+                    seq[(pad + half) * o..].fill(T::zero());
                     for t in 0..half {
                         let r0 = (b * lp + 2 * t) * o;
                         let (y0, y1) = y[r0..r0 + 2 * o].split_at(o);
                         let d = (pad + t) * o;
                         for ((v, a), c) in seq[d..d + o].iter_mut().zip(y0).zip(y1) {
-                            *v = a.max(*c).max(0.0);
+                            *v = a.max(*c).max(T::zero());
                         }
                     }
                 }
@@ -256,52 +355,74 @@ impl FastNet {
             } else {
                 // ReLU, then mean and max over time, concatenated.
                 let p = grow(pooled, batch * 2 * o);
-                let inv = 1.0 / l as f32;
+                let inv = T::one() / real(l as f64);
                 for b in 0..batch {
                     let (mean, max) = p[b * 2 * o..(b + 1) * 2 * o].split_at_mut(o);
-                    mean.fill(0.0);
-                    max.fill(f32::NEG_INFINITY);
+                    mean.fill(T::zero());
+                    max.fill(T::neg_infinity());
                     for t in 0..l {
                         let row = &y[(b * lp + t) * o..(b * lp + t + 1) * o];
                         for ((m, x), v) in mean.iter_mut().zip(max.iter_mut()).zip(row) {
-                            let v = v.max(0.0);
-                            *m += v;
+                            let v = v.max(T::zero());
+                            *m = *m + v;
                             *x = x.max(v);
                         }
                     }
                     for m in mean.iter_mut() {
-                        *m *= inv;
+                        *m = *m * inv;
                     }
                 }
                 for row in out.chunks_exact_mut(e) {
                     row.copy_from_slice(&self.fc_b);
                 }
-                sgemm(batch, e, 2 * o, p, &self.fc_w, out, true)?;
+                gemm_strided(
+                    batch,
+                    e,
+                    2 * o,
+                    out,
+                    (p, 2 * o, 1),
+                    (&self.fc_w, e, 1),
+                    true,
+                )?;
             }
         }
+        let norms = grow(norms, batch);
         if self.config.l2_normalize {
-            for row in out.chunks_exact_mut(e) {
-                let norm = (row.iter().map(|v| v * v).sum::<f32>() + 1e-12).sqrt();
+            let eps = real::<T>(1e-12);
+            for (row, n) in out.chunks_exact_mut(e).zip(norms.iter_mut()) {
+                let norm = (row.iter().map(|v| *v * *v).sum::<T>() + eps).sqrt();
                 for v in row.iter_mut() {
-                    *v /= norm;
+                    *v = *v / norm;
                 }
+                *n = norm;
             }
+        } else {
+            norms.fill(T::one());
         }
+        grow(emb, batch * e).copy_from_slice(out);
+        *shape = (batch, len);
         Ok(())
     }
 }
 
 /// Copy `batch` sequences of `len` rows of `c` values from `x` into `h` with `pad` zero rows
 /// before and after each.
-fn pad_rows(h: &mut [f32], x: &[f32], batch: usize, len: usize, pad: usize, c: usize) {
+pub(crate) fn pad_rows<T: Real>(
+    h: &mut [T],
+    x: &[T],
+    batch: usize,
+    len: usize,
+    pad: usize,
+    c: usize,
+) {
     let lp = len + 2 * pad;
     for (seq, src) in h[..batch * lp * c]
         .chunks_exact_mut(lp * c)
         .zip(x.chunks_exact(len * c))
     {
-        seq[..pad * c].fill(0.0);
+        seq[..pad * c].fill(T::zero());
         seq[pad * c..(pad + len) * c].copy_from_slice(src);
-        seq[(pad + len) * c..].fill(0.0);
+        seq[(pad + len) * c..].fill(T::zero());
     }
 }
 
@@ -317,20 +438,34 @@ pub fn sgemm(
     dst: &mut [f32],
     accumulate: bool,
 ) -> Result<(), FastNetError> {
-    sgemm_rows(m, n, k, a, k, b, dst, accumulate)
+    gemm_strided(m, n, k, dst, (a, k, 1), (b, n, 1), accumulate)
 }
 
-/// [`sgemm`] with the rows of `a` `lda` values apart (`lda < k`: overlapping rows, the
-/// convolution's taps).
-#[allow(clippy::too_many_arguments)]
-fn sgemm_rows(
+/// The convolution's GEMM: `dst [m, n] += a · b` where row `r` of `a` is the `k` values
+/// from `a[r * lda]` (`lda < k`: overlapping rows, the taps of one output step).
+pub(crate) fn conv_rows<T: Real>(
     m: usize,
     n: usize,
     k: usize,
-    a: &[f32],
+    a: &[T],
     lda: usize,
-    b: &[f32],
-    dst: &mut [f32],
+    b: &[T],
+    dst: &mut [T],
+) -> Result<(), FastNetError> {
+    gemm_strided(m, n, k, dst, (a, lda, 1), (b, n, 1), true)
+}
+
+/// `dst [m, n] (+)= A · B` with `dst` row-major and contiguous, and each operand given as
+/// `(values, row stride, column stride)`: element `(i, j)` of `A` is `a[i * rs + j * cs]`.
+/// Rows may overlap and either operand may be a transposed view. With `accumulate` the
+/// product is added to `dst`, otherwise it replaces it. Single-threaded.
+pub(crate) fn gemm_strided<T: Real>(
+    m: usize,
+    n: usize,
+    k: usize,
+    dst: &mut [T],
+    (a, a_rs, a_cs): (&[T], usize, usize),
+    (b, b_rs, b_cs): (&[T], usize, usize),
     accumulate: bool,
 ) -> Result<(), FastNetError> {
     let check = |what, expected: usize, got: usize| {
@@ -344,18 +479,38 @@ fn sgemm_rows(
             Ok(())
         }
     };
-    let lhs_extent = if m == 0 { 0 } else { (m - 1) * lda + k };
-    check("gemm lhs", lhs_extent, a.len())?;
-    check("gemm rhs", k * n, b.len())?;
+    let extent = |rows: usize, cols: usize, rs: usize, cs: usize| {
+        if rows == 0 || cols == 0 {
+            0
+        } else {
+            (rows - 1) * rs + (cols - 1) * cs + 1
+        }
+    };
+    check("gemm lhs", extent(m, k, a_rs, a_cs), a.len())?;
+    check("gemm rhs", extent(k, n, b_rs, b_cs), b.len())?;
     check("gemm dst", m * n, dst.len())?;
     if m == 0 || n == 0 {
         return Ok(());
     }
-    // SAFETY: `a` holds at least (m-1)*lda + k values read with row stride lda and column
-    // stride 1 (rows may overlap; gemm only reads them),
-    // `b` at least k*n with row stride n, `dst` at least m*n with row stride n (checked
-    // above); `dst` is borrowed mutably, so it aliases neither input. gemm neither keeps the
-    // pointers nor reads past those extents.
+    if k == 0 {
+        if !accumulate {
+            dst[..m * n].fill(T::zero());
+        }
+        return Ok(());
+    }
+    let stride = |s: usize| isize::try_from(s).map_err(|_| FastNetError::Config("stride".into()));
+    let (a_rs, a_cs, b_rs, b_cs, n_rs) = (
+        stride(a_rs)?,
+        stride(a_cs)?,
+        stride(b_rs)?,
+        stride(b_cs)?,
+        stride(n)?,
+    );
+    // SAFETY: every element gemm reads of `a` is at `i * a_rs + p * a_cs` for i < m, p < k,
+    // of `b` at `p * b_rs + j * b_cs` for p < k, j < n, and it writes `dst` at `i * n + j`:
+    // all within the extents checked above (rows of `a` may overlap; gemm only reads them).
+    // `dst` is borrowed mutably, so it aliases neither input. gemm neither keeps the
+    // pointers nor reads past those extents; `T` is `f32` or `f64`, both supported by gemm.
     #[allow(unsafe_code)]
     unsafe {
         gemm::gemm(
@@ -364,16 +519,16 @@ fn sgemm_rows(
             k,
             dst.as_mut_ptr(),
             1,
-            n as isize,
+            n_rs,
             accumulate,
             a.as_ptr(),
-            1,
-            lda as isize,
+            a_cs,
+            a_rs,
             b.as_ptr(),
-            1,
-            n as isize,
-            1.0f32,
-            1.0f32,
+            b_cs,
+            b_rs,
+            T::one(),
+            T::one(),
             false,
             false,
             false,

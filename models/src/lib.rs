@@ -1,11 +1,11 @@
 //! guardian-models: the learned and the physical models behind guardian.
 //!
 //! It holds the triplet-loss 1D-CNN that embeds a resampled joint trajectory (candle), its
-//! losses, the inference fast path used by the daemon, the class-bank math (prototypes,
-//! thresholds, nearest-class search) and the Franka Emika Panda kinematics (URDF, forward
-//! kinematics, Jacobian, inverse kinematics). Shipped artifacts (weights, default class bank,
+//! losses, the inference fast path used by the daemon and its hand-written backward used by
+//! training, the class-bank math (prototypes, thresholds, nearest-class search) and the
+//! Franka Emika Panda kinematics (URDF, forward kinematics, Jacobian, inverse kinematics). Shipped artifacts (weights, default class bank,
 //! `panda.urdf`, model card) live in this crate's folder.
-// `deny`, not `forbid`: `fast::sgemm` allows its single bounds-checked call into `gemm`.
+// `deny`, not `forbid`: `fast::gemm_strided` allows its single bounds-checked call into `gemm`.
 #![deny(unsafe_code)]
 
 pub mod bank;
@@ -13,6 +13,7 @@ pub mod embedder;
 pub mod fast;
 pub mod features;
 pub mod geometry;
+pub mod grad;
 pub mod kinematics;
 pub mod loss;
 pub mod net;

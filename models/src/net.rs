@@ -14,6 +14,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::features::FeatureKind;
 
+/// Embedding dimension of an [`crate::embedder::Embedder`].
+pub const EMBED_DIM: usize = 128;
+
 /// Architecture and preprocessing of an embedder; stored in the model file's metadata.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
@@ -25,7 +28,7 @@ pub struct NetConfig {
     pub channels: Vec<usize>,
     /// Convolution kernel size (odd).
     pub kernel: usize,
-    /// Embedding dimension (must be [`crate::embedder::EMBED_DIM`] for an `Embedder`).
+    /// Embedding dimension (must be [`EMBED_DIM`] for an `Embedder`).
     pub embed_dim: usize,
     /// L2-normalise the embedding (distances then lie in `[0, 4]`).
     pub l2_normalize: bool,
@@ -42,7 +45,7 @@ impl Default for NetConfig {
             features: FeatureKind::Pen,
             channels: vec![64, 128, 128],
             kernel: 5,
-            embed_dim: crate::embedder::EMBED_DIM,
+            embed_dim: EMBED_DIM,
             l2_normalize: true,
             reverse_average: false,
         }
