@@ -562,7 +562,7 @@ impl Embedder {
     }
 
     /// Embed a batch with candle's forward pass — the reference the fast path is tested
-    /// against (and the path training uses).
+    /// against.
     pub fn embed_batch_reference(&self, xs: &[Resampled]) -> Result<Vec<Embedding>, EmbedError> {
         if xs.is_empty() {
             return Ok(Vec::new());

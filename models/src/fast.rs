@@ -1,16 +1,18 @@
-//! The inference fast path: the exact network of [`crate::net`] in plain Rust, with each
+//! The fast path: the exact network of [`crate::net`] in plain Rust, with each
 //! convolution as one GEMM from the `gemm` crate (AVX-512 / AVX2 / SSE kernels chosen at run
 //! time, so the binary stays portable) whose left operand is the time-padded layer input
 //! read with overlapping rows (no im2col copy), ReLU fused into the pooling, and all
 //! intermediate buffers kept in a reusable [`Scratch`] (no allocation per call once the
 //! scratch has grown to the largest batch seen).
 //!
-//! candle stays the training and reference path: [`FastNet`] is built from a [`Net`]'s
-//! weights and a test checks both agree to 1e-5 relative error, on random inputs with random
-//! weights and with the shipped model.
+//! The daemon serves with it, and training runs it too: the forward keeps every layer's
+//! input and output in the [`Scratch`], from which [`crate::grad`] computes the backward
+//! with the same GEMM. candle's [`Net`] is the reference path: a test checks both agree to
+//! 1e-5 relative error, on random inputs with random weights and with the shipped model.
+//! The arithmetic is generic over [`Real`] (`f32`; `f64` for gradient checks).
 //!
 //! The one `unsafe` block in this crate is the call into `gemm::gemm`, which takes raw
-//! pointers; [`sgemm`] checks every slice length first. It is here because of a measured
+//! pointers; `gemm_strided` checks every operand's extent first. It is here because of a measured
 //! need: see `docs/performance.md`.
 
 use candle_core::{DType, Device, Tensor};

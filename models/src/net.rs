@@ -4,7 +4,8 @@
 //! Convolutions are written as explicit zero padding + unfold (`narrow` + `cat`) + `matmul`
 //! rather than `candle_nn::conv1d`, whose weight gradients are wrong on CPU for batch > 1 in
 //! candle 0.11 (see the engineering guide). Pooling is a `reshape` + `max`, whose backward is
-//! exact. The same code serves training (weights are `Var`s) and inference (plain tensors).
+//! exact. This is the reference path: [`crate::fast`] serves and [`crate::grad`] trains the
+//! same network, and tests hold both to this one (forward and gradients).
 //!
 //! Layout: input `[B, L, F]` (batch, time, feature channels), activations `[B, L, C]`.
 
