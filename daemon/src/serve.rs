@@ -14,7 +14,8 @@ use guardian_shared::wire::{
 
 use crate::config::{Config, ServingMode};
 use crate::notify::SdNotify;
-use crate::screen::{LoadStateError, Screen, load_bank, load_engine};
+use crate::screen::Screen;
+use crate::state::{LoadStateError, load_bank, load_engine};
 use crate::wakers::{ClientWakers, Woken};
 
 /// Flags set from signal handlers (or a test harness) to steer the loop.
