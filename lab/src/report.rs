@@ -227,7 +227,7 @@ pub fn outlier_plots(
                 continue;
             }
             let name = key.trim_end_matches("@50").to_owned();
-            let roc = crate::outliers::roc_curve(&sc.genuine, v);
+            let roc = crate::metrics::roc_curve(&sc.genuine, v);
             let step = (roc.len() / 150).max(1);
             let mut pts: Vec<(f64, f64)> = roc.iter().step_by(step).copied().collect();
             pts.push((1.0, 1.0));
@@ -421,18 +421,6 @@ fn pair_distances(v: &[Vec<f32>], labels: &[u32], pairs: usize, seed: u64) -> (V
         }
     }
     (intra, inter)
-}
-
-/// Fraction of (same, different) pairs ordered correctly (the AUC of the distance as a
-/// same-class detector).
-fn auc(intra: &[f64], inter: &[f64]) -> f64 {
-    let mut s = inter.to_vec();
-    s.sort_by(f64::total_cmp);
-    let mut good = 0.0;
-    for &a in intra {
-        good += (s.len() - s.partition_point(|&b| b <= a)) as f64;
-    }
-    good / (intra.len() * s.len()).max(1) as f64
 }
 
 /// Run `guardian-lab report`.
@@ -685,7 +673,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             "| {name} | {:.4} | {:.4} | {:.4} |",
             mean(a),
             mean(b),
-            auc(a, b)
+            crate::metrics::pair_auc(a, b)
         )?;
     }
     writeln!(md)?;
