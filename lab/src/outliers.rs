@@ -667,7 +667,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             dir.join("outliers.json"),
             serde_json::to_vec_pretty(&report)?,
         )?;
-        crate::report::outlier_plots(dir, &raw)?;
+        crate::report::outlier_plots(
+            dir,
+            raw.iter()
+                .map(|(m, sc)| (m.as_str(), sc.genuine.as_slice(), &sc.faulty)),
+        )?;
     }
     if args.json {
         println!("{}", serde_json::to_string(&report)?);
