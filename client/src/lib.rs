@@ -26,6 +26,9 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+/// Synthetic sample trajectories for tests (feature `samples`, off by default).
+#[cfg(feature = "samples")]
+#[doc(hidden)]
 pub mod samples;
 
 use std::cell::Cell;
@@ -176,6 +179,39 @@ pub enum NoGoReason {
     },
 }
 
+/// One line, as `guardianctl` and `guardian-lab demo` print it: `GO`, or `NO-GO` and the
+/// reason.
+impl std::fmt::Display for Decision {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Go => write!(f, "GO"),
+            Self::NoGo { reason } => write!(f, "NO-GO {reason}"),
+        }
+    }
+}
+
+/// The reason with its detail, e.g. `wrong task (nearest character07)`.
+impl std::fmt::Display for NoGoReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::WrongTask { nearest } => write!(f, "wrong task (nearest {nearest})"),
+            Self::Outlier => write!(f, "outlier"),
+            Self::UnknownClass => write!(f, "unknown class"),
+            Self::InvalidTrajectory { kind, index } => write!(f, "invalid: {kind:?} at {index}"),
+            Self::Workcell { kind, index } => write!(f, "workcell: {kind:?} at waypoint {index}"),
+            Self::GeometryMismatch {
+                feature,
+                score,
+                threshold,
+            } => write!(
+                f,
+                "geometry: {} (score {score:.2} > {threshold:.2})",
+                feature.name()
+            ),
+        }
+    }
+}
+
 /// A class and its distance.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Neighbour {
@@ -286,13 +322,17 @@ pub enum ConnectError {
         /// The service name.
         service: String,
     },
+    /// The iceoryx2 root path or prefix is unusable.
+    #[error(transparent)]
+    Iceoryx2Config(#[from] guardian_shared::ipc::Iceoryx2ConfigError),
     /// An iceoryx2 operation failed.
-    #[error("iceoryx2: {what}: {detail}")]
+    #[error("iceoryx2: {what}: {source}")]
     Iceoryx {
         /// What was being done.
         what: &'static str,
         /// The iceoryx2 error.
-        detail: String,
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
     },
 }
 
@@ -389,10 +429,12 @@ fn transport<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> CheckE
     }
 }
 
-fn connect_err<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> ConnectError {
+fn connect_err<E: std::error::Error + Send + Sync + 'static>(
+    what: &'static str,
+) -> impl FnOnce(E) -> ConnectError {
     move |e| ConnectError::Iceoryx {
         what,
-        detail: format!("{e:?}"),
+        source: Box::new(e),
     }
 }
 
@@ -428,23 +470,10 @@ impl Client {
     /// Open the daemon's services. Fails with [`ConnectError::DaemonNotRunning`] when no
     /// daemon serves `config.service_name`.
     pub fn connect(config: ClientConfig) -> Result<Client, ConnectError> {
-        let mut ic = iceoryx2::config::Config::default();
-        if let Some(root) = &config.iceoryx2_root_path {
-            let mut s = root.to_string_lossy().into_owned();
-            if !s.ends_with('/') {
-                s.push('/');
-            }
-            let p = Path::new(s.as_bytes()).map_err(|e| ConnectError::InvalidConfig {
-                detail: format!("iceoryx2 root path: {e:?}"),
-            })?;
-            ic.global.set_root_path(&p);
-        }
-        if let Some(prefix) = &config.iceoryx2_prefix {
-            ic.global.prefix =
-                FileName::new(prefix.as_bytes()).map_err(|e| ConnectError::InvalidConfig {
-                    detail: format!("iceoryx2 prefix: {e:?}"),
-                })?;
-        }
+        let ic = guardian_shared::ipc::iceoryx2_config(
+            config.iceoryx2_root_path.as_deref(),
+            config.iceoryx2_prefix.as_deref(),
+        )?;
         let node = NodeBuilder::new()
             .config(&ic)
             .signal_handling_mode(SignalHandlingMode::Disabled)
