@@ -325,15 +325,9 @@ pub enum ConnectError {
     /// The iceoryx2 root path or prefix is unusable.
     #[error(transparent)]
     Iceoryx2Config(#[from] guardian_shared::ipc::Iceoryx2ConfigError),
-    /// An iceoryx2 operation failed.
-    #[error("iceoryx2: {what}: {source}")]
-    Iceoryx {
-        /// What was being done.
-        what: &'static str,
-        /// The iceoryx2 error.
-        #[source]
-        source: Box<dyn std::error::Error + Send + Sync>,
-    },
+    /// An iceoryx2 setup or port operation failed.
+    #[error(transparent)]
+    Iceoryx(#[from] guardian_shared::ipc::Iceoryx2Error),
 }
 
 /// A request (check, identify, forget, classes, status) failed.
@@ -432,10 +426,8 @@ fn transport<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> CheckE
 fn connect_err<E: std::error::Error + Send + Sync + 'static>(
     what: &'static str,
 ) -> impl FnOnce(E) -> ConnectError {
-    move |e| ConnectError::Iceoryx {
-        what,
-        source: Box::new(e),
-    }
+    let during = guardian_shared::ipc::Iceoryx2Error::during(what);
+    move |e| during(e).into()
 }
 
 type RpcClient = iceoryx2::port::client::Client<

@@ -46,14 +46,8 @@ pub enum RunError {
     #[error(transparent)]
     Iceoryx2Config(#[from] guardian_shared::ipc::Iceoryx2ConfigError),
     /// An iceoryx2 setup or port operation failed.
-    #[error("iceoryx2: {what}: {source}")]
-    Iceoryx {
-        /// What was being done.
-        what: &'static str,
-        /// The iceoryx2 error.
-        #[source]
-        source: Box<dyn std::error::Error + Send + Sync>,
-    },
+    #[error(transparent)]
+    Iceoryx(#[from] guardian_shared::ipc::Iceoryx2Error),
     /// Saving the bank at shutdown failed.
     #[error("cannot flush class bank at shutdown: {0}")]
     Flush(#[from] guardian_models::bank::SaveBankError),
@@ -62,10 +56,8 @@ pub enum RunError {
 fn iox<E: std::error::Error + Send + Sync + 'static>(
     what: &'static str,
 ) -> impl FnOnce(E) -> RunError {
-    move |e| RunError::Iceoryx {
-        what,
-        source: Box::new(e),
-    }
+    let during = guardian_shared::ipc::Iceoryx2Error::during(what);
+    move |e| during(e).into()
 }
 
 /// The iceoryx2 configuration for `config` (root path and prefix applied).

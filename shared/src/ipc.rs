@@ -6,6 +6,29 @@ use std::path::{Path, PathBuf};
 
 use iceoryx2::prelude::{FileName, SemanticString, SemanticStringError};
 
+/// An iceoryx2 operation failed: what was being done, with iceoryx2's error as the source.
+#[derive(Debug, thiserror::Error)]
+#[error("iceoryx2: {what}: {source}")]
+pub struct Iceoryx2Error {
+    /// What was being done.
+    pub what: &'static str,
+    /// The iceoryx2 error.
+    #[source]
+    pub source: Box<dyn std::error::Error + Send + Sync>,
+}
+
+impl Iceoryx2Error {
+    /// A `map_err` adapter: the iceoryx2 error of doing `what`.
+    pub fn during<E: std::error::Error + Send + Sync + 'static>(
+        what: &'static str,
+    ) -> impl FnOnce(E) -> Self {
+        move |e| Self {
+            what,
+            source: Box::new(e),
+        }
+    }
+}
+
 /// A root path or prefix iceoryx2 does not accept.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
