@@ -26,6 +26,9 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+/// Synthetic sample trajectories for tests (feature `samples`, off by default).
+#[cfg(feature = "samples")]
+#[doc(hidden)]
 pub mod samples;
 
 use std::cell::Cell;
@@ -40,8 +43,8 @@ pub use guardian_shared::trajectory::{
     CHANNELS, InvalidKind, MAX_WAYPOINTS, MIN_WAYPOINTS, Waypoint,
 };
 use guardian_shared::wire::{
-    self, ClassEntry, ClassNameError, MAX_EXAMPLES, Op, ReasonCode, RequestHeader, ResponseHeader,
-    Status, VerdictCode,
+    self, CheckVerdict, ClassEntry, ClassNameError, Failure, MAX_EXAMPLES, NoGo, Op, ProtocolError,
+    RequestHeader, ResponseHeader,
 };
 pub use guardian_shared::workcell::{GeometryFeature, WorkcellKind};
 
@@ -176,6 +179,39 @@ pub enum NoGoReason {
     },
 }
 
+/// One line, as `guardianctl` and `guardian-lab demo` print it: `GO`, or `NO-GO` and the
+/// reason.
+impl std::fmt::Display for Decision {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Go => write!(f, "GO"),
+            Self::NoGo { reason } => write!(f, "NO-GO {reason}"),
+        }
+    }
+}
+
+/// The reason with its detail, e.g. `wrong task (nearest character07)`.
+impl std::fmt::Display for NoGoReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::WrongTask { nearest } => write!(f, "wrong task (nearest {nearest})"),
+            Self::Outlier => write!(f, "outlier"),
+            Self::UnknownClass => write!(f, "unknown class"),
+            Self::InvalidTrajectory { kind, index } => write!(f, "invalid: {kind:?} at {index}"),
+            Self::Workcell { kind, index } => write!(f, "workcell: {kind:?} at waypoint {index}"),
+            Self::GeometryMismatch {
+                feature,
+                score,
+                threshold,
+            } => write!(
+                f,
+                "geometry: {} (score {score:.2} > {threshold:.2})",
+                feature.name()
+            ),
+        }
+    }
+}
+
 /// A class and its distance.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Neighbour {
@@ -286,14 +322,12 @@ pub enum ConnectError {
         /// The service name.
         service: String,
     },
-    /// An iceoryx2 operation failed.
-    #[error("iceoryx2: {what}: {detail}")]
-    Iceoryx {
-        /// What was being done.
-        what: &'static str,
-        /// The iceoryx2 error.
-        detail: String,
-    },
+    /// The iceoryx2 root path or prefix is unusable.
+    #[error(transparent)]
+    Iceoryx2Config(#[from] guardian_shared::ipc::Iceoryx2ConfigError),
+    /// An iceoryx2 setup or port operation failed.
+    #[error(transparent)]
+    Iceoryx(#[from] guardian_shared::ipc::Iceoryx2Error),
 }
 
 /// A request (check, identify, forget, classes, status) failed.
@@ -389,11 +423,11 @@ fn transport<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> CheckE
     }
 }
 
-fn connect_err<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> ConnectError {
-    move |e| ConnectError::Iceoryx {
-        what,
-        detail: format!("{e:?}"),
-    }
+fn connect_err<E: std::error::Error + Send + Sync + 'static>(
+    what: &'static str,
+) -> impl FnOnce(E) -> ConnectError {
+    let during = guardian_shared::ipc::Iceoryx2Error::during(what);
+    move |e| during(e).into()
 }
 
 type RpcClient = iceoryx2::port::client::Client<
@@ -428,23 +462,10 @@ impl Client {
     /// Open the daemon's services. Fails with [`ConnectError::DaemonNotRunning`] when no
     /// daemon serves `config.service_name`.
     pub fn connect(config: ClientConfig) -> Result<Client, ConnectError> {
-        let mut ic = iceoryx2::config::Config::default();
-        if let Some(root) = &config.iceoryx2_root_path {
-            let mut s = root.to_string_lossy().into_owned();
-            if !s.ends_with('/') {
-                s.push('/');
-            }
-            let p = Path::new(s.as_bytes()).map_err(|e| ConnectError::InvalidConfig {
-                detail: format!("iceoryx2 root path: {e:?}"),
-            })?;
-            ic.global.set_root_path(&p);
-        }
-        if let Some(prefix) = &config.iceoryx2_prefix {
-            ic.global.prefix =
-                FileName::new(prefix.as_bytes()).map_err(|e| ConnectError::InvalidConfig {
-                    detail: format!("iceoryx2 prefix: {e:?}"),
-                })?;
-        }
+        let ic = guardian_shared::ipc::iceoryx2_config(
+            config.iceoryx2_root_path.as_deref(),
+            config.iceoryx2_prefix.as_deref(),
+        )?;
         let node = NodeBuilder::new()
             .config(&ic)
             .signal_handling_mode(SignalHandlingMode::Disabled)
@@ -603,14 +624,7 @@ impl Client {
     }
 
     fn single(op: Op, t: &Trajectory, class: Option<&str>) -> Result<RequestHeader, CheckError> {
-        let mut h = RequestHeader::new(0, op);
-        h.channels = u32::try_from(t.channels()).unwrap_or(u32::MAX);
-        h.examples = 1;
-        h.waypoints[0] = u32::try_from(t.len()).unwrap_or(u32::MAX);
-        if let Some(c) = class {
-            h.class_name = wire::encode_class_name(c)?;
-        }
-        Ok(h)
+        Ok(RequestHeader::encode(op, class, t.channels(), &[t.len()])?)
     }
 
     /// Is `trajectory` the task `claimed_class`? Invalid trajectories and unknown classes
@@ -628,39 +642,33 @@ impl Client {
                 detail: "response does not echo the request's op and class".into(),
             });
         }
-        let opt = |v: f32| if v.is_nan() { None } else { Some(v) };
         let nearest = neighbours(&entries);
-        let decision = match VerdictCode::from_u32(r.verdict) {
-            Some(VerdictCode::Go) => Decision::Go,
-            Some(VerdictCode::NoGo) => Decision::NoGo {
-                reason: match ReasonCode::from_u32(r.reason) {
-                    Some(ReasonCode::WrongTask) => NoGoReason::WrongTask {
+        let answer = wire::decode_check(&r).map_err(protocol)?;
+        let decision = match answer.verdict {
+            CheckVerdict::Go => Decision::Go,
+            CheckVerdict::NoGo(no_go) => Decision::NoGo {
+                reason: match no_go {
+                    NoGo::WrongTask => NoGoReason::WrongTask {
                         nearest: nearest.first().map(|n| n.class.clone()).ok_or_else(|| {
                             CheckError::Protocol {
                                 detail: "wrong-task verdict without a nearest class".into(),
                             }
                         })?,
                     },
-                    Some(ReasonCode::Outlier) => NoGoReason::Outlier,
-                    Some(ReasonCode::UnknownClass) => NoGoReason::UnknownClass,
-                    Some(ReasonCode::InvalidTrajectory) => NoGoReason::InvalidTrajectory {
-                        kind: r.invalid().ok_or_else(|| CheckError::Protocol {
-                            detail: format!("unknown invalid kind {}", r.invalid_kind),
-                        })?,
-                        index: r.invalid_index,
+                    NoGo::Outlier => NoGoReason::Outlier,
+                    NoGo::UnknownClass => NoGoReason::UnknownClass,
+                    NoGo::InvalidTrajectory(inv) => NoGoReason::InvalidTrajectory {
+                        kind: inv.kind,
+                        index: inv.index,
                     },
-                    Some(ReasonCode::Workcell) => NoGoReason::Workcell {
-                        kind: r.workcell().ok_or_else(|| CheckError::Protocol {
-                            detail: format!("unknown workcell kind {}", r.workcell_kind),
-                        })?,
-                        index: r.workcell_index,
+                    NoGo::Workcell(v) => NoGoReason::Workcell {
+                        kind: v.kind,
+                        index: v.index,
                     },
-                    Some(ReasonCode::GeometryMismatch) => NoGoReason::GeometryMismatch {
-                        feature: r.geometry().ok_or_else(|| CheckError::Protocol {
-                            detail: format!("unknown geometry feature {}", r.geometry_feature),
-                        })?,
-                        score: r.geometry_score,
-                        threshold: r.geometry_threshold,
+                    NoGo::GeometryMismatch(feature) => NoGoReason::GeometryMismatch {
+                        feature,
+                        score: answer.geometry_score.unwrap_or(f32::NAN),
+                        threshold: answer.geometry_threshold.unwrap_or(f32::NAN),
                     },
                     _ => {
                         return Err(CheckError::Protocol {
@@ -669,24 +677,20 @@ impl Client {
                     }
                 },
             },
-            _ => {
-                return Err(CheckError::Protocol {
-                    detail: format!("check answered without a verdict ({})", r.verdict),
-                });
-            }
         };
+        let state = wire::decode_state(&r);
         Ok(Verdict {
             decision,
             claimed_class: claimed_class.to_owned(),
-            claimed_distance: opt(r.claimed_distance),
-            threshold: opt(r.threshold),
-            margin: opt(r.margin),
-            gap: opt(r.gap),
-            geometry_score: opt(r.geometry_score),
-            geometry_threshold: opt(r.geometry_threshold),
+            claimed_distance: answer.claimed_distance,
+            threshold: answer.threshold,
+            margin: answer.margin,
+            gap: answer.gap,
+            geometry_score: answer.geometry_score,
+            geometry_threshold: answer.geometry_threshold,
             nearest,
-            model_version: wire::decode_text(&r.model_version),
-            bank_version: r.bank_version,
+            model_version: state.model_version.into_owned(),
+            bank_version: state.bank_version,
         })
     }
 
@@ -695,10 +699,11 @@ impl Client {
         let h = Self::single(Op::Identify, trajectory, None)?;
         let (r, entries) = self.call(h, trajectory.as_flat())?;
         status_ok(&r)?;
+        let state = wire::decode_state(&r);
         Ok(Ranking {
             nearest: neighbours(&entries),
-            model_version: wire::decode_text(&r.model_version),
-            bank_version: r.bank_version,
+            model_version: state.model_version.into_owned(),
+            bank_version: state.bank_version,
         })
     }
 
@@ -714,11 +719,10 @@ impl Client {
                 max: MAX_EXAMPLES,
             });
         }
-        let mut h = RequestHeader::new(0, Op::Enroll);
-        h.class_name = wire::encode_class_name(class).map_err(CheckError::from)?;
-        h.examples = examples.len() as u32;
         let channels = examples[0].channels();
-        h.channels = u32::try_from(channels).unwrap_or(u32::MAX);
+        let lens: Vec<usize> = examples.iter().map(Trajectory::len).collect();
+        let h = RequestHeader::encode(Op::Enroll, Some(class), channels, &lens)
+            .map_err(CheckError::from)?;
         let mut payload = Vec::new();
         for (i, t) in examples.iter().enumerate() {
             if t.channels() != channels {
@@ -729,7 +733,6 @@ impl Client {
                 }
                 .into());
             }
-            h.waypoints[i] = u32::try_from(t.len()).unwrap_or(u32::MAX);
             payload.extend_from_slice(t.as_flat());
         }
         let (r, entries) = self.call(h, &payload)?;
@@ -745,8 +748,7 @@ impl Client {
 
     /// Remove `class` from the bank.
     pub fn forget(&self, class: &str) -> Result<(), CheckError> {
-        let mut h = RequestHeader::new(0, Op::Forget);
-        h.class_name = wire::encode_class_name(class)?;
+        let h = RequestHeader::encode(Op::Forget, Some(class), CHANNELS, &[])?;
         let (r, _) = self.call(h, &[])?;
         status_ok(&r)
     }
@@ -762,21 +764,17 @@ impl Client {
     pub fn status(&self) -> Result<DaemonStatus, CheckError> {
         let (r, _) = self.call(RequestHeader::new(0, Op::Status), &[])?;
         status_ok(&r)?;
-        let lat = [
-            r.latency_p50_us,
-            r.latency_p90_us,
-            r.latency_p99_us,
-            r.latency_max_us,
-        ];
+        let s = wire::decode_state(&r);
+        let lat = s.latency_us;
         Ok(DaemonStatus {
-            model_version: wire::decode_text(&r.model_version),
-            bank_version: r.bank_version,
-            classes: r.class_count,
-            uptime: Duration::from_millis(r.uptime_ms),
-            requests: r.requests,
-            errors: r.errors,
-            go: r.go,
-            no_go: r.no_go,
+            model_version: s.model_version.into_owned(),
+            bank_version: s.bank_version,
+            classes: s.class_count,
+            uptime: Duration::from_millis(s.uptime_ms),
+            requests: s.requests,
+            errors: s.errors,
+            go: s.go,
+            no_go: s.no_go,
             latency_us: if lat.iter().any(|v| v.is_nan()) {
                 None
             } else {
@@ -786,32 +784,40 @@ impl Client {
     }
 }
 
+fn protocol(e: ProtocolError) -> CheckError {
+    CheckError::Protocol {
+        detail: e.to_string(),
+    }
+}
+
 fn status_ok(r: &ResponseHeader) -> Result<(), CheckError> {
-    let message = wire::decode_text(&r.message);
-    match Status::from_u32(r.status) {
-        Some(Status::Ok) => Ok(()),
-        Some(Status::BadRequest) => Err(CheckError::BadRequest { message }),
-        Some(Status::InvalidTrajectory) => Err(CheckError::InvalidTrajectory {
-            kind: r.invalid().ok_or_else(|| CheckError::Protocol {
-                detail: format!("unknown invalid kind {}", r.invalid_kind),
-            })?,
-            index: r.invalid_index,
-            example: r.invalid_example,
-        }),
+    let Some(failure) = wire::decode_failure(r).map_err(protocol)? else {
+        return Ok(());
+    };
+    Err(match failure {
+        Failure::BadRequest { message } => CheckError::BadRequest { message },
+        Failure::InvalidTrajectory {
+            invalid, example, ..
+        } => CheckError::InvalidTrajectory {
+            kind: invalid.kind,
+            index: invalid.index,
+            example,
+        },
         // The response echoes the request's name field: decode it for the typed reason.
-        Some(Status::InvalidClassName) => Err(match wire::decode_class_name(&r.class_name) {
+        Failure::InvalidClassName { message } => match wire::decode_class_name(&r.class_name) {
             Err(e) => CheckError::InvalidClassName(e),
             Ok(_) => CheckError::BadRequest { message },
-        }),
-        Some(Status::UnknownClass) => Err(CheckError::UnknownClass {
+        },
+        Failure::UnknownClass { .. } => CheckError::UnknownClass {
             class: wire::decode_text(&r.class_name),
-        }),
-        Some(Status::EmptyBank) => Err(CheckError::EmptyBank),
-        Some(Status::Internal) => Err(CheckError::Internal { message }),
-        _ => Err(CheckError::Protocol {
+        },
+        Failure::EmptyBank { .. } => CheckError::EmptyBank,
+        Failure::Internal { message } => CheckError::Internal { message },
+        // A status this client does not know yet.
+        _ => CheckError::Protocol {
             detail: format!("unknown status {}", r.status),
-        }),
-    }
+        },
+    })
 }
 
 fn neighbours(entries: &[ClassEntry]) -> Vec<Neighbour> {

@@ -203,7 +203,7 @@ impl Config {
         if self.k_nearest == 0 {
             return Err("k-nearest must be at least 1".into());
         }
-        self.workcell.validate()?;
+        self.workcell.validate().map_err(|e| e.to_string())?;
         if self.tick_ms == 0 {
             return Err("tick-ms must be at least 1".into());
         }

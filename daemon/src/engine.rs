@@ -3,17 +3,20 @@
 
 use std::path::Path;
 
-use guardian_models::embedder::{EMBED_DIM, Embedder, Embedding, LoadModelError};
+use guardian_models::embedder::{EMBED_DIM, EmbedError, Embedder, Embedding, LoadModelError};
 use guardian_models::features::PenPoint;
 use guardian_shared::trajectory::{InvalidTrajectory, Resampled, STEPS, Waypoint};
 
 /// Why a trajectory could not be embedded.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum EmbedFailure {
     /// Validation rejected it.
-    Invalid(InvalidTrajectory),
+    #[error(transparent)]
+    Invalid(#[from] InvalidTrajectory),
     /// The network failed (never turned into a verdict).
-    Internal(String),
+    #[error(transparent)]
+    Internal(#[from] EmbedError),
 }
 
 /// The loaded model.
@@ -35,6 +38,11 @@ impl Engine {
         Self { embedder }
     }
 
+    /// The embedding network.
+    pub fn embedder(&self) -> &Embedder {
+        &self.embedder
+    }
+
     /// The model's version string.
     pub fn version(&self) -> &str {
         self.embedder.version()
@@ -46,27 +54,21 @@ impl Engine {
     }
 
     /// Embed already preprocessed trajectories in one forward pass (micro-batching).
-    pub fn embed_resampled(&self, xs: &[Resampled]) -> Result<Vec<Embedding>, String> {
-        self.embedder.embed_batch(xs).map_err(|e| e.to_string())
+    pub fn embed_resampled(&self, xs: &[Resampled]) -> Result<Vec<Embedding>, EmbedError> {
+        self.embedder.embed_batch(xs)
     }
 
     /// Embed one preprocessed trajectory and return the pen path its features came from.
     pub fn embed_with_pen_path(
         &self,
         x: &Resampled,
-    ) -> Result<(Embedding, [PenPoint; STEPS]), String> {
-        self.embedder
-            .embed_with_pen_path(x)
-            .map_err(|e| e.to_string())
+    ) -> Result<(Embedding, [PenPoint; STEPS]), EmbedError> {
+        self.embedder.embed_with_pen_path(x)
     }
 
     /// Validate, resample and embed raw waypoints.
     pub fn embed(&self, waypoints: &[Waypoint]) -> Result<Vec<f32>, EmbedFailure> {
-        let x =
-            guardian_models::preprocess::preprocess(waypoints).map_err(EmbedFailure::Invalid)?;
-        self.embedder
-            .embed(&x)
-            .map(|e| e.to_vec())
-            .map_err(|e| EmbedFailure::Internal(e.to_string()))
+        let x = guardian_models::preprocess::preprocess(waypoints)?;
+        Ok(self.embedder.embed(&x)?.to_vec())
     }
 }

@@ -8,6 +8,8 @@ pub mod engine;
 pub mod notify;
 pub mod screen;
 pub mod serve;
+pub mod state;
+pub mod stats;
 pub mod wakers;
 
 pub use config::{Config, ServingMode};

@@ -43,8 +43,8 @@ fn main() -> anyhow::Result<()> {
         None => tracing::info!("no config file; using built-in defaults"),
     }
     if args.check {
-        let engine = guardian_daemon::screen::load_engine(&config)?;
-        let (bank, src) = guardian_daemon::screen::load_bank(&config, &engine)?;
+        let engine = guardian_daemon::state::load_engine(&config)?;
+        let (bank, src) = guardian_daemon::state::load_bank(&config, &engine)?;
         println!(
             "ok: model {} ({}), {} with {} classes",
             engine.version(),

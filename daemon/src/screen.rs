@@ -1,179 +1,25 @@
-//! The screen: model + class bank + counters, and the handling of one decoded request.
-//! Transport-free, so every request path is testable without iceoryx2.
+//! The screen: model, class bank and statistics, and the dispatch of one decoded request to
+//! its operation. Transport-free, so every request path is testable without iceoryx2. A
+//! check runs the models' one check pipeline (`guardian_models::check`); state loading is
+//! in `state.rs`, the statistics in `stats.rs`.
 
-use std::collections::VecDeque;
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use guardian_models::bank::{ClassBank, DEFAULT_THRESHOLD, Outcome};
-use guardian_models::workcell::{self, Inspection};
-use guardian_shared::trajectory::{CHANNELS, InvalidTrajectory, Waypoint, from_flat, validate};
+use guardian_models::bank::{ClassBank, Decision, Outcome};
+use guardian_models::check::{self, PlanCheck, Prepared};
+use guardian_models::embedder::EmbedError;
+use guardian_models::workcell;
+use guardian_shared::trajectory::{InvalidTrajectory, Waypoint};
 use guardian_shared::wire::{
-    ClassEntry, MAX_EXAMPLES, Op, ReasonCode, RequestHeader, ResponseHeader, Status, VerdictCode,
-    decode_class_name, encode_text,
+    CheckAnswer, CheckVerdict, ClassEntry, DaemonState, Failure, NoGo, Op, Request, RequestError,
+    RequestHeader, ResponseHeader, encode_check, encode_failure, encode_state, encode_text,
 };
 use guardian_shared::workcell::Workcell;
 
-use crate::config::Config;
-use crate::engine::Engine;
-
-const LATENCY_WINDOW: usize = 4096;
-
-/// Where the bank in use came from.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum BankSource {
-    /// The persisted bank in the state directory.
-    State(PathBuf),
-    /// The shipped or configured default bank.
-    Default(PathBuf),
-    /// Nothing found; an empty bank.
-    Empty,
-}
-
-impl std::fmt::Display for BankSource {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Self::State(p) => write!(f, "persisted bank {}", p.display()),
-            Self::Default(p) => write!(f, "default bank {}", p.display()),
-            Self::Empty => write!(f, "empty bank"),
-        }
-    }
-}
-
-/// Loading the model or bank failed.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum LoadStateError {
-    /// The model could not be loaded.
-    #[error("cannot load model {path}: {detail}")]
-    Model {
-        /// The weights file.
-        path: PathBuf,
-        /// Why.
-        detail: String,
-    },
-    /// The bank could not be loaded.
-    #[error("cannot load class bank {path}: {source}")]
-    Bank {
-        /// The bank file.
-        path: PathBuf,
-        /// Why.
-        source: guardian_models::bank::LoadBankError,
-    },
-    /// The bank was built with another model.
-    #[error(
-        "class bank {path} was built with model {bank_model} ({bank_dim}-d) but the loaded model is {model} ({model_dim}-d); \
-         re-enroll the classes or remove the file"
-    )]
-    BankModelMismatch {
-        /// The bank file.
-        path: PathBuf,
-        /// Model version recorded in the bank.
-        bank_model: String,
-        /// Its embedding dimension.
-        bank_dim: usize,
-        /// The loaded model's version.
-        model: String,
-        /// The loaded model's dimension.
-        model_dim: usize,
-    },
-}
-
-/// Load the model named by `config`.
-pub fn load_engine(config: &Config) -> Result<Engine, LoadStateError> {
-    let path = config.model_path();
-    Engine::load(&path).map_err(|e| LoadStateError::Model {
-        path,
-        detail: e.to_string(),
-    })
-}
-
-/// Load the bank for `engine`: the persisted one, else the default one, else empty.
-pub fn load_bank(
-    config: &Config,
-    engine: &Engine,
-) -> Result<(ClassBank, BankSource), LoadStateError> {
-    let state = config.bank_path();
-    let load = |path: &PathBuf| {
-        ClassBank::load(path).map_err(|source| LoadStateError::Bank {
-            path: path.clone(),
-            source,
-        })
-    };
-    let (mut bank, source) = if state.exists() {
-        (load(&state)?, BankSource::State(state))
-    } else if let Some(p) = config.default_bank_path() {
-        (load(&p)?, BankSource::Default(p))
-    } else {
-        let t = config.default_threshold.unwrap_or(DEFAULT_THRESHOLD);
-        (
-            ClassBank::new(engine.dim(), engine.version(), t),
-            BankSource::Empty,
-        )
-    };
-    if bank.dim() != engine.dim() || bank.model_version() != engine.version() {
-        let path = match &source {
-            BankSource::State(p) | BankSource::Default(p) => p.clone(),
-            BankSource::Empty => PathBuf::new(),
-        };
-        return Err(LoadStateError::BankModelMismatch {
-            path,
-            bank_model: bank.model_version().to_owned(),
-            bank_dim: bank.dim(),
-            model: engine.version().to_owned(),
-            model_dim: engine.dim(),
-        });
-    }
-    if let Some(t) = config.default_threshold
-        && t != bank.default_threshold()
-    {
-        bank.set_default_threshold(t);
-    }
-    let without = bank.classes_without_geometry();
-    if bank.geometry_calibration().is_none() && !bank.is_empty() {
-        tracing::warn!(%source, "class bank has no geometry calibration (format 1 or not calibrated): geometry check off");
-    } else if !without.is_empty() {
-        tracing::warn!(%source, classes = without.len(), first = without[0], "classes without plan-geometry descriptors (enrolled by format 1): geometry check off for them");
-    }
-    Ok((bank, source))
-}
-
-/// How long the latency percentiles reported with every response may be stale (sorting
-/// the window on every request cost more than a check itself).
-const LATENCY_REFRESH: Duration = Duration::from_secs(1);
-
-/// Service times of the most recent requests.
-#[derive(Debug, Default)]
-struct Latencies(VecDeque<f32>);
-
-impl Latencies {
-    fn push(&mut self, d: Duration) {
-        if self.0.len() == LATENCY_WINDOW {
-            self.0.pop_front();
-        }
-        self.0.push_back(d.as_secs_f32() * 1e6);
-    }
-
-    /// p50, p90, p99, max in microseconds (NaN when empty).
-    fn percentiles(&self) -> [f32; 4] {
-        if self.0.is_empty() {
-            return [f32::NAN; 4];
-        }
-        let mut v: Vec<f32> = self.0.iter().copied().collect();
-        v.sort_by(f32::total_cmp);
-        let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
-        [q(0.5), q(0.9), q(0.99), v[v.len() - 1]]
-    }
-}
-
-/// Counters since start.
-#[derive(Debug, Default, Clone, Copy)]
-struct Counters {
-    requests: u64,
-    errors: u64,
-    go: u64,
-    no_go: u64,
-}
+use crate::engine::{EmbedFailure, Engine};
+use crate::stats::Stats;
 
 /// Model, bank and statistics of a running daemon.
 #[derive(Debug)]
@@ -182,28 +28,13 @@ pub struct Screen {
     bank: ClassBank,
     bank_path: PathBuf,
     k: usize,
-    started: Instant,
-    counters: Counters,
-    latencies: Latencies,
-    /// Percentiles of `latencies` and when they were computed.
-    latency_summary: ([f32; 4], Option<Instant>),
-    /// Inspection and embedding of the check being handled, computed beforehand in a batch.
-    batched: Option<Prepared>,
+    stats: Stats,
     /// The workcell rules applied to every check.
     workcell: Workcell,
 }
 
-/// A check's trajectory after [`workcell::inspect`], with its embedding if already computed.
-#[derive(Debug)]
-struct Prepared {
-    inspection: Inspection,
-    embedding: Option<Vec<f32>>,
-}
-
-enum Fail {
-    Status(Status, String),
-    Invalid(InvalidTrajectory, u32),
-}
+/// A prepared check plan handed from a batch to its answer.
+type PreparedPlan = Result<Prepared, EmbedError>;
 
 impl Screen {
     /// A screen serving `bank` with `engine`, persisting the bank to `bank_path`.
@@ -213,11 +44,7 @@ impl Screen {
             bank,
             bank_path,
             k,
-            started: Instant::now(),
-            counters: Counters::default(),
-            latencies: Latencies::default(),
-            latency_summary: ([f32::NAN; 4], None),
-            batched: None,
+            stats: Stats::default(),
             workcell: Workcell::default(),
         }
     }
@@ -254,7 +81,7 @@ impl Screen {
 
     /// Record the service time of one answered request.
     pub fn record_latency(&mut self, d: Duration) {
-        self.latencies.push(d);
+        self.stats.record_latency(d);
     }
 
     /// One-line status for logs and `STATUS=`.
@@ -267,52 +94,25 @@ impl Screen {
         )
     }
 
-    /// Answer several queued requests. Checks whose trajectory is valid are embedded in one
-    /// forward pass first; every request is then answered exactly as by [`Screen::handle`]
-    /// (a failed batch falls back to one-by-one embedding, so errors are reported per
-    /// request, never turned into a verdict).
+    /// Answer several queued requests. Each is decoded once; the checks among them are
+    /// prepared together (one forward pass, see [`check::prepare_batch`]); every request is
+    /// then answered in order exactly as by [`Screen::handle`], each check decided against
+    /// the bank as it stands at its turn (errors are reported per request, never turned
+    /// into a verdict).
     pub fn handle_batch(
         &mut self,
         items: &[(RequestHeader, &[f32])],
     ) -> Vec<(ResponseHeader, Vec<ClassEntry>)> {
-        let mut embedded: Vec<Option<Prepared>> = items.iter().map(|_| None).collect();
-        let mut which = Vec::new();
-        let mut xs = Vec::new();
-        for (i, (h, payload)) in items.iter().enumerate() {
-            if Op::from_u32(h.op) != Some(Op::Check) {
-                continue;
-            }
-            if let Ok(Ok(mut t)) = Self::trajectories(h, payload, 1, false)
-                && let Some(t) = t.pop()
-                && let Ok(inspection) = workcell::inspect(&self.workcell, t)
-            {
-                if inspection.violation.is_none() {
-                    which.push(i);
-                    xs.push(inspection.resampled);
-                }
-                embedded[i] = Some(Prepared {
-                    inspection,
-                    embedding: None,
-                });
-            }
-        }
-        if xs.len() >= 2
-            && let Ok(es) = self.engine.embed_resampled(&xs)
-        {
-            for (i, e) in which.into_iter().zip(es) {
-                if let Some(p) = embedded[i].as_mut() {
-                    p.embedding = Some(e.to_vec());
-                }
-            }
-        }
+        let requests: Vec<_> = items.iter().map(|(h, p)| Request::decode(h, p)).collect();
+        let plans: Vec<&[Waypoint]> = requests.iter().filter_map(plan_of).collect();
+        let mut prepared =
+            check::prepare_batch(self.engine.embedder(), &self.workcell, &plans).into_iter();
         items
             .iter()
-            .zip(embedded)
-            .map(|((h, payload), e)| {
-                self.batched = e;
-                let answer = self.handle(h, payload);
-                self.batched = None;
-                answer
+            .zip(requests)
+            .map(|((h, _), request)| {
+                let p = plan_of(&request).and_then(|_| prepared.next());
+                self.answer(h, request, p)
             })
             .collect()
     }
@@ -323,260 +123,108 @@ impl Screen {
         h: &RequestHeader,
         payload: &[f32],
     ) -> (ResponseHeader, Vec<ClassEntry>) {
-        let mut r = ResponseHeader::new(h.request_id, h.op);
-        r.class_name = h.class_name;
-        let entries = match Op::from_u32(h.op) {
-            None => Err(Fail::Status(
-                Status::BadRequest,
-                format!("unknown op {}", h.op),
-            )),
-            Some(Op::Check) => self.check(h, payload, &mut r),
-            Some(Op::Identify) => self.identify(h, payload),
-            Some(Op::Enroll) => self.enroll(h, payload),
-            Some(Op::Forget) => self.forget(h),
-            Some(Op::Classes) => Ok(self.class_list()),
-            Some(Op::Status) => Ok(Vec::new()),
-            Some(_) => Err(Fail::Status(Status::BadRequest, "unsupported op".into())),
+        self.answer(h, Request::decode(h, payload), None)
+    }
+
+    /// Dispatch a decoded request to its operation and write the response.
+    fn answer(
+        &mut self,
+        h: &RequestHeader,
+        request: Result<Request<'_>, RequestError>,
+        prepared: Option<PreparedPlan>,
+    ) -> (ResponseHeader, Vec<ClassEntry>) {
+        let mut r = ResponseHeader::answering(h);
+        let result = match request {
+            Err(e) => Err(Failure::from(&e)),
+            Ok(Request::Check {
+                claimed,
+                trajectory,
+            }) => self
+                .check(claimed, trajectory, prepared)
+                .map(|(answer, entries)| {
+                    encode_check(&mut r, &answer);
+                    entries
+                }),
+            Ok(Request::Identify { trajectory }) => self.identify(trajectory),
+            Ok(Request::Enroll { class, examples }) => self.enroll(class, &examples),
+            Ok(Request::Forget { class }) => self.forget(class),
+            Ok(Request::Classes) => Ok(self.class_list()),
+            Ok(Request::Status) => Ok(Vec::new()),
         };
-        self.counters.requests += 1;
-        let entries = match entries {
+        let entries = match result {
             Ok(e) => e,
-            Err(fail) => {
-                self.counters.errors += 1;
-                match fail {
-                    Fail::Status(s, msg) => {
-                        r.status = s as u32;
-                        r.message = encode_text(&msg);
-                    }
-                    Fail::Invalid(inv, example) => {
-                        r.status = Status::InvalidTrajectory as u32;
-                        r.invalid_kind = inv.kind as u32;
-                        r.invalid_index = inv.index;
-                        r.invalid_example = example;
-                        r.message = encode_text(&inv.to_string());
-                    }
-                }
-                r.verdict = VerdictCode::None as u32;
+            Err(failure) => {
+                encode_failure(&mut r, &failure);
                 Vec::new()
             }
         };
-        if r.verdict == VerdictCode::Go as u32 {
-            self.counters.go += 1;
-        } else if r.verdict == VerdictCode::NoGo as u32 {
-            self.counters.no_go += 1;
-        }
+        self.stats.count(r.status != 0, r.verdict);
         // Status answers fresh percentiles; other responses carry ones at most a second old.
-        let stale = self
-            .latency_summary
-            .1
-            .is_none_or(|at| at.elapsed() >= LATENCY_REFRESH);
-        if stale || Op::from_u32(h.op) == Some(Op::Status) {
-            self.latency_summary = (self.latencies.percentiles(), Some(Instant::now()));
-        }
-        self.fill_common(&mut r);
+        let latency_us = self
+            .stats
+            .latency_us(Op::from_u32(h.op) == Some(Op::Status));
+        let counters = self.stats.counters();
+        encode_state(
+            &mut r,
+            &DaemonState {
+                model_version: Cow::Borrowed(self.engine.version()),
+                bank_version: self.bank.generation(),
+                class_count: u32::try_from(self.bank.len()).unwrap_or(u32::MAX),
+                uptime_ms: self.stats.uptime_ms(),
+                requests: counters.requests,
+                errors: counters.errors,
+                go: counters.go,
+                no_go: counters.no_go,
+                latency_us,
+            },
+        );
         (r, entries)
     }
 
-    fn fill_common(&self, r: &mut ResponseHeader) {
-        r.bank_version = self.bank.generation();
-        r.class_count = u32::try_from(self.bank.len()).unwrap_or(u32::MAX);
-        r.model_version = encode_text(self.engine.version());
-        r.uptime_ms = u64::try_from(self.started.elapsed().as_millis()).unwrap_or(u64::MAX);
-        r.requests = self.counters.requests;
-        r.errors = self.counters.errors;
-        r.go = self.counters.go;
-        r.no_go = self.counters.no_go;
-        let [p50, p90, p99, max] = self.latency_summary.0;
-        r.latency_p50_us = p50;
-        r.latency_p90_us = p90;
-        r.latency_p99_us = p99;
-        r.latency_max_us = max;
-    }
-
-    fn class_name(h: &RequestHeader) -> Result<String, Fail> {
-        decode_class_name(&h.class_name)
-            .map(str::to_owned)
-            .map_err(|e| Fail::Status(Status::InvalidClassName, e.to_string()))
-    }
-
-    /// Split the payload into the header's trajectories, borrowed from it (no copy: a
-    /// waypoint is 8 consecutive floats), validating each when `check` (a caller passing
-    /// `false` must validate them itself before using them).
-    fn trajectories<'p>(
-        h: &RequestHeader,
-        payload: &'p [f32],
-        max_examples: usize,
-        check: bool,
-    ) -> Result<Result<Vec<&'p [Waypoint]>, Fail>, Fail> {
-        let n = h.examples as usize;
-        if n == 0 || n > max_examples {
-            return Err(Fail::Status(
-                Status::BadRequest,
-                format!("examples is {n}, expected 1..={max_examples}"),
-            ));
-        }
-        // Checked: 16 counts of up to 2^32 - 1 waypoints of up to 2^32 - 1 channels overflow
-        // u64, and a wrapped total could match the payload and index past it.
-        let channels = u64::from(h.channels);
-        let total = h.waypoints[..n].iter().try_fold(0u64, |acc, &w| {
-            u64::from(w)
-                .checked_mul(channels)
-                .and_then(|floats| acc.checked_add(floats))
-        });
-        if total != Some(payload.len() as u64) {
-            return Err(Fail::Status(
-                Status::BadRequest,
-                match total {
-                    Some(total) => {
-                        format!(
-                            "payload has {} floats, header announces {total}",
-                            payload.len()
-                        )
-                    }
-                    None => format!(
-                        "payload has {} floats, header announces more than 2^64",
-                        payload.len()
-                    ),
-                },
-            ));
-        }
-        let mut out = Vec::with_capacity(n);
-        let mut at = 0usize;
-        for (i, &w) in h.waypoints[..n].iter().enumerate() {
-            let len = w as usize * h.channels as usize;
-            let slice = &payload[at..at + len];
-            at += len;
-            // An empty trajectory with a wrong channel count is reported as too few
-            // waypoints, like any other empty one.
-            let parsed = if w == 0 {
-                validate(&[]).map(|()| &[][..])
-            } else if h.channels as usize != CHANNELS {
-                // The shared contract's error for a wrong channel count.
-                from_flat(&[], h.channels as usize).map(|_| &[][..])
-            } else {
-                // `len` is a multiple of 8 here, so nothing is left over.
-                let (ws, _) = slice.as_chunks::<CHANNELS>();
-                if check {
-                    validate(ws).map(|()| ws)
-                } else {
-                    Ok(ws)
-                }
-            };
-            match parsed {
-                Ok(t) => out.push(t),
-                Err(e) => return Ok(Err(Fail::Invalid(e, i as u32))),
-            }
-        }
-        Ok(Ok(out))
-    }
-
-    fn embed(&self, t: &[Waypoint]) -> Result<Vec<f32>, Fail> {
-        self.engine.embed(t).map_err(|e| match e {
-            crate::engine::EmbedFailure::Invalid(inv) => Fail::Invalid(inv, 0),
-            crate::engine::EmbedFailure::Internal(msg) => {
-                tracing::error!(error = %msg, "embedding failed");
-                Fail::Status(Status::Internal, format!("embedding failed: {msg}"))
-            }
-        })
-    }
-
     fn check(
-        &mut self,
-        h: &RequestHeader,
-        payload: &[f32],
-        r: &mut ResponseHeader,
-    ) -> Result<Vec<ClassEntry>, Fail> {
-        let claimed = Self::class_name(h)?;
-        // `inspect` validates (before anything else), so the split does not.
-        let mut t = match Self::trajectories(h, payload, 1, false)? {
+        &self,
+        claimed: &str,
+        trajectory: Result<&[Waypoint], InvalidTrajectory>,
+        prepared: Option<PreparedPlan>,
+    ) -> Result<(CheckAnswer, Vec<ClassEntry>), Failure> {
+        let early = |no_go| Ok((CheckAnswer::early_no_go(no_go), Vec::new()));
+        let t = match trajectory {
             Ok(t) => t,
-            Err(Fail::Invalid(inv, _)) => {
-                no_go_invalid(r, inv);
-                return Ok(Vec::new());
-            }
-            Err(other) => return Err(other),
+            Err(inv) => return early(NoGo::InvalidTrajectory(inv)),
         };
-        let t = t.pop().unwrap_or_default();
-        let prepared = match self.batched.take() {
-            Some(p) => p,
-            None => match workcell::inspect(&self.workcell, t) {
-                Ok(inspection) => Prepared {
-                    inspection,
-                    embedding: None,
-                },
-                Err(inv) => {
-                    no_go_invalid(r, inv);
-                    return Ok(Vec::new());
-                }
-            },
-        };
-        // Workcell rules first: absolute, no model involved.
-        if let Some(v) = prepared.inspection.violation {
-            r.verdict = VerdictCode::NoGo as u32;
-            r.reason = ReasonCode::Workcell as u32;
-            r.workcell_kind = v.kind as u32;
-            r.workcell_index = v.index;
-            r.message = encode_text(&format!(
-                "workcell rule broken: {:?} at waypoint {}",
-                v.kind, v.index
-            ));
-            return Ok(Vec::new());
+        let prepared = prepared
+            .unwrap_or_else(|| check::prepare(self.engine.embedder(), &self.workcell, t))
+            .map_err(|e| {
+                tracing::error!(error = %e, "embedding failed");
+                embedding_failed(&e)
+            })?;
+        match check::decide(&self.bank, &prepared, claimed, self.k) {
+            PlanCheck::Invalid(inv) => early(NoGo::InvalidTrajectory(inv)),
+            // Workcell rules first: absolute, no model involved.
+            PlanCheck::Workcell(v) => early(NoGo::Workcell(v)),
+            // With WrongTask the nearest class is the overall nearest, so it is entries[0].
+            PlanCheck::Decided(d) => Ok((
+                check_answer(&d),
+                d.nearest
+                    .iter()
+                    .map(|n| self.entry(&n.name, n.distance))
+                    .collect(),
+            )),
         }
-        let x = prepared.inspection.resampled;
-        // The pen path comes with a single embedding (a batch computes it again below).
-        let (e, path) = match prepared.embedding {
-            Some(e) => (e, None),
-            None => match self.engine.embed_with_pen_path(&x) {
-                Ok((e, path)) => (e.to_vec(), Some(path)),
-                Err(msg) => {
-                    tracing::error!(error = %msg, "embedding failed");
-                    return Err(Fail::Status(
-                        Status::Internal,
-                        format!("embedding failed: {msg}"),
-                    ));
-                }
-            },
-        };
-        // Plan geometry only when the bank can use it.
-        let geometry = self.bank.geometry_calibration().and_then(|_| match &path {
-            Some(path) => workcell::plan_geometry_of_path(path),
-            None => workcell::plan_geometry(&x),
-        });
-        let d = self
-            .bank
-            .decide_with_geometry(&e, geometry.as_ref(), &claimed, self.k);
-        let (verdict, reason) = match &d.outcome {
-            Outcome::Go => (VerdictCode::Go, ReasonCode::None),
-            Outcome::WrongTask { .. } => (VerdictCode::NoGo, ReasonCode::WrongTask),
-            Outcome::Outlier => (VerdictCode::NoGo, ReasonCode::Outlier),
-            Outcome::GeometryMismatch { .. } => (VerdictCode::NoGo, ReasonCode::GeometryMismatch),
-            Outcome::UnknownClass => (VerdictCode::NoGo, ReasonCode::UnknownClass),
-        };
-        r.geometry_score = d.geometry_score.unwrap_or(f32::NAN);
-        r.geometry_threshold = d.geometry_threshold.unwrap_or(f32::NAN);
-        r.geometry_feature = d.geometry_feature.map_or(0, |f| f as u32);
-        r.verdict = verdict as u32;
-        r.reason = reason as u32;
-        r.claimed_distance = d.claimed_distance.unwrap_or(f32::NAN);
-        r.threshold = d.threshold.unwrap_or(f32::NAN);
-        r.margin = d.margin.unwrap_or(f32::NAN);
-        r.gap = d.gap.unwrap_or(f32::NAN);
-        // With WrongTask the nearest class is the overall nearest, so it is entries[0].
-        Ok(d.nearest
-            .iter()
-            .map(|n| self.entry(&n.name, n.distance))
-            .collect())
     }
 
-    fn identify(&mut self, h: &RequestHeader, payload: &[f32]) -> Result<Vec<ClassEntry>, Fail> {
-        let mut t = Self::trajectories(h, payload, 1, true)??;
-        let t = t.pop().unwrap_or_default();
-        let e = self.embed(t)?;
+    fn identify(&self, t: &[Waypoint]) -> Result<Vec<ClassEntry>, Failure> {
+        let e = self.engine.embed(t).map_err(|e| match e {
+            EmbedFailure::Invalid(inv) => invalid(inv, 0),
+            EmbedFailure::Internal(e) => {
+                tracing::error!(error = %e, "embedding failed");
+                embedding_failed(&e)
+            }
+        })?;
         if self.bank.is_empty() {
-            return Err(Fail::Status(
-                Status::EmptyBank,
-                "no classes enrolled".into(),
-            ));
+            return Err(Failure::EmptyBank {
+                message: "no classes enrolled".into(),
+            });
         }
         Ok(self
             .bank
@@ -586,20 +234,16 @@ impl Screen {
             .collect())
     }
 
-    fn enroll(&mut self, h: &RequestHeader, payload: &[f32]) -> Result<Vec<ClassEntry>, Fail> {
-        let name = Self::class_name(h)?;
-        let ts = Self::trajectories(h, payload, MAX_EXAMPLES, true)??;
+    fn enroll(&mut self, name: &str, ts: &[&[Waypoint]]) -> Result<Vec<ClassEntry>, Failure> {
         let mut embeddings = Vec::with_capacity(ts.len());
         let mut geometry = Vec::with_capacity(ts.len());
         for (i, t) in ts.iter().enumerate() {
-            let x = guardian_models::preprocess::preprocess(t)
-                .map_err(|inv| Fail::Invalid(inv, i as u32))?;
+            let x =
+                guardian_models::preprocess::preprocess(t).map_err(|inv| invalid(inv, i as u32))?;
             let e = self
                 .engine
                 .embed_resampled(std::slice::from_ref(&x))
-                .map_err(|msg| {
-                    Fail::Status(Status::Internal, format!("embedding failed: {msg}"))
-                })?;
+                .map_err(|e| embedding_failed(&e))?;
             embeddings.extend(e.iter().map(|e| e.to_vec()));
             geometry.push(workcell::plan_geometry(&x));
         }
@@ -609,21 +253,21 @@ impl Screen {
             .collect::<Option<_>>()
             .unwrap_or_default();
         let mut next = self.bank.clone();
-        next.enroll_with_geometry(&name, &embeddings, &geometry)
-            .map_err(|e| Fail::Status(Status::Internal, e.to_string()))?;
+        next.enroll_with_geometry(name, &embeddings, &geometry)
+            .map_err(|e| Failure::Internal {
+                message: e.to_string(),
+            })?;
         self.commit(next)?;
         tracing::info!(class = %name, examples = embeddings.len(), bank = self.bank.generation(), "enrolled");
-        Ok(vec![self.entry(&name, f32::NAN)])
+        Ok(vec![self.entry(name, f32::NAN)])
     }
 
-    fn forget(&mut self, h: &RequestHeader) -> Result<Vec<ClassEntry>, Fail> {
-        let name = Self::class_name(h)?;
+    fn forget(&mut self, name: &str) -> Result<Vec<ClassEntry>, Failure> {
         let mut next = self.bank.clone();
-        let Some(_) = next.forget(&name) else {
-            return Err(Fail::Status(
-                Status::UnknownClass,
-                format!("class {name:?} is not enrolled"),
-            ));
+        let Some(_) = next.forget(name) else {
+            return Err(Failure::UnknownClass {
+                message: format!("class {name:?} is not enrolled"),
+            });
         };
         self.commit(next)?;
         tracing::info!(class = %name, bank = self.bank.generation(), "forgot class");
@@ -631,13 +275,12 @@ impl Screen {
     }
 
     /// Persist `next` atomically, then serve it. On failure the old bank stays.
-    fn commit(&mut self, next: ClassBank) -> Result<(), Fail> {
+    fn commit(&mut self, next: ClassBank) -> Result<(), Failure> {
         if let Err(e) = next.save(&self.bank_path) {
             tracing::error!(error = %e, "cannot persist class bank; change rejected");
-            return Err(Fail::Status(
-                Status::Internal,
-                format!("cannot persist class bank: {e}"),
-            ));
+            return Err(Failure::Internal {
+                message: format!("cannot persist class bank: {e}"),
+            });
         }
         self.bank = next;
         Ok(())
@@ -670,12 +313,53 @@ impl Screen {
     }
 }
 
-/// A check whose trajectory failed validation: no-go with the typed reason and its index.
-fn no_go_invalid(r: &mut ResponseHeader, inv: InvalidTrajectory) {
-    r.verdict = VerdictCode::NoGo as u32;
-    r.reason = ReasonCode::InvalidTrajectory as u32;
-    r.invalid_kind = inv.kind as u32;
-    r.invalid_index = inv.index;
+/// The plan of a check request whose trajectory has a valid shape (the ones a batch
+/// prepares).
+fn plan_of<'a>(request: &Result<Request<'a>, RequestError>) -> Option<&'a [Waypoint]> {
+    match request {
+        Ok(Request::Check {
+            trajectory: Ok(t), ..
+        }) => Some(*t),
+        _ => None,
+    }
+}
+
+/// The wire answer of a bank decision.
+fn check_answer(d: &Decision) -> CheckAnswer {
+    let verdict = match &d.outcome {
+        Outcome::Go => CheckVerdict::Go,
+        Outcome::WrongTask { .. } => CheckVerdict::NoGo(NoGo::WrongTask),
+        Outcome::Outlier => CheckVerdict::NoGo(NoGo::Outlier),
+        Outcome::GeometryMismatch { feature } => {
+            CheckVerdict::NoGo(NoGo::GeometryMismatch(*feature))
+        }
+        Outcome::UnknownClass => CheckVerdict::NoGo(NoGo::UnknownClass),
+    };
+    CheckAnswer {
+        verdict,
+        claimed_distance: d.claimed_distance,
+        threshold: d.threshold,
+        margin: d.margin,
+        gap: d.gap,
+        geometry_score: d.geometry_score,
+        geometry_threshold: d.geometry_threshold,
+        geometry_feature: d.geometry_feature,
+    }
+}
+
+/// Example `example` of the request failed validation.
+fn invalid(inv: InvalidTrajectory, example: u32) -> Failure {
+    Failure::InvalidTrajectory {
+        invalid: inv,
+        example,
+        message: inv.to_string(),
+    }
+}
+
+fn embedding_failed(e: &EmbedError) -> Failure {
+    Failure::Internal {
+        message: format!("embedding failed: {e}"),
+    }
 }
 
 #[cfg(test)]
@@ -683,7 +367,7 @@ mod tests {
     use super::*;
     use guardian_client::samples::task;
     use guardian_models::embedder::Embedder;
-    use guardian_shared::wire::encode_class_name;
+    use guardian_shared::wire::{ReasonCode, VerdictCode, encode_class_name};
 
     fn request(op: Op, class: &str, t: &[Waypoint]) -> (RequestHeader, Vec<f32>) {
         let mut h = RequestHeader::new(7, op);

@@ -14,7 +14,8 @@ use guardian_shared::wire::{
 
 use crate::config::{Config, ServingMode};
 use crate::notify::SdNotify;
-use crate::screen::{LoadStateError, Screen, load_bank, load_engine};
+use crate::screen::Screen;
+use crate::state::{LoadStateError, load_bank, load_engine};
 use crate::wakers::{ClientWakers, Woken};
 
 /// Flags set from signal handlers (or a test harness) to steer the loop.
@@ -41,42 +42,30 @@ pub enum RunError {
         /// The cause.
         source: std::io::Error,
     },
+    /// The iceoryx2 root path or prefix is unusable.
+    #[error(transparent)]
+    Iceoryx2Config(#[from] guardian_shared::ipc::Iceoryx2ConfigError),
     /// An iceoryx2 setup or port operation failed.
-    #[error("iceoryx2: {what}: {detail}")]
-    Iceoryx {
-        /// What was being done.
-        what: &'static str,
-        /// The iceoryx2 error.
-        detail: String,
-    },
+    #[error(transparent)]
+    Iceoryx(#[from] guardian_shared::ipc::Iceoryx2Error),
     /// Saving the bank at shutdown failed.
     #[error("cannot flush class bank at shutdown: {0}")]
     Flush(#[from] guardian_models::bank::SaveBankError),
 }
 
-fn iox<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> RunError {
-    move |e| RunError::Iceoryx {
-        what,
-        detail: format!("{e:?}"),
-    }
+fn iox<E: std::error::Error + Send + Sync + 'static>(
+    what: &'static str,
+) -> impl FnOnce(E) -> RunError {
+    let during = guardian_shared::ipc::Iceoryx2Error::during(what);
+    move |e| during(e).into()
 }
 
 /// The iceoryx2 configuration for `config` (root path and prefix applied).
 pub fn iceoryx2_config(config: &Config) -> Result<iceoryx2::config::Config, RunError> {
-    let mut c = iceoryx2::config::Config::default();
-    if let Some(root) = &config.iceoryx2.root_path {
-        let mut s = root.to_string_lossy().into_owned();
-        if !s.ends_with('/') {
-            s.push('/');
-        }
-        let p = Path::new(s.as_bytes()).map_err(iox("invalid iceoryx2 root-path"))?;
-        c.global.set_root_path(&p);
-    }
-    if let Some(prefix) = &config.iceoryx2.prefix {
-        c.global.prefix =
-            FileName::new(prefix.as_bytes()).map_err(iox("invalid iceoryx2 prefix"))?;
-    }
-    Ok(c)
+    Ok(guardian_shared::ipc::iceoryx2_config(
+        config.iceoryx2.root_path.as_deref(),
+        config.iceoryx2.prefix.as_deref(),
+    )?)
 }
 
 /// How often the serving loop reclaims resources of dead planner processes.
@@ -182,10 +171,9 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         .initial_max_slice_len(256)
         .allocation_strategy(AllocationStrategy::PowerOfTwo)
         .create()
-        .map_err(|e| RunError::Iceoryx {
-            what: "create server port (is another guardiand serving this service name?)",
-            detail: format!("{e:?}"),
-        })?;
+        .map_err(iox(
+            "create server port (is another guardiand serving this service name?)",
+        ))?;
 
     let watchdog = if config.watchdog {
         sd.watchdog_timeout().map(|t| t / 2)

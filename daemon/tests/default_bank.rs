@@ -3,7 +3,7 @@
 
 use guardian_daemon::config::Config;
 use guardian_daemon::engine::Engine;
-use guardian_daemon::screen::{BankSource, load_bank};
+use guardian_daemon::state::{BankSource, load_bank};
 use guardian_models::bank::MIN_CLASS_CALIBRATION;
 
 #[test]

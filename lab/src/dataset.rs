@@ -334,7 +334,34 @@ pub enum LoadDatasetError {
     },
 }
 
+/// A named alphabet is not in the dataset.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("alphabet {name:?} is not in the dataset (has {known:?})")]
+pub struct UnknownAlphabet {
+    /// The name asked for.
+    pub name: String,
+    /// The dataset's alphabets.
+    pub known: Vec<String>,
+}
+
 impl Dataset {
+    /// Indices of the named alphabets (error if one is unknown).
+    pub fn alphabet_ids(&self, names: &[String]) -> Result<Vec<i64>, UnknownAlphabet> {
+        names
+            .iter()
+            .map(|n| {
+                self.alphabets
+                    .iter()
+                    .position(|a| a == n)
+                    .map(|p| p as i64)
+                    .ok_or_else(|| UnknownAlphabet {
+                        name: n.clone(),
+                        known: self.alphabets.clone(),
+                    })
+            })
+            .collect()
+    }
+
     /// Number of drawings.
     pub fn len(&self) -> usize {
         self.trajectories.len()

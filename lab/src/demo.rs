@@ -561,32 +561,7 @@ fn forget_all(client: &Client, names: &[String]) -> Result<(), DemoError> {
 
 /// The verdict with its reason detail, as one line.
 pub fn verdict_text(v: &Verdict) -> String {
-    match &v.decision {
-        Decision::Go => "GO".into(),
-        Decision::NoGo { reason } => format!(
-            "NO-GO {}",
-            match reason {
-                NoGoReason::WrongTask { nearest } => format!("wrong task (nearest {nearest})"),
-                NoGoReason::Outlier => "outlier".into(),
-                NoGoReason::UnknownClass => "unknown class".into(),
-                NoGoReason::InvalidTrajectory { kind, index } => {
-                    format!("invalid: {kind:?} at {index}")
-                }
-                NoGoReason::Workcell { kind, index } => {
-                    format!("workcell: {kind:?} at waypoint {index}")
-                }
-                NoGoReason::GeometryMismatch {
-                    feature,
-                    score,
-                    threshold,
-                } => format!(
-                    "geometry: {} (score {score:.2} > {threshold:.2})",
-                    feature.name()
-                ),
-                other => format!("{other:?}"),
-            }
-        ),
-    }
+    v.decision.to_string()
 }
 
 /// `guardian-lab demo` arguments.

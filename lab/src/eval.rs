@@ -258,7 +258,8 @@ impl Pool {
         } else {
             alphabets.to_vec()
         };
-        let ids = crate::train::alphabet_ids(data, &names)
+        let ids = data
+            .alphabet_ids(&names)
             .map_err(|e| EvalError::Invalid(e.to_string()))?;
         let mut map = std::collections::BTreeMap::new();
         let mut pool = Pool {

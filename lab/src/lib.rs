@@ -11,6 +11,7 @@
 //! - [`report`]: the markdown + PNG report of a trained model.
 //! - [`calibrate`]: threshold calibration and the default class bank.
 //! - [`faults`]: faulty-plan generators (corruptions of a genuine plan).
+//! - [`metrics`]: AUROC, ROC curve, TPR at an FPR and the pair AUC.
 //! - [`outliers`]: go / no-go metrics on faulty and genuine plans.
 //! - [`demo`]: enroll real drawings in a running `guardiand` and check genuine and faulty
 //!   plans through the client (`guardian-lab demo`).
@@ -21,6 +22,7 @@ pub mod dataset;
 pub mod demo;
 pub mod eval;
 pub mod faults;
+pub mod metrics;
 pub mod outliers;
 pub mod path;
 pub mod plot;

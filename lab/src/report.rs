@@ -215,19 +215,27 @@ fn histogram_plot(
 /// ROC curves (one plot per method, every fault at moderate severity) and score
 /// histograms (genuine vs faulty, one panel per fault at moderate severity, scores clipped
 /// at 3; the calibrated threshold is 1) from `guardian-lab outliers` scores.
-pub fn outlier_plots(
+/// `raw` yields per method its name, its genuine scores and its faulty scores per
+/// `fault@severity`.
+pub fn outlier_plots<'a>(
     dir: &Path,
-    raw: &std::collections::BTreeMap<String, crate::outliers::Scores>,
+    raw: impl IntoIterator<
+        Item = (
+            &'a str,
+            &'a [f32],
+            &'a std::collections::BTreeMap<String, Vec<f32>>,
+        ),
+    >,
 ) -> anyhow::Result<()> {
-    for (method, sc) in raw {
+    for (method, genuine, faulty) in raw {
         let mut series = Vec::new();
         let mut panels = Vec::new();
-        for (key, v) in &sc.faulty {
+        for (key, v) in faulty {
             if !key.ends_with("@50") {
                 continue;
             }
             let name = key.trim_end_matches("@50").to_owned();
-            let roc = crate::outliers::roc_curve(&sc.genuine, v);
+            let roc = crate::metrics::roc_curve(genuine, v);
             let step = (roc.len() / 150).max(1);
             let mut pts: Vec<(f64, f64)> = roc.iter().step_by(step).copied().collect();
             pts.push((1.0, 1.0));
@@ -235,7 +243,7 @@ pub fn outlier_plots(
             let clip = |x: &f32| f64::from(*x).min(3.0);
             panels.push((
                 name,
-                sc.genuine.iter().map(clip).collect(),
+                genuine.iter().map(clip).collect(),
                 v.iter().map(clip).collect(),
             ));
         }
@@ -421,18 +429,6 @@ fn pair_distances(v: &[Vec<f32>], labels: &[u32], pairs: usize, seed: u64) -> (V
         }
     }
     (intra, inter)
-}
-
-/// Fraction of (same, different) pairs ordered correctly (the AUC of the distance as a
-/// same-class detector).
-fn auc(intra: &[f64], inter: &[f64]) -> f64 {
-    let mut s = inter.to_vec();
-    s.sort_by(f64::total_cmp);
-    let mut good = 0.0;
-    for &a in intra {
-        good += (s.len() - s.partition_point(|&b| b <= a)) as f64;
-    }
-    good / (intra.len() * s.len()).max(1) as f64
 }
 
 /// Run `guardian-lab report`.
@@ -685,7 +681,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             "| {name} | {:.4} | {:.4} | {:.4} |",
             mean(a),
             mean(b),
-            auc(a, b)
+            crate::metrics::pair_auc(a, b)
         )?;
     }
     writeln!(md)?;

@@ -423,7 +423,9 @@ impl Prepared {
         alphabets: &[String],
         kind: FeatureKind,
     ) -> Result<Self, TrainError> {
-        let ids = alphabet_ids(data, alphabets)?;
+        let ids = data
+            .alphabet_ids(alphabets)
+            .map_err(|e| TrainError::Setup(e.to_string()))?;
         let mut class_map: BTreeMap<i64, usize> = BTreeMap::new();
         let mut by_class: Vec<Vec<usize>> = Vec::new();
         let mut raw = Vec::new();
@@ -651,25 +653,6 @@ fn random_augment(rng: &mut StdRng, reverse: bool) -> Augment {
         scale_y: rng.random_range(0.85..1.15),
         reverse: rng.random_bool(0.5) && reverse,
     }
-}
-
-/// Indices of the named alphabets in `data` (error if one is unknown).
-pub fn alphabet_ids(data: &Dataset, names: &[String]) -> Result<Vec<i64>, TrainError> {
-    names
-        .iter()
-        .map(|n| {
-            data.alphabets
-                .iter()
-                .position(|a| a == n)
-                .map(|p| p as i64)
-                .ok_or_else(|| {
-                    TrainError::Setup(format!(
-                        "alphabet {n:?} is not in the dataset (has {:?})",
-                        data.alphabets
-                    ))
-                })
-        })
-        .collect()
 }
 
 /// The loss of one batch of embeddings `e [B, embed_dim]`. Returns `(loss, active

@@ -426,9 +426,27 @@ impl Embedder {
         x: &Resampled,
     ) -> Result<(Embedding, [PenPoint; STEPS]), EmbedError> {
         let mut out = [[0.0f32; EMBED_DIM]];
-        let mut path = [[0.0f32; 3]; STEPS];
+        let mut path = [[[0.0f32; 3]; STEPS]];
         self.embed_into_with(std::slice::from_ref(x), &mut out, false, Some(&mut path))?;
-        Ok((out[0], path))
+        Ok((out[0], path[0]))
+    }
+
+    /// [`Embedder::embed_batch`], also writing the pen path of `xs[i]` to `paths[i]` (same
+    /// length as `xs`), as [`Embedder::embed_with_pen_path`] does for one trajectory.
+    pub fn embed_batch_with_pen_paths(
+        &self,
+        xs: &[Resampled],
+        paths: &mut [[PenPoint; STEPS]],
+    ) -> Result<Vec<Embedding>, EmbedError> {
+        if paths.len() != xs.len() {
+            return Err(EmbedError::OutputLength {
+                expected: xs.len(),
+                got: paths.len(),
+            });
+        }
+        let mut out = vec![[0.0f32; EMBED_DIM]; xs.len()];
+        self.embed_into_with(xs, &mut out, false, Some(paths))?;
+        Ok(out)
     }
 
     /// [`Embedder::embed`] with the pen path through the general kinematic chain
@@ -441,13 +459,13 @@ impl Embedder {
         Ok(out[0])
     }
 
-    /// With `path` (one trajectory only), the pen path of `xs[0]` is written there.
+    /// With `path` (as long as `xs`), the pen path of `xs[i]` is written to `path[i]`.
     fn embed_into_with(
         &self,
         xs: &[Resampled],
         out: &mut [Embedding],
         reference: bool,
-        path: Option<&mut [PenPoint; STEPS]>,
+        path: Option<&mut [[PenPoint; STEPS]]>,
     ) -> Result<(), EmbedError> {
         if out.len() != xs.len() {
             return Err(EmbedError::OutputLength {
@@ -472,7 +490,7 @@ impl Embedder {
         out: &mut [Embedding],
         s: &mut EmbedScratch,
         reference: bool,
-        path: Option<&mut [PenPoint; STEPS]>,
+        path: Option<&mut [[PenPoint; STEPS]]>,
     ) -> Result<(), EmbedError> {
         let copies = self.features_into(xs, &mut s.feats, reference, path);
         let rows = copies * xs.len();
@@ -515,13 +533,13 @@ impl Embedder {
     /// feature sequence, or two (forwards, then time-reversed) with reverse averaging.
     /// Returns the number of sequences per trajectory.
     /// With `reference`, the pen path goes through the general kinematic chain. With
-    /// `path_out`, the pen path of the first trajectory is written there.
+    /// `path_out`, the pen path of trajectory `i` is written to `path_out[i]`.
     fn features_into(
         &self,
         xs: &[Resampled],
         feats: &mut Vec<f32>,
         reference: bool,
-        mut path_out: Option<&mut [PenPoint; STEPS]>,
+        mut path_out: Option<&mut [[PenPoint; STEPS]]>,
     ) -> usize {
         let kind = self.net.config().features;
         let c = kind.channels();
@@ -536,10 +554,15 @@ impl Embedder {
             reverse: true,
             ..Augment::default()
         };
-        for (x, out) in xs.iter().zip(feats.chunks_exact_mut(copies * STEPS * c)) {
+        for (i, (x, out)) in xs
+            .iter()
+            .zip(feats.chunks_exact_mut(copies * STEPS * c))
+            .enumerate()
+        {
+            let path_slot = path_out.as_deref_mut().and_then(|p| p.get_mut(i));
             if kind == FeatureKind::Joints {
                 crate::features::compute(kind, x, out);
-                if let Some(p) = path_out.take() {
+                if let Some(p) = path_slot {
                     *p = crate::features::pen_path(x);
                 }
                 continue;
@@ -549,7 +572,7 @@ impl Embedder {
             } else {
                 crate::features::pen_path(x)
             };
-            if let Some(p) = path_out.take() {
+            if let Some(p) = path_slot {
                 *p = path;
             }
             let (fwd, bwd) = out.split_at_mut(STEPS * c);

@@ -9,6 +9,7 @@
 #![deny(unsafe_code)]
 
 pub mod bank;
+pub mod check;
 pub mod embedder;
 pub mod fast;
 pub mod features;

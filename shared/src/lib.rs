@@ -7,6 +7,7 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+pub mod ipc;
 pub mod trajectory;
 pub mod wire;
 pub mod workcell;

@@ -75,7 +75,9 @@ pub struct InvalidTrajectory {
 }
 
 impl InvalidTrajectory {
-    fn new(kind: InvalidKind, index: usize) -> Self {
+    /// `kind` found at `index` (a waypoint index, or the offending count), saturated to
+    /// `u32`.
+    pub fn new(kind: InvalidKind, index: usize) -> Self {
         Self {
             kind,
             index: u32::try_from(index).unwrap_or(u32::MAX),

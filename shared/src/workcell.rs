@@ -52,9 +52,24 @@ impl Default for Workcell {
     }
 }
 
+/// A workcell configuration is unusable.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum InvalidWorkcell {
+    /// A value is NaN or infinite.
+    #[error("workcell values must be finite")]
+    NonFinite,
+    /// The canvas side is not positive or the hover height is negative.
+    #[error("workcell canvas-side must be > 0 and hover >= 0")]
+    Canvas,
+    /// A tolerance is not positive (or the margin is negative).
+    #[error("workcell tolerances must be > 0 (margin >= 0)")]
+    Tolerance,
+}
+
 impl Workcell {
     /// The configuration is usable: finite, positive sizes and tolerances.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), InvalidWorkcell> {
         let finite = [
             self.canvas_x,
             self.canvas_y,
@@ -68,13 +83,13 @@ impl Workcell {
         .iter()
         .all(|v| v.is_finite());
         if !finite {
-            return Err("workcell values must be finite".into());
+            return Err(InvalidWorkcell::NonFinite);
         }
         if self.canvas_side <= 0.0 || self.hover < 0.0 {
-            return Err("workcell canvas-side must be > 0 and hover >= 0".into());
+            return Err(InvalidWorkcell::Canvas);
         }
         if self.orientation_tolerance <= 0.0 || self.height_tolerance <= 0.0 || self.margin < 0.0 {
-            return Err("workcell tolerances must be > 0 (margin >= 0)".into());
+            return Err(InvalidWorkcell::Tolerance);
         }
         Ok(())
     }

@@ -14,8 +14,23 @@
 //! for a client that has none. The exact byte layout is in
 //! `docs/wire-protocol.md`; changing any type here bumps [`PROTOCOL_VERSION`] and with it the
 //! service name.
+//!
+//! The headers are decoded and encoded in one place each: a request becomes a typed
+//! [`Request`] with [`Request::decode`] (the daemon) and its header is built by
+//! [`RequestHeader::encode`] (the client); a response is written by [`encode_failure`],
+//! [`encode_check`] and [`encode_state`] (the daemon) and read by their `decode_*`
+//! counterparts (the client).
 
 use iceoryx2::prelude::ZeroCopySend;
+
+mod request;
+mod response;
+
+pub use request::{Request, RequestError};
+pub use response::{
+    CheckAnswer, CheckVerdict, DaemonState, Failure, NoGo, ProtocolError, decode_check,
+    decode_failure, decode_state, encode_check, encode_failure, encode_state,
+};
 
 use crate::trajectory::{CHANNELS, InvalidKind, MAX_WAYPOINTS};
 use crate::workcell::{GeometryFeature, WorkcellKind};

@@ -35,16 +35,24 @@
 //! body; the checksum is SHA-256 of the body bytes exactly as stored. Saving is atomic: a
 //! temporary file in the target directory, `fsync`, `rename`, `fsync` of the directory.
 
+mod calibrate;
+mod decide;
+mod distance;
+mod file;
+
 use std::collections::BTreeMap;
-use std::fs;
-use std::io::Write;
-use std::path::{Path, PathBuf};
 
-use guardian_shared::workcell::{GEOMETRY_FEATURES, GeometryFeature};
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
 
-use crate::geometry::{self, PlanGeometry};
+use crate::geometry::PlanGeometry;
+
+pub use calibrate::{
+    Calibration, GenuineScore, GeometryCalibration, MIN_CLASS_CALIBRATION, calibrate,
+    calibrate_geometry, class_spread, threshold_allowing,
+};
+pub use decide::{Decision, Outcome, is_outlier, is_wrong_task};
+pub use distance::distance;
+pub use file::{LoadBankError, SaveBankError, remove_stale_temporaries};
 
 /// Version of the on-disk format written by [`ClassBank::to_bytes`].
 pub const FORMAT_VERSION: u32 = 2;
@@ -53,290 +61,6 @@ pub const OLDEST_FORMAT_VERSION: u32 = 1;
 /// Global default decision threshold (Euclidean embedding distance) used until per-class
 /// thresholds are calibrated. Provisional: a later calibration replaces it per class.
 pub const DEFAULT_THRESHOLD: f32 = 0.5;
-const MAGIC: &str = "guardian-class-bank";
-
-/// Accumulators of [`distance`]: independent partial sums, so the sum vectorises.
-const DISTANCE_LANES: usize = 16;
-
-/// Euclidean distance between two embeddings of equal length (pairs up to the shorter).
-/// Squares are summed in [`DISTANCE_LANES`] interleaved partial sums (element `i` into sum
-/// `i % 16`), combined in a fixed order: deterministic, and vectorised by the compiler
-/// (one running sum would be a chain of 128 dependent additions).
-#[inline(always)]
-pub fn distance(a: &[f32], b: &[f32]) -> f32 {
-    let n = a.len().min(b.len());
-    let (a, b) = (&a[..n], &b[..n]);
-    let mut acc = [0.0f32; DISTANCE_LANES];
-    let (ac, bc) = (
-        a.chunks_exact(DISTANCE_LANES),
-        b.chunks_exact(DISTANCE_LANES),
-    );
-    let (ar, br) = (ac.remainder(), bc.remainder());
-    for (x, y) in ac.zip(bc) {
-        for l in 0..DISTANCE_LANES {
-            let d = x[l] - y[l];
-            acc[l] += d * d;
-        }
-    }
-    for (l, (x, y)) in ar.iter().zip(br).enumerate() {
-        let d = x - y;
-        acc[l] += d * d;
-    }
-    // Pairwise combination: 16 -> 8 -> 4 -> 2 -> 1.
-    let mut width = DISTANCE_LANES;
-    while width > 1 {
-        width /= 2;
-        for l in 0..width {
-            acc[l] += acc[l + width];
-        }
-    }
-    acc[0].sqrt()
-}
-
-/// The distance of `query` to every class prototype, in name order, compiled for the widest
-/// SIMD instruction set this CPU has (runtime dispatch; the sums are the same on every
-/// instruction set, see [`distance`]).
-struct Distances<'a, 'b> {
-    bank: &'a ClassBank,
-    query: &'b [f32],
-    out: &'b mut Vec<(f32, &'a str)>,
-}
-
-impl pulp::WithSimd for Distances<'_, '_> {
-    type Output = ();
-
-    #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, _simd: S) {
-        for (n, c) in &self.bank.classes {
-            self.out
-                .push((distance(self.query, &c.prototype), n.as_str()));
-        }
-    }
-}
-
-/// How a threshold was calibrated.
-///
-/// The bank-level record (see [`ClassBank::apply_calibration`]) also carries the numbers
-/// that derive thresholds for classes enrolled later: `class_scale` (a class with at least
-/// [`MIN_CLASS_CALIBRATION`] examples gets `class_scale * class_spread`) and
-/// `wrong_task_tolerance` (how much nearer another class must be to call a wrong task).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Calibration {
-    /// Method name, e.g. `"quantile"`.
-    pub method: String,
-    /// Number of samples the threshold was derived from.
-    pub samples: u32,
-    /// Target false-reject (or other) rate the method aimed at, if any.
-    pub target_rate: Option<f32>,
-    /// Free text: data set, date, model version.
-    pub note: String,
-    /// Global threshold chosen by the calibration (bank-level record).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub global_threshold: Option<f32>,
-    /// Per-class threshold = `class_scale * class_spread(embeddings)` (bank-level record).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub class_scale: Option<f32>,
-    /// Wrong-task tolerance chosen by the calibration (bank-level record).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub wrong_task_tolerance: Option<f32>,
-    /// False-reject rate measured on the calibration data with the chosen numbers.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub measured_rate: Option<f32>,
-}
-
-/// A class needs at least this many enrolled examples for its own (spread-scaled)
-/// threshold; below it uses the bank's global threshold.
-pub const MIN_CLASS_CALIBRATION: usize = 3;
-
-/// Spread of a class: root mean square of the leave-one-out distances (each example to the
-/// mean of the others). `None` below [`MIN_CLASS_CALIBRATION`] examples.
-pub fn class_spread(embeddings: &[Vec<f32>]) -> Option<f32> {
-    let n = embeddings.len();
-    if n < MIN_CLASS_CALIBRATION {
-        return None;
-    }
-    let dim = embeddings[0].len();
-    let sum = embeddings.iter().fold(vec![0.0f64; dim], |mut acc, e| {
-        for (a, &v) in acc.iter_mut().zip(e) {
-            *a += f64::from(v);
-        }
-        acc
-    });
-    let mut sq = 0.0f64;
-    for e in embeddings {
-        let d2: f64 = e
-            .iter()
-            .zip(&sum)
-            .map(|(&v, &s)| {
-                let rest = (s - f64::from(v)) / (n - 1) as f64;
-                (f64::from(v) - rest).powi(2)
-            })
-            .sum();
-        sq += d2;
-    }
-    Some(((sq / n as f64).sqrt()) as f32)
-}
-
-/// The smallest score `t` among `scores` such that at most `allowed` scores exceed it
-/// (`None` for no scores; 0 if every score may be rejected).
-pub fn threshold_allowing(scores: &[f32], allowed: usize) -> Option<f32> {
-    if scores.is_empty() {
-        return None;
-    }
-    if allowed >= scores.len() {
-        return Some(0.0);
-    }
-    let mut s: Vec<f32> = scores.to_vec();
-    s.sort_by(f32::total_cmp);
-    Some(s[s.len() - 1 - allowed])
-}
-
-/// One genuine plan scored against a bank it belongs to: distance to its own class, to the
-/// nearest other class, and the spread of its class.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct GenuineScore {
-    /// Distance to the claimed (true) class prototype.
-    pub claimed: f32,
-    /// Distance to the nearest other prototype, if any.
-    pub nearest_other: Option<f32>,
-    /// [`class_spread`] of the claimed class, if it has enough examples.
-    pub spread: Option<f32>,
-}
-
-impl GenuineScore {
-    /// The embedding decision as one number: `max(d_c / t_c, d_c / (d_o + tol))` with the
-    /// calibration's class threshold `t_c` (`class_scale × spread`, else the global one) and
-    /// wrong-task tolerance; `> 1` exactly when [`ClassBank::decide`] answers no-go.
-    pub fn normalised(&self, cal: &Calibration) -> f32 {
-        let global = cal.global_threshold.unwrap_or(DEFAULT_THRESHOLD);
-        let t = match (cal.class_scale, self.spread) {
-            (Some(k), Some(s)) => k * s,
-            _ => global,
-        };
-        let tol = cal.wrong_task_tolerance.unwrap_or(0.0);
-        let a = self.claimed / t.max(1e-12);
-        let b = self
-            .nearest_other
-            .map_or(0.0, |o| self.claimed / (o + tol).max(1e-12));
-        a.max(b)
-    }
-}
-
-/// The geometry check's calibration, stored in the bank (see [`crate::geometry`]).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct GeometryCalibration {
-    /// Pooled within-class spread of every feature (validation alphabet), in
-    /// [`GeometryFeature::ALL`] order.
-    pub scales: [f32; GEOMETRY_FEATURES],
-    /// A plan whose geometry score exceeds this is a [`Outcome::GeometryMismatch`].
-    pub threshold: f32,
-    /// Combined false-reject target (embedding and geometry together).
-    pub target_rate: f32,
-    /// Genuine plans the threshold was chosen from.
-    pub samples: u32,
-    /// Combined false-reject rate (embedding or geometry) on the calibration data.
-    pub measured_rate: f32,
-    /// Free text: data, split of the budget.
-    pub note: String,
-}
-
-/// Choose the geometry threshold for genuine calibration plans already scored by the
-/// embedding calibration `cal`: of the budget `floor(target_rate × n)`, what the embedding
-/// rule has not used goes to the geometry score, on the plans the embedding accepts.
-/// `geometry[i]` is the geometry score of `scores[i]` (`None`: no descriptor, never rejected
-/// by geometry). `None` if there are no scores or the rate is not in `[0, 1)`.
-pub fn calibrate_geometry(
-    scores: &[GenuineScore],
-    geometry: &[Option<f32>],
-    cal: &Calibration,
-    target_rate: f32,
-    scales: [f32; GEOMETRY_FEATURES],
-    note: &str,
-) -> Option<GeometryCalibration> {
-    if scores.is_empty() || scores.len() != geometry.len() || !(0.0..1.0).contains(&target_rate) {
-        return None;
-    }
-    let n = scores.len();
-    let budget = (f64::from(target_rate) * n as f64).floor() as usize;
-    let emb_rejected: Vec<bool> = scores.iter().map(|s| s.normalised(cal) > 1.0).collect();
-    let used = emb_rejected.iter().filter(|&&r| r).count();
-    let kept: Vec<f32> = geometry
-        .iter()
-        .zip(&emb_rejected)
-        .filter(|(_, r)| !**r)
-        .filter_map(|(g, _)| *g)
-        .collect();
-    let threshold = threshold_allowing(&kept, budget.saturating_sub(used))
-        .unwrap_or(f32::MAX)
-        .max(f32::MIN_POSITIVE);
-    let rejected = geometry
-        .iter()
-        .zip(&emb_rejected)
-        .filter(|(g, r)| **r || g.is_some_and(|g| g > threshold))
-        .count();
-    Some(GeometryCalibration {
-        scales,
-        threshold,
-        target_rate,
-        samples: u32::try_from(n).unwrap_or(u32::MAX),
-        measured_rate: rejected as f32 / n as f32,
-        note: note.to_owned(),
-    })
-}
-
-/// Choose the wrong-task tolerance, the global threshold and the per-class scale so that at
-/// most `target_rate` of the genuine plans are rejected by [`ClassBank::decide`].
-///
-/// Half of the budget goes to wrong-task rejections (tolerance = the `1 - target/2`
-/// quantile of `claimed - nearest_other`, at least 0); what is left of the budget after
-/// the wrong-task rejections goes to the distance threshold (global: on `claimed`; per
-/// class: on `claimed / spread`). `None` if there are no scores or the rate is not in
-/// `[0, 1)`.
-pub fn calibrate(scores: &[GenuineScore], target_rate: f32, note: &str) -> Option<Calibration> {
-    if scores.is_empty() || !(0.0..1.0).contains(&target_rate) {
-        return None;
-    }
-    let n = scores.len();
-    let budget = (f64::from(target_rate) * n as f64).floor() as usize;
-    let gaps: Vec<f32> = scores
-        .iter()
-        .filter_map(|s| s.nearest_other.map(|o| s.claimed - o))
-        .collect();
-    let tol = threshold_allowing(&gaps, budget / 2)
-        .unwrap_or(0.0)
-        .max(0.0);
-    let wrong = |s: &GenuineScore| s.nearest_other.is_some_and(|o| o + tol < s.claimed);
-    let wrong_n = scores.iter().filter(|s| wrong(s)).count();
-    let left = budget.saturating_sub(wrong_n);
-    let kept: Vec<&GenuineScore> = scores.iter().filter(|s| !wrong(s)).collect();
-    let d: Vec<f32> = kept.iter().map(|s| s.claimed).collect();
-    let global = threshold_allowing(&d, left).unwrap_or(DEFAULT_THRESHOLD);
-    let ratios: Vec<f32> = kept
-        .iter()
-        .filter_map(|s| s.spread.filter(|&v| v > 0.0).map(|v| s.claimed / v))
-        .collect();
-    let with_spread = scores.iter().filter(|s| s.spread.is_some()).count();
-    let class_scale = if ratios.is_empty() {
-        None
-    } else {
-        let b = (f64::from(target_rate) * with_spread as f64).floor() as usize;
-        let w = with_spread - ratios.len();
-        threshold_allowing(&ratios, b.saturating_sub(w))
-    };
-    let rejected = wrong_n + d.iter().filter(|&&v| v > global).count();
-    Some(Calibration {
-        method: "genuine-quantile".into(),
-        samples: u32::try_from(n).unwrap_or(u32::MAX),
-        target_rate: Some(target_rate),
-        note: note.to_owned(),
-        global_threshold: Some(global),
-        class_scale,
-        wrong_task_tolerance: Some(tol),
-        measured_rate: Some(rejected as f32 / n as f32),
-    })
-}
 
 /// One enrolled class.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -373,51 +97,6 @@ pub struct Neighbour {
     pub distance: f32,
 }
 
-/// The decision of [`ClassBank::decide`].
-#[derive(Debug, Clone, PartialEq)]
-pub enum Outcome {
-    /// The trajectory is the class it claims to be.
-    Go,
-    /// Another class is nearer than the claimed one.
-    WrongTask {
-        /// The nearest class.
-        nearest: String,
-    },
-    /// The claimed class is nearest but farther than its threshold.
-    Outlier,
-    /// The embedding fits the claimed class, but the plan draws in another place, size,
-    /// stroke count or direction than every enrolled example.
-    GeometryMismatch {
-        /// The feature farthest from the enrolled examples (relative to its spread).
-        feature: GeometryFeature,
-    },
-    /// The claimed class is not enrolled.
-    UnknownClass,
-}
-
-/// A decision with the numbers behind it.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Decision {
-    /// Go or why not.
-    pub outcome: Outcome,
-    /// Distance to the claimed prototype (`None` if the class is unknown).
-    pub claimed_distance: Option<f32>,
-    /// Threshold used for the claimed class.
-    pub threshold: Option<f32>,
-    /// `threshold - claimed_distance`.
-    pub margin: Option<f32>,
-    /// Distance to the nearest other class minus `claimed_distance`.
-    pub gap: Option<f32>,
-    /// The k nearest classes, nearest first.
-    pub nearest: Vec<Neighbour>,
-    /// Geometry score against the claimed class (`None`: check not applicable).
-    pub geometry_score: Option<f32>,
-    /// Geometry threshold (`None`: check not applicable).
-    pub geometry_threshold: Option<f32>,
-    /// The feature behind `geometry_score`.
-    pub geometry_feature: Option<GeometryFeature>,
-}
-
 /// Enrolling into the bank failed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[non_exhaustive]
@@ -449,68 +128,6 @@ pub enum EnrollError {
         /// Which embedding.
         index: usize,
     },
-}
-
-/// Loading a bank failed.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum LoadBankError {
-    /// The file could not be read.
-    #[error("cannot read class bank {path}: {source}")]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The cause.
-        source: std::io::Error,
-    },
-    /// The header line is missing or malformed.
-    #[error("not a guardian class bank (bad header line): {detail}")]
-    BadHeader {
-        /// What was wrong.
-        detail: String,
-    },
-    /// The format version is not supported.
-    #[error("class bank format {found} is not supported (this build reads {supported})")]
-    UnsupportedFormat {
-        /// Version in the file.
-        found: u32,
-        /// Version this build reads.
-        supported: u32,
-    },
-    /// The body does not match its checksum.
-    #[error("class bank checksum mismatch: header says {expected}, body hashes to {found}")]
-    ChecksumMismatch {
-        /// Checksum from the header.
-        expected: String,
-        /// Checksum of the body.
-        found: String,
-    },
-    /// The body is not a valid bank document.
-    #[error("class bank body does not parse: {0}")]
-    Parse(#[from] serde_json::Error),
-    /// The document parses but is inconsistent.
-    #[error("class bank is inconsistent: {detail}")]
-    Inconsistent {
-        /// What is wrong.
-        detail: String,
-    },
-}
-
-/// Saving a bank failed.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum SaveBankError {
-    /// Writing, syncing or renaming failed.
-    #[error("cannot save class bank to {path}: {source}")]
-    Io {
-        /// The file being written.
-        path: PathBuf,
-        /// The cause.
-        source: std::io::Error,
-    },
-    /// Serialisation failed.
-    #[error("cannot serialise class bank: {0}")]
-    Serialize(#[from] serde_json::Error),
 }
 
 /// Prototypes, thresholds and enrolled embeddings of every class.
@@ -746,301 +363,6 @@ impl ClassBank {
         }
         c
     }
-
-    /// Every class with its distance to `query`, nearest first (ties by name).
-    pub fn ranked(&self, query: &[f32]) -> Vec<Neighbour> {
-        self.ranked_refs(query, usize::MAX)
-            .into_iter()
-            .map(|(distance, name)| Neighbour {
-                name: name.to_owned(),
-                distance,
-            })
-            .collect()
-    }
-
-    /// The first `m` entries of [`ClassBank::ranked`] (all with `usize::MAX`), without
-    /// copying the names.
-    fn ranked_refs(&self, query: &[f32], m: usize) -> Vec<(f32, &str)> {
-        let mut v: Vec<(f32, &str)> = Vec::with_capacity(self.classes.len());
-        pulp::Arch::new().dispatch(Distances {
-            bank: self,
-            query,
-            out: &mut v,
-        });
-        // Names are unique, so the order is total and unstable sorting is deterministic.
-        let order = |a: &(f32, &str), b: &(f32, &str)| a.0.total_cmp(&b.0).then(a.1.cmp(b.1));
-        if m < v.len() {
-            if m > 0 {
-                v.select_nth_unstable_by(m - 1, order);
-            }
-            v.truncate(m);
-        }
-        v.sort_unstable_by(order);
-        v
-    }
-
-    /// The `k` nearest classes to `query`, nearest first.
-    pub fn nearest(&self, query: &[f32], k: usize) -> Vec<Neighbour> {
-        let mut v = self.ranked(query);
-        v.truncate(k);
-        v
-    }
-
-    /// Apply the decision rule (see the module docs) to `query` claiming class `claimed`.
-    pub fn decide(&self, query: &[f32], claimed: &str, k: usize) -> Decision {
-        // The k nearest, and at least two: the nearest class other than the claimed one is
-        // among the first two.
-        let ranked = self.ranked_refs(query, k.max(1) + 1);
-        let nearest: Vec<Neighbour> = ranked
-            .iter()
-            .take(k)
-            .map(|&(distance, name)| Neighbour {
-                name: name.to_owned(),
-                distance,
-            })
-            .collect();
-        let Some(class) = self.classes.get(claimed) else {
-            return Decision {
-                outcome: Outcome::UnknownClass,
-                claimed_distance: None,
-                threshold: None,
-                margin: None,
-                gap: None,
-                nearest,
-                geometry_score: None,
-                geometry_threshold: None,
-                geometry_feature: None,
-            };
-        };
-        let d = distance(query, &class.prototype);
-        let threshold = class.threshold.unwrap_or(self.default_threshold);
-        let other = ranked.iter().find(|n| n.1 != claimed);
-        let outcome = match other {
-            Some(&(od, name)) if od + self.wrong_task_tolerance < d => Outcome::WrongTask {
-                nearest: name.to_owned(),
-            },
-            _ if d.is_nan() || d > threshold => Outcome::Outlier,
-            _ => Outcome::Go,
-        };
-        Decision {
-            outcome,
-            claimed_distance: Some(d),
-            threshold: Some(threshold),
-            margin: Some(threshold - d),
-            gap: other.map(|o| o.0 - d),
-            nearest,
-            geometry_score: None,
-            geometry_threshold: None,
-            geometry_feature: None,
-        }
-    }
-
-    /// Geometry score of `g` against class `name` and the deciding feature, with the
-    /// threshold; `None` if the check does not apply (no geometry calibration, unknown
-    /// class, or a class without descriptors).
-    pub fn geometry_score(
-        &self,
-        g: &PlanGeometry,
-        name: &str,
-    ) -> Option<(f32, GeometryFeature, f32)> {
-        let cal = self.geometry_calibration.as_ref()?;
-        let class = self.classes.get(name).filter(|c| c.has_geometry())?;
-        let (s, f) = geometry::score(g, &class.geometry, &cal.scales)?;
-        Some((s, f, cal.threshold))
-    }
-
-    /// [`ClassBank::decide`], then the geometry check (step 4 of the module docs) for a plan
-    /// whose embedding decision is go. The geometry numbers are filled in whenever the check
-    /// applies.
-    pub fn decide_with_geometry(
-        &self,
-        query: &[f32],
-        geometry: Option<&PlanGeometry>,
-        claimed: &str,
-        k: usize,
-    ) -> Decision {
-        let mut d = self.decide(query, claimed, k);
-        if let Some((s, f, t)) = geometry.and_then(|g| self.geometry_score(g, claimed)) {
-            d.geometry_score = Some(s);
-            d.geometry_threshold = Some(t);
-            d.geometry_feature = Some(f);
-            if d.outcome == Outcome::Go && (s > t || s.is_nan()) {
-                d.outcome = Outcome::GeometryMismatch { feature: f };
-            }
-        }
-        d
-    }
-
-    /// Serialise to the on-disk format (header line + JSON body).
-    pub fn to_bytes(&self) -> Result<Vec<u8>, serde_json::Error> {
-        let body = serde_json::to_vec(self)?;
-        let sum = hex(&Sha256::digest(&body));
-        let mut out = format!("{MAGIC} {FORMAT_VERSION} sha256:{sum}\n").into_bytes();
-        out.extend_from_slice(&body);
-        Ok(out)
-    }
-
-    /// Parse the on-disk format, verifying version and checksum.
-    pub fn from_bytes(bytes: &[u8]) -> Result<Self, LoadBankError> {
-        let nl = bytes
-            .iter()
-            .position(|&b| b == b'\n')
-            .ok_or_else(|| bad("no header line"))?;
-        let header = std::str::from_utf8(&bytes[..nl]).map_err(|_| bad("header is not UTF-8"))?;
-        let body = &bytes[nl + 1..];
-        let mut parts = header.split(' ');
-        if parts.next() != Some(MAGIC) {
-            return Err(bad("missing magic"));
-        }
-        let found: u32 = parts
-            .next()
-            .and_then(|v| v.parse().ok())
-            .ok_or_else(|| bad("missing format version"))?;
-        if !(OLDEST_FORMAT_VERSION..=FORMAT_VERSION).contains(&found) {
-            return Err(LoadBankError::UnsupportedFormat {
-                found,
-                supported: FORMAT_VERSION,
-            });
-        }
-        let expected = parts
-            .next()
-            .and_then(|v| v.strip_prefix("sha256:"))
-            .ok_or_else(|| bad("missing checksum"))?
-            .to_owned();
-        let found_sum = hex(&Sha256::digest(body));
-        if found_sum != expected {
-            return Err(LoadBankError::ChecksumMismatch {
-                expected,
-                found: found_sum,
-            });
-        }
-        let bank: ClassBank = serde_json::from_slice(body)?;
-        bank.check()?;
-        Ok(bank)
-    }
-
-    fn check(&self) -> Result<(), LoadBankError> {
-        let inconsistent = |detail: String| Err(LoadBankError::Inconsistent { detail });
-        if !self.default_threshold.is_finite() {
-            return inconsistent("default threshold is not finite".into());
-        }
-        if !(self.wrong_task_tolerance.is_finite() && self.wrong_task_tolerance >= 0.0) {
-            return inconsistent("wrong-task tolerance is not finite and >= 0".into());
-        }
-        if let Some(g) = &self.geometry_calibration
-            && (g.threshold.is_nan() || g.scales.iter().any(|s| !(s.is_finite() && *s > 0.0)))
-        {
-            return inconsistent("geometry calibration: threshold NaN or scale not > 0".into());
-        }
-        for (name, c) in &self.classes {
-            if c.prototype.len() != self.dim {
-                return inconsistent(format!("class {name:?}: prototype length"));
-            }
-            if c.embeddings.is_empty() {
-                return inconsistent(format!("class {name:?}: no embeddings"));
-            }
-            if c.embeddings.iter().any(|e| e.len() != self.dim) {
-                return inconsistent(format!("class {name:?}: embedding length"));
-            }
-            if c.threshold.is_some_and(|t| !t.is_finite()) {
-                return inconsistent(format!("class {name:?}: threshold is not finite"));
-            }
-            if !c.geometry.is_empty() && c.geometry.len() != c.embeddings.len() {
-                return inconsistent(format!("class {name:?}: geometry descriptor count"));
-            }
-            if c.geometry.iter().any(|g| !g.is_finite()) {
-                return inconsistent(format!("class {name:?}: geometry is not finite"));
-            }
-        }
-        Ok(())
-    }
-
-    /// Read and verify a bank file.
-    pub fn load(path: &Path) -> Result<Self, LoadBankError> {
-        let bytes = fs::read(path).map_err(|source| LoadBankError::Io {
-            path: path.to_owned(),
-            source,
-        })?;
-        Self::from_bytes(&bytes)
-    }
-
-    /// Save atomically: write a temporary file in the same directory, fsync it, rename it
-    /// over `path`, fsync the directory. A crash leaves either the old or the new file.
-    pub fn save(&self, path: &Path) -> Result<(), SaveBankError> {
-        let bytes = self.to_bytes()?;
-        let dir = match path.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d.to_owned(),
-            _ => PathBuf::from("."),
-        };
-        let file_name = path
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "bank".into());
-        let tmp = dir.join(format!(
-            "{}{}",
-            temporary_prefix(&file_name),
-            std::process::id()
-        ));
-        let io = |p: &Path| {
-            let p = p.to_owned();
-            move |source| SaveBankError::Io { path: p, source }
-        };
-        let result = (|| {
-            let mut f = fs::File::create(&tmp).map_err(io(&tmp))?;
-            f.write_all(&bytes).map_err(io(&tmp))?;
-            f.sync_all().map_err(io(&tmp))?;
-            drop(f);
-            fs::rename(&tmp, path).map_err(io(path))?;
-            fs::File::open(&dir)
-                .and_then(|d| d.sync_all())
-                .map_err(io(&dir))?;
-            Ok(())
-        })();
-        if result.is_err() {
-            let _ = fs::remove_file(&tmp);
-        }
-        result
-    }
-}
-
-/// Name prefix of the temporary files [`ClassBank::save`] writes next to `file_name`.
-fn temporary_prefix(file_name: &str) -> String {
-    format!(".{file_name}.tmp.")
-}
-
-/// Remove temporary files that a [`ClassBank::save`] of `path` killed mid-write left behind
-/// (a crash never damages `path` itself, but each crashed writer leaves its temporary).
-/// Call it only while no other process saves to `path`. Returns the names removed.
-pub fn remove_stale_temporaries(path: &Path) -> std::io::Result<Vec<String>> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let Some(file_name) = path.file_name() else {
-        return Ok(Vec::new());
-    };
-    let prefix = temporary_prefix(&file_name.to_string_lossy());
-    let mut removed = Vec::new();
-    let entries = match fs::read_dir(dir) {
-        Ok(e) => e,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(removed),
-        Err(e) => return Err(e),
-    };
-    for entry in entries {
-        let entry = entry?;
-        let name = entry.file_name().to_string_lossy().into_owned();
-        if name.starts_with(&prefix) && entry.file_type()?.is_file() {
-            fs::remove_file(entry.path())?;
-            removed.push(name);
-        }
-    }
-    Ok(removed)
-}
-
-fn bad(detail: &str) -> LoadBankError {
-    LoadBankError::BadHeader {
-        detail: detail.to_owned(),
-    }
 }
 
 fn mean(rows: &[Vec<f32>], dim: usize) -> Vec<f32> {
@@ -1054,13 +376,79 @@ fn mean(rows: &[Vec<f32>], dim: usize) -> Vec<f32> {
     m.into_iter().map(|v| (v / n) as f32).collect()
 }
 
-fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
-}
-
 #[cfg(test)]
 mod tests {
+    use super::file::hex;
     use super::*;
+    use guardian_shared::workcell::{GEOMETRY_FEATURES, GeometryFeature};
+    use sha2::{Digest, Sha256};
+    use std::fs;
+
+    /// The calibration's scores and the bank's decision are one rule: for genuine plans of a
+    /// calibrated bank, `normalised > 1` exactly when `decide` answers no-go, and the
+    /// calibration's wrong-task count is `decide`'s.
+    #[test]
+    fn calibration_scores_agree_with_decide() {
+        use rand::{Rng, SeedableRng, rngs::StdRng};
+        let mut rng = StdRng::seed_from_u64(11);
+        let dim = 4;
+        let mut b = ClassBank::new(dim, "m", 0.5);
+        let mut queries = Vec::new();
+        for c in 0..6 {
+            let centre: Vec<f32> = (0..dim).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let jitter = |rng: &mut StdRng| -> Vec<f32> {
+                centre
+                    .iter()
+                    .map(|v| v + rng.random_range(-0.4..0.4))
+                    .collect()
+            };
+            // Classes 0 and 1 have too few examples for their own threshold.
+            let n = if c < 2 { 2 } else { 4 };
+            let es: Vec<Vec<f32>> = (0..n).map(|_| jitter(&mut rng)).collect();
+            b.enroll(&format!("c{c}"), &es).unwrap();
+            for _ in 0..40 {
+                queries.push((format!("c{c}"), jitter(&mut rng)));
+            }
+        }
+        let score = |b: &ClassBank, name: &str, q: &[f32]| {
+            let class = b.class(name).unwrap();
+            GenuineScore {
+                claimed: distance(q, &class.prototype),
+                nearest_other: b
+                    .classes()
+                    .filter(|(n, _)| *n != name)
+                    .map(|(_, c)| distance(q, &c.prototype))
+                    .min_by(f32::total_cmp),
+                spread: class_spread(&class.embeddings),
+            }
+        };
+        let scores: Vec<GenuineScore> = queries.iter().map(|(n, q)| score(&b, n, q)).collect();
+        let cal = calibrate(&scores, 0.2, "test").unwrap();
+        assert!(cal.wrong_task_tolerance.unwrap() >= 0.0);
+        b.apply_calibration(cal.clone());
+        let (mut no_go, mut wrong) = (0, 0);
+        for ((name, q), s) in queries.iter().zip(&scores) {
+            let d = b.decide(q, name, 3);
+            assert_eq!(
+                s.normalised(&cal) > 1.0,
+                d.outcome != Outcome::Go,
+                "{name}: {s:?} -> {:?}",
+                d.outcome
+            );
+            no_go += usize::from(d.outcome != Outcome::Go);
+            wrong += usize::from(matches!(d.outcome, Outcome::WrongTask { .. }));
+            let tol = b.wrong_task_tolerance();
+            assert_eq!(
+                s.nearest_other
+                    .is_some_and(|o| is_wrong_task(s.claimed, o, tol)),
+                matches!(d.outcome, Outcome::WrongTask { .. })
+            );
+        }
+        assert!(
+            no_go > 0 && wrong > 0,
+            "the rule is exercised: {no_go} {wrong}"
+        );
+    }
 
     fn bank() -> ClassBank {
         let mut b = ClassBank::new(2, "test-model", 1.0);

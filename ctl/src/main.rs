@@ -1,4 +1,5 @@
-//! `guardianctl`: command-line client for a running `guardiand`.
+//! `guardianctl`: command-line client for a running `guardiand` (crate guardian-ctl, so the
+//! planner-facing client library stays free of CLI dependencies).
 #![forbid(unsafe_code)]
 
 use std::path::{Path, PathBuf};
@@ -6,7 +7,7 @@ use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
-use guardian_client::{CHANNELS, Client, ClientConfig, Decision, NoGoReason, Trajectory, Verdict};
+use guardian_client::{CHANNELS, Client, ClientConfig, Trajectory, Verdict};
 
 /// Talk to guardiand: check, identify, enroll, forget, list classes, status.
 ///
@@ -193,7 +194,7 @@ fn main() -> anyhow::Result<()> {
 
 fn print_verdict(v: &Verdict) {
     let opt = |x: Option<f32>| x.map_or("-".to_string(), |v| format!("{v:.4}"));
-    println!("verdict   {}", decision_text(&v.decision));
+    println!("verdict   {}", v.decision);
     println!(
         "claimed   {} (distance {}, threshold {})",
         v.claimed_class,
@@ -212,34 +213,6 @@ fn print_verdict(v: &Verdict) {
         println!("  #{} {:<32} {:.4}", i + 1, n.class, n.distance);
     }
     println!("model {}  bank v{}", v.model_version, v.bank_version);
-}
-
-fn decision_text(d: &Decision) -> String {
-    match d {
-        Decision::Go => "GO".into(),
-        Decision::NoGo { reason } => format!("NO-GO {}", reason_text(reason)),
-    }
-}
-
-fn reason_text(r: &NoGoReason) -> String {
-    match r {
-        NoGoReason::WrongTask { nearest } => format!("wrong task (nearest {nearest})"),
-        NoGoReason::Outlier => "outlier".into(),
-        NoGoReason::UnknownClass => "unknown class".into(),
-        NoGoReason::InvalidTrajectory { kind, index } => format!("invalid: {kind:?} at {index}"),
-        NoGoReason::Workcell { kind, index } => {
-            format!("workcell: {kind:?} at waypoint {index}")
-        }
-        NoGoReason::GeometryMismatch {
-            feature,
-            score,
-            threshold,
-        } => format!(
-            "geometry mismatch: {} (score {score:.2} > {threshold:.2})",
-            feature.name()
-        ),
-        _ => format!("{r:?}"),
-    }
 }
 
 fn is_safetensors(p: &Path) -> bool {

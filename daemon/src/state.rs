@@ -1,0 +1,128 @@
+//! Loading the daemon's state: the model named by the configuration and the class bank
+//! it serves (persisted, else default, else empty), checked against each other.
+
+use std::path::PathBuf;
+
+use guardian_models::bank::{ClassBank, DEFAULT_THRESHOLD};
+
+use crate::config::Config;
+use crate::engine::Engine;
+
+/// Where the bank in use came from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum BankSource {
+    /// The persisted bank in the state directory.
+    State(PathBuf),
+    /// The shipped or configured default bank.
+    Default(PathBuf),
+    /// Nothing found; an empty bank.
+    Empty,
+}
+
+impl std::fmt::Display for BankSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::State(p) => write!(f, "persisted bank {}", p.display()),
+            Self::Default(p) => write!(f, "default bank {}", p.display()),
+            Self::Empty => write!(f, "empty bank"),
+        }
+    }
+}
+
+/// Loading the model or bank failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum LoadStateError {
+    /// The model could not be loaded.
+    #[error("cannot load model {path}: {detail}")]
+    Model {
+        /// The weights file.
+        path: PathBuf,
+        /// Why.
+        detail: String,
+    },
+    /// The bank could not be loaded.
+    #[error("cannot load class bank {path}: {source}")]
+    Bank {
+        /// The bank file.
+        path: PathBuf,
+        /// Why.
+        source: guardian_models::bank::LoadBankError,
+    },
+    /// The bank was built with another model.
+    #[error(
+        "class bank {path} was built with model {bank_model} ({bank_dim}-d) but the loaded model is {model} ({model_dim}-d); \
+         re-enroll the classes or remove the file"
+    )]
+    BankModelMismatch {
+        /// The bank file.
+        path: PathBuf,
+        /// Model version recorded in the bank.
+        bank_model: String,
+        /// Its embedding dimension.
+        bank_dim: usize,
+        /// The loaded model's version.
+        model: String,
+        /// The loaded model's dimension.
+        model_dim: usize,
+    },
+}
+
+/// Load the model named by `config`.
+pub fn load_engine(config: &Config) -> Result<Engine, LoadStateError> {
+    let path = config.model_path();
+    Engine::load(&path).map_err(|e| LoadStateError::Model {
+        path,
+        detail: e.to_string(),
+    })
+}
+
+/// Load the bank for `engine`: the persisted one, else the default one, else empty.
+pub fn load_bank(
+    config: &Config,
+    engine: &Engine,
+) -> Result<(ClassBank, BankSource), LoadStateError> {
+    let state = config.bank_path();
+    let load = |path: &PathBuf| {
+        ClassBank::load(path).map_err(|source| LoadStateError::Bank {
+            path: path.clone(),
+            source,
+        })
+    };
+    let (mut bank, source) = if state.exists() {
+        (load(&state)?, BankSource::State(state))
+    } else if let Some(p) = config.default_bank_path() {
+        (load(&p)?, BankSource::Default(p))
+    } else {
+        let t = config.default_threshold.unwrap_or(DEFAULT_THRESHOLD);
+        (
+            ClassBank::new(engine.dim(), engine.version(), t),
+            BankSource::Empty,
+        )
+    };
+    if bank.dim() != engine.dim() || bank.model_version() != engine.version() {
+        let path = match &source {
+            BankSource::State(p) | BankSource::Default(p) => p.clone(),
+            BankSource::Empty => PathBuf::new(),
+        };
+        return Err(LoadStateError::BankModelMismatch {
+            path,
+            bank_model: bank.model_version().to_owned(),
+            bank_dim: bank.dim(),
+            model: engine.version().to_owned(),
+            model_dim: engine.dim(),
+        });
+    }
+    if let Some(t) = config.default_threshold
+        && t != bank.default_threshold()
+    {
+        bank.set_default_threshold(t);
+    }
+    let without = bank.classes_without_geometry();
+    if bank.geometry_calibration().is_none() && !bank.is_empty() {
+        tracing::warn!(%source, "class bank has no geometry calibration (format 1 or not calibrated): geometry check off");
+    } else if !without.is_empty() {
+        tracing::warn!(%source, classes = without.len(), first = without[0], "classes without plan-geometry descriptors (enrolled by format 1): geometry check off for them");
+    }
+    Ok((bank, source))
+}

@@ -1,0 +1,251 @@
+//! The bank's on-disk format (header line with checksum + JSON body), loading with checks,
+//! and atomic saving.
+
+use std::fs;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use sha2::{Digest, Sha256};
+
+use super::{ClassBank, FORMAT_VERSION, OLDEST_FORMAT_VERSION};
+
+const MAGIC: &str = "guardian-class-bank";
+
+/// Loading a bank failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum LoadBankError {
+    /// The file could not be read.
+    #[error("cannot read class bank {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// The header line is missing or malformed.
+    #[error("not a guardian class bank (bad header line): {detail}")]
+    BadHeader {
+        /// What was wrong.
+        detail: String,
+    },
+    /// The format version is not supported.
+    #[error("class bank format {found} is not supported (this build reads {supported})")]
+    UnsupportedFormat {
+        /// Version in the file.
+        found: u32,
+        /// Version this build reads.
+        supported: u32,
+    },
+    /// The body does not match its checksum.
+    #[error("class bank checksum mismatch: header says {expected}, body hashes to {found}")]
+    ChecksumMismatch {
+        /// Checksum from the header.
+        expected: String,
+        /// Checksum of the body.
+        found: String,
+    },
+    /// The body is not a valid bank document.
+    #[error("class bank body does not parse: {0}")]
+    Parse(#[from] serde_json::Error),
+    /// The document parses but is inconsistent.
+    #[error("class bank is inconsistent: {detail}")]
+    Inconsistent {
+        /// What is wrong.
+        detail: String,
+    },
+}
+
+/// Saving a bank failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SaveBankError {
+    /// Writing, syncing or renaming failed.
+    #[error("cannot save class bank to {path}: {source}")]
+    Io {
+        /// The file being written.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// Serialisation failed.
+    #[error("cannot serialise class bank: {0}")]
+    Serialize(#[from] serde_json::Error),
+}
+
+impl ClassBank {
+    /// Serialise to the on-disk format (header line + JSON body).
+    pub fn to_bytes(&self) -> Result<Vec<u8>, serde_json::Error> {
+        let body = serde_json::to_vec(self)?;
+        let sum = hex(&Sha256::digest(&body));
+        let mut out = format!("{MAGIC} {FORMAT_VERSION} sha256:{sum}\n").into_bytes();
+        out.extend_from_slice(&body);
+        Ok(out)
+    }
+
+    /// Parse the on-disk format, verifying version and checksum.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, LoadBankError> {
+        let nl = bytes
+            .iter()
+            .position(|&b| b == b'\n')
+            .ok_or_else(|| bad("no header line"))?;
+        let header = std::str::from_utf8(&bytes[..nl]).map_err(|_| bad("header is not UTF-8"))?;
+        let body = &bytes[nl + 1..];
+        let mut parts = header.split(' ');
+        if parts.next() != Some(MAGIC) {
+            return Err(bad("missing magic"));
+        }
+        let found: u32 = parts
+            .next()
+            .and_then(|v| v.parse().ok())
+            .ok_or_else(|| bad("missing format version"))?;
+        if !(OLDEST_FORMAT_VERSION..=FORMAT_VERSION).contains(&found) {
+            return Err(LoadBankError::UnsupportedFormat {
+                found,
+                supported: FORMAT_VERSION,
+            });
+        }
+        let expected = parts
+            .next()
+            .and_then(|v| v.strip_prefix("sha256:"))
+            .ok_or_else(|| bad("missing checksum"))?
+            .to_owned();
+        let found_sum = hex(&Sha256::digest(body));
+        if found_sum != expected {
+            return Err(LoadBankError::ChecksumMismatch {
+                expected,
+                found: found_sum,
+            });
+        }
+        let bank: ClassBank = serde_json::from_slice(body)?;
+        bank.check()?;
+        Ok(bank)
+    }
+
+    fn check(&self) -> Result<(), LoadBankError> {
+        let inconsistent = |detail: String| Err(LoadBankError::Inconsistent { detail });
+        if !self.default_threshold.is_finite() {
+            return inconsistent("default threshold is not finite".into());
+        }
+        if !(self.wrong_task_tolerance.is_finite() && self.wrong_task_tolerance >= 0.0) {
+            return inconsistent("wrong-task tolerance is not finite and >= 0".into());
+        }
+        if let Some(g) = &self.geometry_calibration
+            && (g.threshold.is_nan() || g.scales.iter().any(|s| !(s.is_finite() && *s > 0.0)))
+        {
+            return inconsistent("geometry calibration: threshold NaN or scale not > 0".into());
+        }
+        for (name, c) in &self.classes {
+            if c.prototype.len() != self.dim {
+                return inconsistent(format!("class {name:?}: prototype length"));
+            }
+            if c.embeddings.is_empty() {
+                return inconsistent(format!("class {name:?}: no embeddings"));
+            }
+            if c.embeddings.iter().any(|e| e.len() != self.dim) {
+                return inconsistent(format!("class {name:?}: embedding length"));
+            }
+            if c.threshold.is_some_and(|t| !t.is_finite()) {
+                return inconsistent(format!("class {name:?}: threshold is not finite"));
+            }
+            if !c.geometry.is_empty() && c.geometry.len() != c.embeddings.len() {
+                return inconsistent(format!("class {name:?}: geometry descriptor count"));
+            }
+            if c.geometry.iter().any(|g| !g.is_finite()) {
+                return inconsistent(format!("class {name:?}: geometry is not finite"));
+            }
+        }
+        Ok(())
+    }
+
+    /// Read and verify a bank file.
+    pub fn load(path: &Path) -> Result<Self, LoadBankError> {
+        let bytes = fs::read(path).map_err(|source| LoadBankError::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+        Self::from_bytes(&bytes)
+    }
+
+    /// Save atomically: write a temporary file in the same directory, fsync it, rename it
+    /// over `path`, fsync the directory. A crash leaves either the old or the new file.
+    pub fn save(&self, path: &Path) -> Result<(), SaveBankError> {
+        let bytes = self.to_bytes()?;
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d.to_owned(),
+            _ => PathBuf::from("."),
+        };
+        let file_name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "bank".into());
+        let tmp = dir.join(format!(
+            "{}{}",
+            temporary_prefix(&file_name),
+            std::process::id()
+        ));
+        let io = |p: &Path| {
+            let p = p.to_owned();
+            move |source| SaveBankError::Io { path: p, source }
+        };
+        let result = (|| {
+            let mut f = fs::File::create(&tmp).map_err(io(&tmp))?;
+            f.write_all(&bytes).map_err(io(&tmp))?;
+            f.sync_all().map_err(io(&tmp))?;
+            drop(f);
+            fs::rename(&tmp, path).map_err(io(path))?;
+            fs::File::open(&dir)
+                .and_then(|d| d.sync_all())
+                .map_err(io(&dir))?;
+            Ok(())
+        })();
+        if result.is_err() {
+            let _ = fs::remove_file(&tmp);
+        }
+        result
+    }
+}
+
+/// Name prefix of the temporary files [`ClassBank::save`] writes next to `file_name`.
+fn temporary_prefix(file_name: &str) -> String {
+    format!(".{file_name}.tmp.")
+}
+
+/// Remove temporary files that a [`ClassBank::save`] of `path` killed mid-write left behind
+/// (a crash never damages `path` itself, but each crashed writer leaves its temporary).
+/// Call it only while no other process saves to `path`. Returns the names removed.
+pub fn remove_stale_temporaries(path: &Path) -> std::io::Result<Vec<String>> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let Some(file_name) = path.file_name() else {
+        return Ok(Vec::new());
+    };
+    let prefix = temporary_prefix(&file_name.to_string_lossy());
+    let mut removed = Vec::new();
+    let entries = match fs::read_dir(dir) {
+        Ok(e) => e,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(removed),
+        Err(e) => return Err(e),
+    };
+    for entry in entries {
+        let entry = entry?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if name.starts_with(&prefix) && entry.file_type()?.is_file() {
+            fs::remove_file(entry.path())?;
+            removed.push(name);
+        }
+    }
+    Ok(removed)
+}
+
+fn bad(detail: &str) -> LoadBankError {
+    LoadBankError::BadHeader {
+        detail: detail.to_owned(),
+    }
+}
+
+pub(super) fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}

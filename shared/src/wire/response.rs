@@ -1,0 +1,450 @@
+//! A response's meaning, typed, and the one pair of functions per part of the header that
+//! write it (the daemon) and read it (the client): the error status ([`Failure`]), the
+//! check verdict ([`CheckAnswer`]) and the daemon's state sent with every answer
+//! ([`DaemonState`]).
+
+use std::borrow::Cow;
+
+use super::{
+    MESSAGE_BYTES, NAME_BYTES, ReasonCode, RequestError, RequestHeader, ResponseHeader, Status,
+    VerdictCode, decode_text, encode_text,
+};
+use crate::trajectory::{InvalidKind, InvalidTrajectory};
+use crate::workcell::{GeometryFeature, WorkcellViolation};
+
+/// A response that breaks the protocol (a value no version of it defines).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum ProtocolError {
+    /// `status` is not a [`Status`] value.
+    #[error("unknown status {0}")]
+    UnknownStatus(u32),
+    /// `invalid_kind` is not an [`InvalidKind`] value.
+    #[error("unknown invalid kind {0}")]
+    UnknownInvalidKind(u32),
+    /// `workcell_kind` is not a workcell rule.
+    #[error("unknown workcell kind {0}")]
+    UnknownWorkcellKind(u32),
+    /// `geometry_feature` is not a [`GeometryFeature`] value.
+    #[error("unknown geometry feature {0}")]
+    UnknownGeometryFeature(u32),
+    /// A no-go with a `reason` that is not a [`ReasonCode`] no-go value.
+    #[error("no-go with unknown reason {0}")]
+    UnknownReason(u32),
+    /// A check answered with status ok but neither go nor no-go.
+    #[error("check answered without a verdict ({0})")]
+    NoVerdict(u32),
+}
+
+/// A request answered with an error status: the status, with the message the daemon wrote.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum Failure {
+    /// [`Status::BadRequest`].
+    BadRequest {
+        /// The daemon's explanation.
+        message: String,
+    },
+    /// [`Status::InvalidTrajectory`].
+    InvalidTrajectory {
+        /// What is wrong and where.
+        invalid: InvalidTrajectory,
+        /// Which trajectory of the request.
+        example: u32,
+        /// The daemon's explanation.
+        message: String,
+    },
+    /// [`Status::InvalidClassName`] (the response echoes the request's name field).
+    InvalidClassName {
+        /// The daemon's explanation.
+        message: String,
+    },
+    /// [`Status::UnknownClass`] (the response echoes the request's name field).
+    UnknownClass {
+        /// The daemon's explanation.
+        message: String,
+    },
+    /// [`Status::EmptyBank`].
+    EmptyBank {
+        /// The daemon's explanation.
+        message: String,
+    },
+    /// [`Status::Internal`].
+    Internal {
+        /// The daemon's explanation.
+        message: String,
+    },
+}
+
+impl From<&RequestError> for Failure {
+    fn from(e: &RequestError) -> Self {
+        let message = e.to_string();
+        match e {
+            RequestError::InvalidTrajectory { example, source } => Self::InvalidTrajectory {
+                invalid: *source,
+                example: *example,
+                message,
+            },
+            RequestError::InvalidClassName(_) => Self::InvalidClassName { message },
+            _ => Self::BadRequest { message },
+        }
+    }
+}
+
+impl Failure {
+    /// The status this failure is sent with.
+    pub fn status(&self) -> Status {
+        match self {
+            Self::BadRequest { .. } => Status::BadRequest,
+            Self::InvalidTrajectory { .. } => Status::InvalidTrajectory,
+            Self::InvalidClassName { .. } => Status::InvalidClassName,
+            Self::UnknownClass { .. } => Status::UnknownClass,
+            Self::EmptyBank { .. } => Status::EmptyBank,
+            Self::Internal { .. } => Status::Internal,
+        }
+    }
+
+    /// The daemon's explanation.
+    pub fn message(&self) -> &str {
+        match self {
+            Self::BadRequest { message }
+            | Self::InvalidTrajectory { message, .. }
+            | Self::InvalidClassName { message }
+            | Self::UnknownClass { message }
+            | Self::EmptyBank { message }
+            | Self::Internal { message } => message,
+        }
+    }
+}
+
+/// Write `failure` into `r`: status, message and, for an invalid trajectory, its kind,
+/// index and example; no verdict.
+pub fn encode_failure(r: &mut ResponseHeader, failure: &Failure) {
+    r.status = failure.status() as u32;
+    r.message = encode_text::<MESSAGE_BYTES>(failure.message());
+    if let Failure::InvalidTrajectory {
+        invalid, example, ..
+    } = failure
+    {
+        r.invalid_kind = invalid.kind as u32;
+        r.invalid_index = invalid.index;
+        r.invalid_example = *example;
+    }
+    r.verdict = VerdictCode::None as u32;
+}
+
+/// Read `r`'s status: `Ok(None)` when the request succeeded, else the failure.
+pub fn decode_failure(r: &ResponseHeader) -> Result<Option<Failure>, ProtocolError> {
+    let message = decode_text(&r.message);
+    Ok(Some(match Status::from_u32(r.status) {
+        Some(Status::Ok) => return Ok(None),
+        Some(Status::BadRequest) => Failure::BadRequest { message },
+        Some(Status::InvalidTrajectory) => Failure::InvalidTrajectory {
+            invalid: InvalidTrajectory {
+                kind: invalid_kind(r)?,
+                index: r.invalid_index,
+            },
+            example: r.invalid_example,
+            message,
+        },
+        Some(Status::InvalidClassName) => Failure::InvalidClassName { message },
+        Some(Status::UnknownClass) => Failure::UnknownClass { message },
+        Some(Status::EmptyBank) => Failure::EmptyBank { message },
+        Some(Status::Internal) => Failure::Internal { message },
+        None => return Err(ProtocolError::UnknownStatus(r.status)),
+    }))
+}
+
+fn invalid_kind(r: &ResponseHeader) -> Result<InvalidKind, ProtocolError> {
+    r.invalid()
+        .ok_or(ProtocolError::UnknownInvalidKind(r.invalid_kind))
+}
+
+/// Go, or no-go and why (the wire's verdict and reason with their detail fields).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum CheckVerdict {
+    /// [`VerdictCode::Go`].
+    Go,
+    /// [`VerdictCode::NoGo`] with its reason.
+    NoGo(NoGo),
+}
+
+/// Why a check answered no-go, with the detail the reason carries on the wire.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
+pub enum NoGo {
+    /// [`ReasonCode::WrongTask`]: the nearest class is the response's first entry.
+    WrongTask,
+    /// [`ReasonCode::Outlier`].
+    Outlier,
+    /// [`ReasonCode::UnknownClass`].
+    UnknownClass,
+    /// [`ReasonCode::InvalidTrajectory`] (`invalid_kind`, `invalid_index`).
+    InvalidTrajectory(InvalidTrajectory),
+    /// [`ReasonCode::Workcell`] (`workcell_kind`, `workcell_index`).
+    Workcell(WorkcellViolation),
+    /// [`ReasonCode::GeometryMismatch`] (`geometry_feature`, `geometry_score`,
+    /// `geometry_threshold`).
+    GeometryMismatch(GeometryFeature),
+}
+
+/// The answer to a check as the response header carries it; `None` travels as NaN (or 0
+/// for the feature).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CheckAnswer {
+    /// Go or no-go.
+    pub verdict: CheckVerdict,
+    /// Distance to the claimed class prototype.
+    pub claimed_distance: Option<f32>,
+    /// Threshold of the claimed class.
+    pub threshold: Option<f32>,
+    /// `threshold - claimed_distance`.
+    pub margin: Option<f32>,
+    /// Distance to the nearest other class minus `claimed_distance`.
+    pub gap: Option<f32>,
+    /// Geometry score against the claimed class.
+    pub geometry_score: Option<f32>,
+    /// Geometry threshold.
+    pub geometry_threshold: Option<f32>,
+    /// The feature behind `geometry_score`.
+    pub geometry_feature: Option<GeometryFeature>,
+}
+
+impl CheckAnswer {
+    /// A no-go decided before any distance was computed (invalid trajectory, workcell).
+    pub fn early_no_go(reason: NoGo) -> Self {
+        Self {
+            verdict: CheckVerdict::NoGo(reason),
+            claimed_distance: None,
+            threshold: None,
+            margin: None,
+            gap: None,
+            geometry_score: None,
+            geometry_threshold: None,
+            geometry_feature: None,
+        }
+    }
+}
+
+/// Write a check's answer into `r` (status stays ok). A workcell no-go also gets its
+/// human-readable message.
+pub fn encode_check(r: &mut ResponseHeader, a: &CheckAnswer) {
+    let nan = |v: Option<f32>| v.unwrap_or(f32::NAN);
+    let (verdict, reason) = match a.verdict {
+        CheckVerdict::Go => (VerdictCode::Go, ReasonCode::None),
+        CheckVerdict::NoGo(no_go) => (
+            VerdictCode::NoGo,
+            match no_go {
+                NoGo::WrongTask => ReasonCode::WrongTask,
+                NoGo::Outlier => ReasonCode::Outlier,
+                NoGo::UnknownClass => ReasonCode::UnknownClass,
+                NoGo::InvalidTrajectory(inv) => {
+                    r.invalid_kind = inv.kind as u32;
+                    r.invalid_index = inv.index;
+                    ReasonCode::InvalidTrajectory
+                }
+                NoGo::Workcell(v) => {
+                    r.workcell_kind = v.kind as u32;
+                    r.workcell_index = v.index;
+                    r.message = encode_text(&format!(
+                        "workcell rule broken: {:?} at waypoint {}",
+                        v.kind, v.index
+                    ));
+                    ReasonCode::Workcell
+                }
+                NoGo::GeometryMismatch(_) => ReasonCode::GeometryMismatch,
+            },
+        ),
+    };
+    r.geometry_score = nan(a.geometry_score);
+    r.geometry_threshold = nan(a.geometry_threshold);
+    r.geometry_feature = a.geometry_feature.map_or(0, |f| f as u32);
+    r.verdict = verdict as u32;
+    r.reason = reason as u32;
+    r.claimed_distance = nan(a.claimed_distance);
+    r.threshold = nan(a.threshold);
+    r.margin = nan(a.margin);
+    r.gap = nan(a.gap);
+}
+
+/// Read a check's answer from `r` (whose status is ok).
+pub fn decode_check(r: &ResponseHeader) -> Result<CheckAnswer, ProtocolError> {
+    let opt = |v: f32| if v.is_nan() { None } else { Some(v) };
+    let verdict = match VerdictCode::from_u32(r.verdict) {
+        Some(VerdictCode::Go) => CheckVerdict::Go,
+        Some(VerdictCode::NoGo) => CheckVerdict::NoGo(match ReasonCode::from_u32(r.reason) {
+            Some(ReasonCode::WrongTask) => NoGo::WrongTask,
+            Some(ReasonCode::Outlier) => NoGo::Outlier,
+            Some(ReasonCode::UnknownClass) => NoGo::UnknownClass,
+            Some(ReasonCode::InvalidTrajectory) => NoGo::InvalidTrajectory(InvalidTrajectory {
+                kind: invalid_kind(r)?,
+                index: r.invalid_index,
+            }),
+            Some(ReasonCode::Workcell) => NoGo::Workcell(WorkcellViolation {
+                kind: r
+                    .workcell()
+                    .ok_or(ProtocolError::UnknownWorkcellKind(r.workcell_kind))?,
+                index: r.workcell_index,
+            }),
+            Some(ReasonCode::GeometryMismatch) => NoGo::GeometryMismatch(
+                r.geometry()
+                    .ok_or(ProtocolError::UnknownGeometryFeature(r.geometry_feature))?,
+            ),
+            _ => return Err(ProtocolError::UnknownReason(r.reason)),
+        }),
+        _ => return Err(ProtocolError::NoVerdict(r.verdict)),
+    };
+    Ok(CheckAnswer {
+        verdict,
+        claimed_distance: opt(r.claimed_distance),
+        threshold: opt(r.threshold),
+        margin: opt(r.margin),
+        gap: opt(r.gap),
+        geometry_score: opt(r.geometry_score),
+        geometry_threshold: opt(r.geometry_threshold),
+        geometry_feature: r.geometry(),
+    })
+}
+
+/// What every response says about the daemon that answered.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DaemonState<'a> {
+    /// Version of the embedding model.
+    pub model_version: Cow<'a, str>,
+    /// Generation of the class bank.
+    pub bank_version: u64,
+    /// Enrolled classes.
+    pub class_count: u32,
+    /// Milliseconds since the daemon started.
+    pub uptime_ms: u64,
+    /// Requests answered.
+    pub requests: u64,
+    /// Requests answered with an error status.
+    pub errors: u64,
+    /// Checks answered go.
+    pub go: u64,
+    /// Checks answered no-go.
+    pub no_go: u64,
+    /// Service-time p50, p90, p99 and max in microseconds (NaN before the first request).
+    pub latency_us: [f32; 4],
+}
+
+/// Write the daemon's state into `r`.
+pub fn encode_state(r: &mut ResponseHeader, s: &DaemonState<'_>) {
+    r.bank_version = s.bank_version;
+    r.class_count = s.class_count;
+    r.model_version = encode_text::<NAME_BYTES>(&s.model_version);
+    r.uptime_ms = s.uptime_ms;
+    r.requests = s.requests;
+    r.errors = s.errors;
+    r.go = s.go;
+    r.no_go = s.no_go;
+    let [p50, p90, p99, max] = s.latency_us;
+    r.latency_p50_us = p50;
+    r.latency_p90_us = p90;
+    r.latency_p99_us = p99;
+    r.latency_max_us = max;
+}
+
+/// Read the daemon's state from `r`.
+pub fn decode_state(r: &ResponseHeader) -> DaemonState<'static> {
+    DaemonState {
+        model_version: Cow::Owned(decode_text(&r.model_version)),
+        bank_version: r.bank_version,
+        class_count: r.class_count,
+        uptime_ms: r.uptime_ms,
+        requests: r.requests,
+        errors: r.errors,
+        go: r.go,
+        no_go: r.no_go,
+        latency_us: [
+            r.latency_p50_us,
+            r.latency_p90_us,
+            r.latency_p99_us,
+            r.latency_max_us,
+        ],
+    }
+}
+
+impl ResponseHeader {
+    /// A header answering `request`: its id, op and class name field echoed, status ok,
+    /// everything else empty.
+    pub fn answering(request: &RequestHeader) -> Self {
+        let mut r = Self::new(request.request_id, request.op);
+        r.class_name = request.class_name;
+        r
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::workcell::WorkcellKind;
+
+    #[test]
+    fn failures_and_answers_round_trip() {
+        let failures = [
+            Failure::BadRequest {
+                message: "unknown op 9".into(),
+            },
+            Failure::InvalidTrajectory {
+                invalid: InvalidTrajectory::new(InvalidKind::JointOutOfLimits, 5),
+                example: 2,
+                message: "x".into(),
+            },
+            Failure::Internal {
+                message: "embedding failed".into(),
+            },
+        ];
+        for f in failures {
+            let mut r = ResponseHeader::default();
+            encode_failure(&mut r, &f);
+            assert_eq!(decode_failure(&r), Ok(Some(f)));
+        }
+        assert_eq!(decode_failure(&ResponseHeader::default()), Ok(None));
+        let r = ResponseHeader {
+            status: 99,
+            ..ResponseHeader::default()
+        };
+        assert_eq!(decode_failure(&r), Err(ProtocolError::UnknownStatus(99)));
+
+        let answers = [
+            CheckAnswer {
+                verdict: CheckVerdict::Go,
+                claimed_distance: Some(0.2),
+                threshold: Some(0.5),
+                margin: Some(0.3),
+                gap: None,
+                geometry_score: Some(1.0),
+                geometry_threshold: Some(2.0),
+                geometry_feature: Some(GeometryFeature::CentreX),
+            },
+            CheckAnswer::early_no_go(NoGo::Workcell(WorkcellViolation {
+                kind: WorkcellKind::from_u32(1).unwrap(),
+                index: 4,
+            })),
+            CheckAnswer::early_no_go(NoGo::InvalidTrajectory(InvalidTrajectory::new(
+                InvalidKind::NonFinite,
+                3,
+            ))),
+        ];
+        for a in answers {
+            let mut r = ResponseHeader::default();
+            encode_check(&mut r, &a);
+            assert_eq!(decode_check(&r), Ok(a));
+        }
+        let r = ResponseHeader {
+            verdict: VerdictCode::NoGo as u32,
+            reason: ReasonCode::GeometryMismatch as u32,
+            ..ResponseHeader::default()
+        };
+        assert_eq!(
+            decode_check(&r),
+            Err(ProtocolError::UnknownGeometryFeature(0))
+        );
+        assert_eq!(
+            decode_check(&ResponseHeader::default()),
+            Err(ProtocolError::NoVerdict(0))
+        );
+    }
+}
