@@ -43,4 +43,6 @@ for b in guardiand guardianctl; do
   test -x "$target/$dir/$b" || { echo "$target/$dir/$b is missing; build it first" >&2; exit 1; }
 done
 mkdir -p "$target/debian"
+# cargo-deb 3.8 warns that `--profile dev` will become an error in a later release; CI packages
+# its dev build only to test the package's files and scripts, and the version is pinned.
 cargo deb -p "$DAEMON_PACKAGE" --no-build --profile "$profile" --output "$target/debian/"
