@@ -45,4 +45,6 @@ done
 mkdir -p "$target/debian"
 # cargo-deb 3.8 warns that `--profile dev` will become an error in a later release; CI packages
 # its dev build only to test the package's files and scripts, and the version is pinned.
-cargo deb -p "$DAEMON_PACKAGE" --no-build --profile "$profile" --output "$target/debian/"
+# --strip: the release profile keeps line tables (debug = "line-tables-only"), which would make
+# guardiand 67 MB instead of 8 MB; cargo-deb's --dbgsym would put them in a .ddeb instead.
+cargo deb -p "$DAEMON_PACKAGE" --no-build --strip --profile "$profile" --output "$target/debian/"
