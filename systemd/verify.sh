@@ -2,14 +2,15 @@
 # Checks the shipped systemd files with systemd's own tools (no running systemd needed):
 # `systemd-analyze verify` on the unit (ExecStart pointed at a built guardiand, since verify
 # requires the binary to exist), the exposure score of `systemd-analyze security` (fails above
-# 2.0), and the sysusers.d snippet through systemd-sysusers into a scratch root.
+# 2.0), and the sysusers.d and tmpfiles.d snippets through systemd-sysusers and
+# systemd-tmpfiles into a scratch root (tmpfiles only as root, since it chowns).
 # Usage: systemd/verify.sh [path/to/guardiand]   (default: target/debug/guardiand)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bin=$(realpath "${1:-target/debug/guardiand}")
 test -x "$bin" || { echo "verify.sh: $bin is not an executable; build guardiand first" >&2; exit 1; }
 tmp=$(mktemp -d); trap 'rm -rf "$tmp"' EXIT
-sed "s#^ExecStart=/usr/local/bin/guardiand#ExecStart=$bin#" systemd/guardiand.service > "$tmp/guardiand.service"
+sed "s#^ExecStart=/usr/bin/guardiand#ExecStart=$bin#" systemd/guardiand.service > "$tmp/guardiand.service"
 systemd-analyze verify "$tmp/guardiand.service"
 echo "systemd-analyze verify: ok"
 score=$(systemd-analyze security --offline=yes "$tmp/guardiand.service" 2>&1 | sed -n 's/.*Overall exposure level for guardiand.service: \([0-9.]*\).*/\1/p')
@@ -19,3 +20,11 @@ mkdir -p "$tmp/root/etc"
 systemd-sysusers --root="$tmp/root" - < systemd/sysusers.d/guardian.conf
 grep -q '^guardian:' "$tmp/root/etc/passwd" || { echo "sysusers did not create guardian" >&2; exit 1; }
 echo "systemd-sysusers: ok ($(grep '^guardian:' "$tmp/root/etc/passwd"))"
+if [ "$(id -u)" = 0 ]; then
+  systemd-tmpfiles --root="$tmp/root" --create - < systemd/tmpfiles.d/guardian.conf
+  uid=$(awk -F: '$1 == "guardian" { print $3 ":" $4 }' "$tmp/root/etc/passwd")
+  for d in var/lib/guardian run/guardian; do
+    test "$(stat -c '%u:%g %a' "$tmp/root/$d")" = "$uid 700" || { echo "tmpfiles: /$d is not guardian's, 0700" >&2; exit 1; }
+  done
+  echo "systemd-tmpfiles: ok (/var/lib/guardian, /run/guardian)"
+fi
