@@ -142,11 +142,7 @@ fn mean_over_active_triplets(
     let w: Vec<f32> = w.iter().map(|v| (v * scale) as f32).collect();
     let w = Tensor::from_vec(w, (b, b), d.device())?.to_dtype(d.dtype())?;
     let loss = (d * w)?.sum_all()?;
-    let loss = if active > 0 {
-        (loss + margin)?
-    } else {
-        loss
-    };
+    let loss = if active > 0 { (loss + margin)? } else { loss };
     Ok((loss, active, valid))
 }
 
@@ -281,8 +277,16 @@ mod tests {
             assert!(active > 0 && valid >= active);
             let (gv, wv) = (got.to_scalar::<f64>()?, want.to_scalar::<f64>()?);
             assert!((gv - wv).abs() < 1e-6 * (1.0 + wv.abs()), "{gv} vs {wv}");
-            let gg = got.backward()?.get(e.as_tensor()).expect("grad").flatten_all()?;
-            let wg = want.backward()?.get(e.as_tensor()).expect("grad").flatten_all()?;
+            let gg = got
+                .backward()?
+                .get(e.as_tensor())
+                .expect("grad")
+                .flatten_all()?;
+            let wg = want
+                .backward()?
+                .get(e.as_tensor())
+                .expect("grad")
+                .flatten_all()?;
             let diff = (&gg - &wg)?.abs()?.max(0)?.to_scalar::<f64>()?;
             assert!(diff < 1e-6, "gradient differs by {diff}");
         }
