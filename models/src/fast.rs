@@ -259,6 +259,33 @@ impl<T: Real> FastNet<T> {
         total + 2 * (2 * last) * self.config.embed_dim as u64
     }
 
+    /// Check that an input of `x_len` values and an output of `out_len` values fit `batch`
+    /// sequences of `len` steps.
+    pub(crate) fn check_io(
+        &self,
+        x_len: usize,
+        out_len: usize,
+        batch: usize,
+        len: usize,
+    ) -> Result<(), FastNetError> {
+        let (f, e) = (self.config.in_channels(), self.config.embed_dim);
+        if x_len != batch * len * f {
+            return Err(FastNetError::Shape {
+                what: "input",
+                expected: batch * len * f,
+                got: x_len,
+            });
+        }
+        if out_len != batch * e {
+            return Err(FastNetError::Shape {
+                what: "output",
+                expected: batch * e,
+                got: out_len,
+            });
+        }
+        Ok(())
+    }
+
     /// Embed `batch` feature sequences `x [batch, len, in_channels]` (row-major) into
     /// `out [batch, embed_dim]`, exactly as [`Net::forward`] does. `scratch` keeps every
     /// layer's input and output for [`FastNet::backward`].
@@ -270,22 +297,8 @@ impl<T: Real> FastNet<T> {
         scratch: &mut Scratch<T>,
         out: &mut [T],
     ) -> Result<(), FastNetError> {
-        let f = self.config.in_channels();
-        let e = self.config.embed_dim;
-        if x.len() != batch * len * f {
-            return Err(FastNetError::Shape {
-                what: "input",
-                expected: batch * len * f,
-                got: x.len(),
-            });
-        }
-        if out.len() != batch * e {
-            return Err(FastNetError::Shape {
-                what: "output",
-                expected: batch * e,
-                got: out.len(),
-            });
-        }
+        self.check_io(x.len(), out.len(), batch, len)?;
+        let (f, e) = (self.config.in_channels(), self.config.embed_dim);
         let pools = self.convs.len() - 1;
         if len >> pools == 0 {
             return Err(FastNetError::TooShort { len, pools });

@@ -326,22 +326,8 @@ impl<T: Real> Trainable<T> {
         len: usize,
         out: &mut [T],
     ) -> Result<(), FastNetError> {
-        let f = self.net.config().in_channels();
-        let e = self.net.config().embed_dim;
-        if x.len() != batch * len * f {
-            return Err(FastNetError::Shape {
-                what: "input",
-                expected: batch * len * f,
-                got: x.len(),
-            });
-        }
-        if out.len() != batch * e {
-            return Err(FastNetError::Shape {
-                what: "output",
-                expected: batch * e,
-                got: out.len(),
-            });
-        }
+        self.net.check_io(x.len(), out.len(), batch, len)?;
+        let (f, e) = (self.net.config().in_channels(), self.net.config().embed_dim);
         let n = self.workers.len();
         let share = batch.div_ceil(n).max(1);
         for (w, worker) in self.workers.iter_mut().enumerate() {
