@@ -134,6 +134,25 @@ pub fn calibrate_geometry_pool(
         .collect();
     let scales =
         geometry::pooled_scales(&groups).context("no geometry spread on the calibration data")?;
+    let g = geometry_scores(geo, labels, shots, reps, seed, &scales);
+    anyhow::ensure!(
+        g.len() == scores.len(),
+        "geometry and embedding scores differ in number"
+    );
+    bank::calibrate_geometry(scores, &g, cal, target_rate, scales, note)
+        .context("geometry calibration failed")
+}
+
+/// Geometry scores of the genuine plans of `reps` random `shots`-shot enrollments (the
+/// enrollments of [`genuine_scores`] with the same seed, in the same order).
+fn geometry_scores(
+    geo: &[Option<PlanGeometry>],
+    labels: &[u32],
+    shots: usize,
+    reps: usize,
+    seed: u64,
+    scales: &[f32; guardian_shared::workcell::GEOMETRY_FEATURES],
+) -> Vec<Option<f32>> {
     let mut rng = StdRng::seed_from_u64(seed);
     let mut g = Vec::new();
     for _ in 0..reps {
@@ -144,15 +163,126 @@ pub fn calibrate_geometry_pool(
                 continue;
             }
             let ex: Vec<PlanGeometry> = support[l].iter().filter_map(|&i| geo[i]).collect();
-            g.push(geo[q].and_then(|x| geometry::score(&x, &ex, &scales).map(|(s, _)| s)));
+            g.push(geo[q].and_then(|x| geometry::score(&x, &ex, scales).map(|(s, _)| s)));
         }
+    }
+    g
+}
+
+/// One (model, alphabets) pair of a cross-fitted calibration: the model never saw the
+/// alphabets (in training, validation or any pool), so its genuine scores on them are what a
+/// model of the same recipe scores on tasks it never saw.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CrossFitPair {
+    /// Embedder file.
+    pub model: PathBuf,
+    /// Alphabets unseen by that model.
+    pub alphabets: Vec<String>,
+}
+
+impl std::str::FromStr for CrossFitPair {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let (m, a) = s
+            .rsplit_once('=')
+            .ok_or_else(|| format!("expected MODEL=ALPHABET[+ALPHABET...], got {s:?}"))?;
+        let alphabets: Vec<String> = a
+            .split('+')
+            .filter(|x| !x.is_empty())
+            .map(String::from)
+            .collect();
+        if m.is_empty() || alphabets.is_empty() {
+            return Err(format!("expected MODEL=ALPHABET[+ALPHABET...], got {s:?}"));
+        }
+        Ok(Self {
+            model: PathBuf::from(m),
+            alphabets,
+        })
+    }
+}
+
+/// Cross-fitted calibration: the genuine embedding scores of every pair (each model on its
+/// own unseen alphabets) pooled, calibrated for `target_frr × (1 − geometry_share)`; the
+/// geometry check on the same plans with the rest of the budget (its feature spreads pooled
+/// over all pairs' classes). The calibration numbers are then used with another model of the
+/// same recipe (the shipped one, trained on all those alphabets).
+pub fn cross_fit(
+    data: &Dataset,
+    pairs: &[CrossFitPair],
+    shots: usize,
+    reps: usize,
+    target_frr: f32,
+    geometry_share: f32,
+    seed: u64,
+) -> anyhow::Result<(Calibration, Option<GeometryCalibration>)> {
+    anyhow::ensure!(
+        !pairs.is_empty(),
+        "cross-fitting needs at least one MODEL=ALPHABET pair"
+    );
+    let mut scores = Vec::new();
+    let mut pools = Vec::new();
+    let mut names = Vec::new();
+    for p in pairs {
+        let model =
+            Embedder::load(&p.model).with_context(|| format!("loading {}", p.model.display()))?;
+        let pool = Pool::new(data, &p.alphabets)?;
+        let emb = pool.embed(&model)?;
+        scores.extend(genuine_scores(
+            &emb,
+            &pool.labels,
+            &pool.class_names,
+            shots,
+            reps,
+            seed,
+        )?);
+        names.push(format!("{} on {}", model.version(), p.alphabets.join("+")));
+        pools.push(pool);
+    }
+    let note = format!(
+        "cross-fitted: {shots}-shot, {reps} reps, each model on alphabets it never saw: {}",
+        names.join(", ")
+    );
+    let cal = bank::calibrate(&scores, target_frr * (1.0 - geometry_share), &note)
+        .with_context(|| format!("cannot calibrate: {} scores", scores.len()))?;
+    if geometry_share <= 0.0 {
+        return Ok((cal, None));
+    }
+    let geos: Vec<Vec<Option<PlanGeometry>>> = pools.iter().map(|p| geometry_of(&p.xs)).collect();
+    let mut groups: Vec<Vec<PlanGeometry>> = Vec::new();
+    for (pool, geo) in pools.iter().zip(&geos) {
+        groups.extend(
+            by_class(&pool.labels)
+                .iter()
+                .map(|idx| idx.iter().filter_map(|&i| geo[i]).collect()),
+        );
+    }
+    let scales =
+        geometry::pooled_scales(&groups).context("no geometry spread on the calibration data")?;
+    let mut g = Vec::new();
+    for (pool, geo) in pools.iter().zip(&geos) {
+        g.extend(geometry_scores(
+            geo,
+            &pool.labels,
+            shots,
+            reps,
+            seed,
+            &scales,
+        ));
     }
     anyhow::ensure!(
         g.len() == scores.len(),
         "geometry and embedding scores differ in number"
     );
-    bank::calibrate_geometry(scores, &g, cal, target_rate, scales, note)
-        .context("geometry calibration failed")
+    let gcal = bank::calibrate_geometry(
+        &scores,
+        &g,
+        &cal,
+        target_frr,
+        scales,
+        &format!("{note}; geometry share {geometry_share}"),
+    )
+    .context("geometry calibration failed")?;
+    Ok((cal, Some(gcal)))
 }
 
 /// Calibrate on the pool's embeddings for `target_rate`.
@@ -208,6 +338,12 @@ pub struct Args {
     /// Output bank file.
     #[arg(long, default_value = "models/default-bank.gcb")]
     pub out: PathBuf,
+    /// Cross-fitted calibration instead of `--calib-alphabets`: `MODEL=ALPHABET[+ALPHABET]`
+    /// pairs (repeat the option), each model one that never saw its alphabets (the
+    /// leave-one-alphabet-out fold models); their genuine scores are pooled and the numbers
+    /// used with `--model` ([`cross_fit`]).
+    #[arg(long)]
+    pub cross_fit: Vec<CrossFitPair>,
 }
 
 /// What `guardian-lab bank` did.
@@ -225,30 +361,20 @@ pub struct BankSummary {
     pub out: PathBuf,
 }
 
-/// Run `guardian-lab bank`.
-pub fn run(args: &Args) -> anyhow::Result<()> {
-    let data = Dataset::load(&args.dataset)?;
-    let model =
-        Embedder::load(&args.model).with_context(|| format!("loading {}", args.model.display()))?;
-    if args
-        .calib_alphabets
-        .iter()
-        .any(|a| args.alphabets.contains(a))
-    {
-        anyhow::bail!("calibration and enrolled alphabets overlap");
-    }
-    let cpool = Pool::new(&data, &args.calib_alphabets)?;
-    let cemb = cpool.embed(&model)?;
+/// The calibration of `guardian-lab bank` on `--calib-alphabets` with the bank's own model.
+fn calibrate_on_alphabets(
+    args: &Args,
+    data: &Dataset,
+    model: &Embedder,
+) -> anyhow::Result<(Calibration, Option<GeometryCalibration>)> {
+    let cpool = Pool::new(data, &args.calib_alphabets)?;
+    let cemb = cpool.embed(model)?;
     let note = format!(
         "{}-shot, {} reps on {}; model {}",
         args.shots,
         args.reps,
         args.calib_alphabets.join(","),
         model.version()
-    );
-    anyhow::ensure!(
-        (0.0..=1.0).contains(&args.geometry_share),
-        "--geometry-share must be in [0, 1]"
     );
     let emb_target = args.target_frr * (1.0 - args.geometry_share);
     let scores = genuine_scores(
@@ -276,6 +402,38 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         )?)
     } else {
         None
+    };
+    Ok((cal, gcal))
+}
+
+/// Run `guardian-lab bank`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let data = Dataset::load(&args.dataset)?;
+    let model =
+        Embedder::load(&args.model).with_context(|| format!("loading {}", args.model.display()))?;
+    anyhow::ensure!(
+        (0.0..=1.0).contains(&args.geometry_share),
+        "--geometry-share must be in [0, 1]"
+    );
+    let (cal, gcal) = if args.cross_fit.is_empty() {
+        if args
+            .calib_alphabets
+            .iter()
+            .any(|a| args.alphabets.contains(a))
+        {
+            anyhow::bail!("calibration and enrolled alphabets overlap");
+        }
+        calibrate_on_alphabets(args, &data, &model)?
+    } else {
+        cross_fit(
+            &data,
+            &args.cross_fit,
+            args.shots,
+            args.reps,
+            args.target_frr,
+            args.geometry_share,
+            args.seed,
+        )?
     };
     let pool = Pool::new(&data, &args.alphabets)?;
     let emb = pool.embed(&model)?;

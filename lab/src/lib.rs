@@ -10,6 +10,7 @@
 //! - [`eval`]: N-way K-shot episodes for the model and the baselines.
 //! - [`report`]: the markdown + PNG report of a trained model.
 //! - [`calibrate`]: threshold calibration and the default class bank.
+//! - [`classaug`]: class augmentation (rotated and mirrored characters as classes).
 //! - [`faults`]: faulty-plan generators (corruptions of a genuine plan).
 //! - [`metrics`]: AUROC, ROC curve, TPR at an FPR and the pair AUC.
 //! - [`outliers`]: go / no-go metrics on faulty and genuine plans.
@@ -18,6 +19,7 @@
 #![forbid(unsafe_code)]
 
 pub mod calibrate;
+pub mod classaug;
 pub mod dataset;
 pub mod demo;
 pub mod eval;

@@ -27,6 +27,7 @@ use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::classaug::{self, AugmentPlan, Dihedral, SymmetryRule};
 use crate::dataset::{Dataset, StrokeIndex};
 use crate::eval::{self, EpisodeSpec};
 use crate::faults::{self, Fault};
@@ -129,6 +130,13 @@ pub struct TrainConfig {
     /// The corruptions fault negatives are made with (empty: none).
     #[serde(default)]
     pub fault_kinds: Vec<Fault>,
+    /// Class augmentation: every training character rotated by 90°, 180°, 270° and
+    /// mirrored becomes a class of its own (`classaug`), symmetric ones excepted.
+    #[serde(default)]
+    pub class_augment: bool,
+    /// The split-half quantile of `classaug::SymmetryRule` (with `class_augment`).
+    #[serde(default)]
+    pub symmetry_quantile: f64,
 }
 
 fn yes() -> bool {
@@ -235,6 +243,15 @@ pub struct Args {
     /// Omniglot stroke root the corrupted plans are made from (`--fault-share` only).
     #[arg(long, default_value = "../shared/omniglot/strokes")]
     pub strokes: PathBuf,
+    /// Class augmentation: every training character rotated by 90°, 180°, 270° and
+    /// mirrored (8 symmetries of the square) becomes a class of its own; transforms that
+    /// map a character onto itself or onto another class are dropped.
+    #[arg(long)]
+    pub class_augment: bool,
+    /// With `--class-augment`: a transformed character counts as an existing one when its
+    /// template is as similar to it as this quantile of the split-half similarities.
+    #[arg(long, default_value_t = 0.1)]
+    pub symmetry_quantile: f64,
 }
 
 impl Args {
@@ -277,6 +294,12 @@ impl Args {
                 (false, _) => Vec::new(),
                 (true, true) => TRAIN_FAULTS.to_vec(),
                 (true, false) => self.fault_kinds.clone(),
+            },
+            class_augment: self.class_augment,
+            symmetry_quantile: if self.class_augment {
+                self.symmetry_quantile
+            } else {
+                0.0
             },
         }
     }
@@ -514,6 +537,43 @@ impl Prepared {
             .collect();
         self.faults = made;
         Ok(self.faults.iter().map(Vec::len).sum())
+    }
+
+    /// Class augmentation: add the transforms of every class that `plan` keeps as classes
+    /// of their own (pen paths and corrupted plans transformed; same dataset indices).
+    /// Call after [`Prepared::make_faults`]. Returns the plan.
+    pub fn augment_classes(&mut self, rule: SymmetryRule) -> Result<AugmentPlan, TrainError> {
+        if self.kind == FeatureKind::Joints {
+            return Err(TrainError::Setup(
+                "class augmentation needs pen features".into(),
+            ));
+        }
+        let groups: Vec<Vec<&[PenPoint; STEPS]>> = self
+            .by_class
+            .iter()
+            .map(|m| m.iter().map(|&i| &self.pen[i]).collect())
+            .collect();
+        let plan = classaug::plan(&groups, Dihedral::non_identity(), rule);
+        for (c, kept) in plan.kept.iter().enumerate() {
+            for &d in kept {
+                let label = self.by_class.len() as u32;
+                let mut members = Vec::with_capacity(self.by_class[c].len());
+                for &i in &self.by_class[c].clone() {
+                    let mut p = self.pen[i];
+                    d.apply(&mut p);
+                    let mut f = self.faults[i].clone();
+                    f.iter_mut().for_each(|x| d.apply(x));
+                    members.push(self.raw.len());
+                    self.pen.push(p);
+                    self.raw.push(self.raw[i]);
+                    self.faults.push(f);
+                    self.labels.push(label);
+                    self.data_index.push(self.data_index[i]);
+                }
+                self.by_class.push(members);
+            }
+        }
+        Ok(plan)
     }
 
     /// The source class of every item: `Some(class label)` for a corrupted plan, `None`
@@ -937,6 +997,27 @@ pub fn train(
                 t0.elapsed().as_secs_f64()
             );
         }
+    }
+    if cfg.class_augment {
+        let plan = train_set.augment_classes(SymmetryRule {
+            quantile: cfg.symmetry_quantile,
+        })?;
+        let dropped = plan.self_symmetric + plan.collides;
+        if !quiet {
+            eprintln!(
+                "class augmentation: {} new classes ({} in all); {dropped} transforms dropped \
+                 ({} map a character onto itself, {} onto another class; threshold {:.3}, \
+                 {} of {} pairs of original classes at or above it)",
+                plan.new_classes(),
+                train_set.classes(),
+                plan.self_symmetric,
+                plan.collides,
+                plan.threshold,
+                plan.original_pairs_above,
+                plan.original_pairs
+            );
+        }
+        write_json(&out.join("class-augment.json"), &plan)?;
     }
     if train_set.classes() < cfg.p_classes.min(2) || val_set.classes() < 5 {
         return Err(TrainError::Setup(format!(

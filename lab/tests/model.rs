@@ -94,6 +94,8 @@ fn tiny_config() -> TrainConfig {
         fault_weight: 0.0,
         fault_margin: 0.0,
         fault_kinds: Vec::new(),
+        class_augment: false,
+        symmetry_quantile: 0.0,
     }
 }
 
@@ -468,4 +470,87 @@ fn training_gradients_match_candle_autograd_on_real_batches() {
         }
     }
     assert_eq!(compared, 4 * config.param_shapes().len());
+}
+
+#[test]
+fn class_augmentation_adds_transformed_classes_with_their_faults_and_drops_duplicates() {
+    use guardian_lab::classaug::{self, Dihedral, SymmetryRule};
+    let data = small_dataset();
+    let mut set = Prepared::new(data, &["Latin".to_string()], FeatureKind::Pen).expect("prepare");
+    set.make_faults(data, &shared_strokes(), &train::TRAIN_FAULTS, 2, 7)
+        .expect("make faults");
+    let (n0, c0) = (set.len(), set.classes());
+    let before = set.batch(&[0], None).expect("batch").flatten_all().unwrap();
+    let plan = set
+        .augment_classes(SymmetryRule::default())
+        .expect("augment");
+    // Every candidate transform is either kept or dropped for a stated reason; most real
+    // characters are not symmetric.
+    let candidates = 7 * c0;
+    assert_eq!(
+        plan.new_classes() + plan.self_symmetric + plan.collides,
+        candidates
+    );
+    assert!(plan.new_classes() >= candidates / 2, "{plan:?}");
+    assert_eq!(set.classes(), c0 + plan.new_classes());
+    assert_eq!(set.len(), n0 + 20 * plan.new_classes());
+    // The originals are untouched; the first new class is a transform of class 0's
+    // drawings (class 0 keeps at least one transform), with transformed fault plans and
+    // labels of its own.
+    let after = set.batch(&[0], None).expect("batch").flatten_all().unwrap();
+    assert_eq!(
+        before.to_vec1::<f32>().unwrap(),
+        after.to_vec1::<f32>().unwrap()
+    );
+    let d = plan.kept[0][0];
+    assert_eq!(set.labels()[n0], c0 as u32);
+    assert_eq!(set.faults_of(n0), set.faults_of(0));
+    let mut moved = guardian_models::features::pen_path(&set.raw()[0]);
+    d.apply(&mut moved);
+    let items = [Item::Genuine(n0), Item::Fault(n0, 0)];
+    let sources = set.sources(&items);
+    assert_eq!(sources, vec![None, Some(c0 as u32)]);
+    let x = set
+        .batch(&[n0], None)
+        .expect("batch")
+        .flatten_all()
+        .unwrap();
+    let mut want = vec![0.0f32; x.dims1().unwrap()];
+    guardian_models::features::path_features(
+        FeatureKind::Pen,
+        &moved,
+        &guardian_models::features::Augment::default(),
+        &mut want,
+    );
+    assert_eq!(x.to_vec1::<f32>().unwrap(), want);
+
+    // A character whose 180° turn is also a class of the set: that turn is dropped as a
+    // collision (real Latin strokes, the class-0 drawings turned by 180° added as a class).
+    let fresh = Prepared::new(data, &["Latin".to_string()], FeatureKind::Pen).expect("prepare");
+    let mut groups: Vec<Vec<[guardian_models::features::PenPoint; 128]>> = (0..fresh.classes())
+        .map(|c| {
+            (0..fresh.len())
+                .filter(|&i| fresh.labels()[i] == c as u32)
+                .map(|i| guardian_models::features::pen_path(&fresh.raw()[i]))
+                .collect()
+        })
+        .collect();
+    let turned: Vec<_> = groups[0]
+        .iter()
+        .map(|p| {
+            let mut q = *p;
+            Dihedral::R180.apply(&mut q);
+            q
+        })
+        .collect();
+    groups.push(turned);
+    let refs: Vec<Vec<&[guardian_models::features::PenPoint; 128]>> =
+        groups.iter().map(|g| g.iter().collect()).collect();
+    let plan2 = classaug::plan(&refs, Dihedral::non_identity(), SymmetryRule::default());
+    assert!(
+        !plan2.kept[0].contains(&Dihedral::R180),
+        "{:?}",
+        plan2.kept[0]
+    );
+    assert!(plan2.collides >= 1);
 }
