@@ -1,10 +1,13 @@
 #!/usr/bin/env python3
 """Per-fold table and mean / sample std / worst fold of a loao-full.sh run.
-Usage: docs/report/loao-full-summary.py OUTDIR [--json]"""
+Usage: docs/report/loao-full-summary.py OUTDIR [--outliers FILE] [--json]
+(--outliers crossfit-outliers.json: the go/no-go figures with the cross-fitted calibration
+of docs/report/crossfit.sh)"""
 import json, os, statistics, sys
 
 out = sys.argv[1]
-folds = sorted(d for d in os.listdir(out) if os.path.isfile(os.path.join(out, d, "outliers.json")))
+ofile = sys.argv[sys.argv.index("--outliers") + 1] if "--outliers" in sys.argv else "outliers.json"
+folds = sorted(d for d in os.listdir(out) if os.path.isfile(os.path.join(out, d, ofile)))
 rows = {}
 for f in folds:
     r = {}
@@ -12,7 +15,7 @@ for f in folds:
         if line.strip().startswith("{"):
             e = json.loads(line)
             r[f"{e['shot']}-shot {e['way']}-way"] = e["accuracy"]
-    o = json.load(open(os.path.join(out, f, "outliers.json")))
+    o = json.load(open(os.path.join(out, f, ofile)))
     for m in o["methods"]:
         if m["method"] != "guardian":
             continue

@@ -39,7 +39,7 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use anyhow::Context as _;
-use guardian_models::bank::{self, Calibration, GenuineScore, GeometryCalibration};
+use guardian_models::bank::{self, Calibration, ClassBank, GenuineScore, GeometryCalibration};
 use guardian_models::embedder::Embedder;
 use guardian_models::geometry::{self, PlanGeometry};
 use guardian_models::workcell;
@@ -240,6 +240,16 @@ pub struct Args {
     /// Siamese baseline model (skipped if absent).
     #[arg(long)]
     pub siamese_model: Option<PathBuf>,
+    /// Score `guardian` with the calibration records of this bank file (its embedding
+    /// calibration and geometry calibration, e.g. the shipped cross-fitted bank) instead of
+    /// calibrating on `--calib-alphabets` (the other methods still calibrate there).
+    #[arg(long)]
+    pub calibration_from: Option<PathBuf>,
+    /// Replace the calibrated wrong-task tolerance of the guardian methods by this value
+    /// (0: another enrolled class nearer than the claimed one is always no-go), keeping
+    /// the calibrated thresholds, to measure what the tolerance buys.
+    #[arg(long)]
+    pub wrong_task_tolerance: Option<f32>,
     /// Share of the false-reject budget given to the geometry check (the embedding gets the
     /// rest).
     #[arg(long, default_value_t = 0.25)]
@@ -497,9 +507,28 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         } else {
             args.target_frr
         };
-        let cal = bank::calibrate(&gs, emb_target, &format!("{method:?}"))
+        let mut cal = bank::calibrate(&gs, emb_target, &format!("{method:?}"))
             .context("calibration failed")?;
-        let gcal = if full {
+        let from_bank = match (&args.calibration_from, full) {
+            (Some(p), true) => {
+                let b = ClassBank::load(p).with_context(|| format!("loading {}", p.display()))?;
+                let c = b
+                    .calibration()
+                    .cloned()
+                    .with_context(|| format!("{} has no calibration record", p.display()))?;
+                cal = c;
+                Some(b.geometry_calibration().cloned())
+            }
+            _ => None,
+        };
+        if let (Some(t), Method::Guardian | Method::GuardianEmbedding) =
+            (args.wrong_task_tolerance, method)
+        {
+            cal.wrong_task_tolerance = Some(t);
+        }
+        let gcal = if let Some(g) = from_bank {
+            g
+        } else if full {
             Some(
                 bank::calibrate_geometry(
                     &gs,
@@ -515,11 +544,14 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             None
         };
         let gcal = gcal.as_ref();
+        // The geometry scales the threshold was chosen with (the calibration alphabets', or
+        // the bank's with `--calibration-from`).
+        let tscales = gcal.map_or(scales, |g| g.scales);
         // The method's score of a plan claiming class c.
         let plan_score = |e: &Enrolled, d: &[f32], c: usize, g: Option<&PlanGeometry>, wc: f32| {
             let s = score(&e.genuine(d, c), &cal);
             if full {
-                full_score(s, e.geometry_score(g, c, &scales), gcal, wc)
+                full_score(s, e.geometry_score(g, c, &tscales), gcal, wc)
             } else {
                 s
             }
