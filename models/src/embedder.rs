@@ -22,6 +22,10 @@ use crate::features::{Augment, FeatureKind, PenPoint};
 use crate::net::{Net, NetConfig};
 
 pub use crate::net::EMBED_DIM;
+
+/// How a pen path is computed from a resampled trajectory: [`crate::features::pen_path`], or
+/// the general-chain reference the tests compare it with.
+type PenPathFn = fn(&Resampled) -> [PenPoint; STEPS];
 /// One embedding.
 pub type Embedding = [f32; EMBED_DIM];
 
@@ -415,7 +419,7 @@ impl Embedder {
     /// Embed `xs` into `out` (same length) with the fast path, using per-thread scratch
     /// buffers: after the first call with the largest batch, no allocation.
     pub fn embed_into(&self, xs: &[Resampled], out: &mut [Embedding]) -> Result<(), EmbedError> {
-        self.embed_into_with(xs, out, false, None)
+        self.embed_into_with(xs, out, crate::features::pen_path, None)
     }
 
     /// [`Embedder::embed`], also returning the pen path ([`crate::features::pen_path`]) the
@@ -427,7 +431,12 @@ impl Embedder {
     ) -> Result<(Embedding, [PenPoint; STEPS]), EmbedError> {
         let mut out = [[0.0f32; EMBED_DIM]];
         let mut path = [[[0.0f32; 3]; STEPS]];
-        self.embed_into_with(std::slice::from_ref(x), &mut out, false, Some(&mut path))?;
+        self.embed_into_with(
+            std::slice::from_ref(x),
+            &mut out,
+            crate::features::pen_path,
+            Some(&mut path),
+        )?;
         Ok((out[0], path[0]))
     }
 
@@ -445,26 +454,33 @@ impl Embedder {
             });
         }
         let mut out = vec![[0.0f32; EMBED_DIM]; xs.len()];
-        self.embed_into_with(xs, &mut out, false, Some(paths))?;
+        self.embed_into_with(xs, &mut out, crate::features::pen_path, Some(paths))?;
         Ok(out)
     }
 
     /// [`Embedder::embed`] with the pen path through the general kinematic chain
     /// ([`crate::features::pen_path_reference`]) instead of the specialised position FK:
     /// the path as it was before the specialised FK, kept as the reference the fast path is
-    /// tested against (`lab/tests/embed_equivalence.rs`).
+    /// tested against (`lab/tests/embed_equivalence.rs`; feature `test-support`).
+    #[cfg(any(test, feature = "test-support"))]
     pub fn embed_reference(&self, x: &Resampled) -> Result<Embedding, EmbedError> {
         let mut out = [[0.0f32; EMBED_DIM]];
-        self.embed_into_with(std::slice::from_ref(x), &mut out, true, None)?;
+        self.embed_into_with(
+            std::slice::from_ref(x),
+            &mut out,
+            crate::features::pen_path_reference,
+            None,
+        )?;
         Ok(out[0])
     }
 
-    /// With `path` (as long as `xs`), the pen path of `xs[i]` is written to `path[i]`.
+    /// The features come from the pen path `pen_path` computes. With `path` (as long as
+    /// `xs`), the pen path of `xs[i]` is written to `path[i]`.
     fn embed_into_with(
         &self,
         xs: &[Resampled],
         out: &mut [Embedding],
-        reference: bool,
+        pen_path: PenPathFn,
         path: Option<&mut [[PenPoint; STEPS]]>,
     ) -> Result<(), EmbedError> {
         if out.len() != xs.len() {
@@ -478,9 +494,9 @@ impl Embedder {
         }
         check_finite(xs)?;
         SCRATCH.with(|cell| match cell.try_borrow_mut() {
-            Ok(mut s) => self.embed_fast(xs, out, &mut s, reference, path),
+            Ok(mut s) => self.embed_fast(xs, out, &mut s, pen_path, path),
             // Re-entered on this thread (cannot happen today): use a fresh scratch.
-            Err(_) => self.embed_fast(xs, out, &mut EmbedScratch::default(), reference, path),
+            Err(_) => self.embed_fast(xs, out, &mut EmbedScratch::default(), pen_path, path),
         })
     }
 
@@ -489,10 +505,10 @@ impl Embedder {
         xs: &[Resampled],
         out: &mut [Embedding],
         s: &mut EmbedScratch,
-        reference: bool,
+        pen_path: PenPathFn,
         path: Option<&mut [[PenPoint; STEPS]]>,
     ) -> Result<(), EmbedError> {
-        let copies = self.features_into(xs, &mut s.feats, reference, path);
+        let copies = self.features_into(xs, &mut s.feats, pen_path, path);
         let rows = copies * xs.len();
         let raw = if s.raw.len() < rows * EMBED_DIM {
             s.raw.resize(rows * EMBED_DIM, 0.0);
@@ -532,13 +548,14 @@ impl Embedder {
     /// Write the network input for `xs` into `feats` (grown as needed): per trajectory one
     /// feature sequence, or two (forwards, then time-reversed) with reverse averaging.
     /// Returns the number of sequences per trajectory.
-    /// With `reference`, the pen path goes through the general kinematic chain. With
-    /// `path_out`, the pen path of trajectory `i` is written to `path_out[i]`.
+    /// The pen path comes from `pen_path` ([`crate::features::pen_path`], or the general
+    /// kinematic chain for the reference). With `path_out`, the pen path of trajectory `i` is
+    /// written to `path_out[i]`.
     fn features_into(
         &self,
         xs: &[Resampled],
         feats: &mut Vec<f32>,
-        reference: bool,
+        pen_path: PenPathFn,
         mut path_out: Option<&mut [[PenPoint; STEPS]]>,
     ) -> usize {
         let kind = self.net.config().features;
@@ -567,11 +584,7 @@ impl Embedder {
                 }
                 continue;
             }
-            let path = if reference {
-                crate::features::pen_path_reference(x)
-            } else {
-                crate::features::pen_path(x)
-            };
+            let path = pen_path(x);
             if let Some(p) = path_slot {
                 *p = path;
             }
@@ -585,7 +598,8 @@ impl Embedder {
     }
 
     /// Embed a batch with candle's forward pass — the reference the fast path is tested
-    /// against.
+    /// against (feature `test-support`).
+    #[cfg(any(test, feature = "test-support"))]
     pub fn embed_batch_reference(&self, xs: &[Resampled]) -> Result<Vec<Embedding>, EmbedError> {
         if xs.is_empty() {
             return Ok(Vec::new());
@@ -593,7 +607,7 @@ impl Embedder {
         check_finite(xs)?;
         let c = self.net.config().features.channels();
         let mut feats = Vec::new();
-        let copies = self.features_into(xs, &mut feats, false, None);
+        let copies = self.features_into(xs, &mut feats, crate::features::pen_path, None);
         let input = Tensor::from_vec(feats, (copies * xs.len(), STEPS, c), &Device::Cpu)?;
         let mut e = self.net.forward(&input)?;
         if copies == 2 {

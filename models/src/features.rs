@@ -89,7 +89,8 @@ pub fn pen_path(x: &Resampled) -> [PenPoint; STEPS] {
 }
 
 /// [`pen_path`] through the general chain (full frames per joint), the reference the fast
-/// path is tested against.
+/// path is tested against (feature `test-support`).
+#[cfg(any(test, feature = "test-support"))]
 pub fn pen_path_reference(x: &Resampled) -> [PenPoint; STEPS] {
     let panda = crate::preprocess::default_panda();
     let mut out = [[0.0f32; 3]; STEPS];

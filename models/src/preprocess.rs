@@ -77,7 +77,9 @@ pub(crate) fn cumulative_lengths(positions: &[[f64; 3]], out: &mut [f64]) {
 }
 
 /// [`pen_path_lengths_with`] through the general chain ([`Panda::pen_tip_position_general`],
-/// full frames per joint): the reference the fast path is tested against.
+/// full frames per joint): the reference the fast path is tested against (feature
+/// `test-support`).
+#[cfg(any(test, feature = "test-support"))]
 pub fn pen_path_lengths_reference(panda: &Panda, waypoints: &[Waypoint]) -> Vec<f64> {
     let mut out = Vec::with_capacity(waypoints.len());
     let mut total = 0.0;
@@ -132,7 +134,9 @@ pub fn preprocess_with(panda: &Panda, raw: &[Waypoint]) -> Result<Resampled, Inv
 }
 
 /// [`preprocess_with`] as it was before the specialised FK: path lengths through the
-/// general chain ([`pen_path_lengths_reference`]). The reference for equivalence tests.
+/// general chain ([`pen_path_lengths_reference`]). The reference for equivalence tests
+/// (feature `test-support`).
+#[cfg(any(test, feature = "test-support"))]
 pub fn preprocess_reference(
     panda: &Panda,
     raw: &[Waypoint],
