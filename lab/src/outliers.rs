@@ -40,6 +40,7 @@ use std::path::PathBuf;
 
 use anyhow::Context as _;
 use guardian_models::bank::{self, Calibration, ClassBank, GenuineScore, GeometryCalibration};
+use guardian_models::check::{self, Embedded};
 use guardian_models::embedder::Embedder;
 use guardian_models::geometry::{self, PlanGeometry};
 use guardian_models::workcell;
@@ -414,23 +415,29 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     // (method, calibration vectors, test vectors, faulty-plan vectors)
     type Vectors = Vec<Vec<f32>>;
     let mut methods: Vec<(Method, Vectors, Vectors, Vectors)> = Vec::new();
-    let embed = |m: &Embedder, xs: &[Resampled]| -> anyhow::Result<Vec<Vec<f32>>> {
+    // The check pipeline's embedding stage (the plans are resampled already): the embeddings
+    // and the pen paths the plan geometry comes from.
+    let embed = |m: &Embedder, xs: &[Resampled]| -> anyhow::Result<Vec<Embedded>> {
         let mut out = Vec::with_capacity(xs.len());
         for c in xs.chunks(256) {
-            out.extend(m.embed_batch(c)?.into_iter().map(|e| e.to_vec()));
+            out.extend(check::embed_resampled(m, c)?);
         }
         Ok(out)
     };
-    let (gc, gt, gf) = (
+    let vectors =
+        |es: &[Embedded]| -> Vectors { es.iter().map(|e| e.embedding.to_vec()).collect() };
+    let (ec, et, ef) = (
         embed(&model, &cpool.xs)?,
         embed(&model, &pool.xs)?,
         embed(&model, &fxs)?,
     );
+    let (gc, gt, gf) = (vectors(&ec), vectors(&et), vectors(&ef));
     methods.push((Method::Guardian, gc.clone(), gt.clone(), gf.clone()));
     methods.push((Method::GuardianEmbedding, gc, gt, gf));
-    // Plan geometry of every plan, workcell score of every test and faulty plan.
-    let geo_of = |xs: &[Resampled]| -> Vec<Option<PlanGeometry>> {
-        xs.par_iter().map(workcell::plan_geometry).collect()
+    // Plan geometry of every plan (from its pen path), workcell score of every test and
+    // faulty plan.
+    let geo_of = |es: &[Embedded]| -> Vec<Option<PlanGeometry>> {
+        es.iter().map(Embedded::geometry).collect()
     };
     let cell = Workcell::default();
     let wc_of = |xs: &[Resampled]| -> Vec<f32> {
@@ -438,7 +445,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             .map(|x| workcell::inspect(&cell, x).map_or(f32::INFINITY, |i| i.score))
             .collect()
     };
-    let (cgeo, tgeo, fgeo) = (geo_of(&cpool.xs), geo_of(&pool.xs), geo_of(&fxs));
+    let (cgeo, tgeo, fgeo) = (geo_of(&ec), geo_of(&et), geo_of(&ef));
     let (twc, fwc) = (wc_of(&pool.xs), wc_of(&fxs));
     let scales = {
         let groups: Vec<Vec<PlanGeometry>> = crate::calibrate::by_class(&cpool.labels)
@@ -451,9 +458,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         let s = Embedder::load(p).with_context(|| format!("loading {}", p.display()))?;
         methods.push((
             Method::Siamese,
-            embed(&s, &cpool.xs)?,
-            embed(&s, &pool.xs)?,
-            embed(&s, &fxs)?,
+            vectors(&embed(&s, &cpool.xs)?),
+            vectors(&embed(&s, &pool.xs)?),
+            vectors(&embed(&s, &fxs)?),
         ));
     }
     {

@@ -5,14 +5,17 @@
 //! A check has two stages so that a micro-batch can share one forward pass while each plan
 //! is still decided against the bank as it stands when its turn comes: [`prepare`] (or
 //! [`prepare_batch`]) runs everything that depends only on the plan, [`decide`] everything
-//! that depends on the bank. [`check`] is both for one plan.
+//! that depends on the bank. [`check`] is both for one plan. Plans that are resampled
+//! already (the lab's data sets) enter at the embedding stage ([`embed_resampled`]); their
+//! plan geometry comes from the same pen path ([`Embedded::geometry`]).
 
-use guardian_shared::trajectory::{InvalidTrajectory, STEPS, Waypoint};
+use guardian_shared::trajectory::{InvalidTrajectory, Resampled, STEPS, Waypoint};
 use guardian_shared::workcell::{Workcell, WorkcellViolation};
 
 use crate::bank::{ClassBank, Decision};
 use crate::embedder::{EmbedError, Embedder, Embedding};
 use crate::features::PenPoint;
+use crate::geometry::PlanGeometry;
 use crate::workcell::{self, Inspection};
 
 /// A plan after the stages that do not depend on the bank.
@@ -33,6 +36,13 @@ pub struct Embedded {
     pub embedding: Embedding,
     /// The pen path of the resampled plan.
     pub path: [PenPoint; STEPS],
+}
+
+impl Embedded {
+    /// The plan geometry of the pen path (`None` if the pen never touches the canvas).
+    pub fn geometry(&self) -> Option<PlanGeometry> {
+        workcell::plan_geometry_of_path(&self.path)
+    }
 }
 
 /// The outcome of one check.
@@ -69,6 +79,19 @@ pub fn prepare(
     Ok(Prepared::Embedded(Box::new(Embedded { embedding, path })))
 }
 
+/// The embedding stage alone, for plans that are already resampled (the lab's data sets hold
+/// resampled plans, so there is nothing to inspect first): `xs` in one forward pass, each
+/// with the pen path its features came from.
+pub fn embed_resampled(embedder: &Embedder, xs: &[Resampled]) -> Result<Vec<Embedded>, EmbedError> {
+    let mut paths = vec![[[0.0f32; 3]; STEPS]; xs.len()];
+    let embeddings = embedder.embed_batch_with_pen_paths(xs, &mut paths)?;
+    Ok(embeddings
+        .into_iter()
+        .zip(paths)
+        .map(|(embedding, path)| Embedded { embedding, path })
+        .collect())
+}
+
 /// [`prepare`] for several plans, embedding the ones that pass inspection in one forward
 /// pass. If that pass fails, each plan is embedded alone, so an error belongs to the plan
 /// that caused it.
@@ -83,22 +106,19 @@ pub fn prepare_batch(
         .iter()
         .filter_map(|i| i.as_ref().ok().map(|i| i.resampled))
         .collect();
-    let mut paths = vec![[[0.0f32; 3]; STEPS]; xs.len()];
     let batch = if xs.len() >= 2 {
-        embedder.embed_batch_with_pen_paths(&xs, &mut paths).ok()
+        embed_resampled(embedder, &xs).ok()
     } else {
         None
     };
-    let mut embedded = batch.map(|es| es.into_iter().zip(paths));
+    let mut embedded = batch.map(Vec::into_iter);
     inspected
         .into_iter()
         .zip(plans)
         .map(|(i, w)| match i {
             Err(early) => Ok(early),
             Ok(_) => match embedded.as_mut().and_then(Iterator::next) {
-                Some((embedding, path)) => {
-                    Ok(Prepared::Embedded(Box::new(Embedded { embedding, path })))
-                }
+                Some(e) => Ok(Prepared::Embedded(Box::new(e))),
                 None => prepare(embedder, cell, w),
             },
         })
@@ -112,9 +132,7 @@ pub fn decide(bank: &ClassBank, prepared: &Prepared, claimed: &str, k: usize) ->
         Prepared::Invalid(inv) => PlanCheck::Invalid(*inv),
         Prepared::Workcell(v) => PlanCheck::Workcell(*v),
         Prepared::Embedded(e) => {
-            let geometry = bank
-                .geometry_calibration()
-                .and_then(|_| workcell::plan_geometry_of_path(&e.path));
+            let geometry = bank.geometry_calibration().and_then(|_| e.geometry());
             PlanCheck::Decided(bank.decide_with_geometry(
                 &e.embedding,
                 geometry.as_ref(),

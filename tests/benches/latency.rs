@@ -407,7 +407,8 @@ fn compute_breakdown(
     drawings: &Drawings,
     n: usize,
 ) -> Result<Vec<(&'static str, Vec<Duration>)>> {
-    use guardian_models::workcell::{inspect, plan_geometry_of_path};
+    use guardian_models::check::{self, Embedded, Prepared};
+    use guardian_models::workcell::inspect;
     let config = Config::from_file(&dep.write_config("event", 16)?)?;
     let engine = load_engine(&config)?;
     let (bank, _) = load_bank(&config, &engine)?;
@@ -448,14 +449,16 @@ fn compute_breakdown(
         .iter()
         .map(|w| inspect(&cell, w).map(|i| i.resampled))
         .collect::<Result<_, _>>()?;
-    let (embeddings, paths): (Vec<Vec<f32>>, Vec<_>) = resampled
+    // The check pipeline's plan-only stages: the embedding and the pen path of each check.
+    let embedded: Vec<Embedded> = waypoints
         .iter()
-        .map(|x| engine.embed_with_pen_path(x).map(|(e, p)| (e.to_vec(), p)))
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(|e| anyhow::anyhow!(e))?
-        .into_iter()
-        .unzip();
-    let geometry: Vec<_> = paths.iter().map(|p| plan_geometry_of_path(p)).collect();
+        .map(|w| match check::prepare(engine.embedder(), &cell, w) {
+            Ok(Prepared::Embedded(e)) => Ok(*e),
+            Ok(early) => bail!("a bench check stopped before the embedding: {early:?}"),
+            Err(e) => Err(anyhow::anyhow!(e)),
+        })
+        .collect::<Result<_>>()?;
+    let geometry: Vec<_> = embedded.iter().map(Embedded::geometry).collect();
     // Each stage timed over the checks in turn.
     let cycling = |f: &mut dyn FnMut(usize) -> Result<()>| {
         let mut i = 0usize;
@@ -493,7 +496,7 @@ fn compute_breakdown(
         out.push((
             "  plan geometry of that pen path",
             cycling(&mut |j| {
-                std::hint::black_box(plan_geometry_of_path(&paths[j]));
+                std::hint::black_box(embedded[j].geometry());
                 Ok(())
             })?,
         ));
@@ -502,7 +505,8 @@ fn compute_breakdown(
         "  bank decision (k nearest, geometry score)",
         cycling(&mut |j| {
             let class = &drawings.checks[j].0;
-            let d = bank.decide_with_geometry(&embeddings[j], geometry[j].as_ref(), class, k);
+            let e = &embedded[j].embedding;
+            let d = bank.decide_with_geometry(e, geometry[j].as_ref(), class, k);
             std::hint::black_box(d);
             Ok(())
         })?,
