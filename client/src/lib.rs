@@ -33,6 +33,7 @@ pub mod samples;
 
 use std::cell::Cell;
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use iceoryx2::port::listener::ListenerWaitError;
@@ -381,13 +382,8 @@ pub enum CheckError {
         message: String,
     },
     /// An iceoryx2 operation failed.
-    #[error("iceoryx2: {what}: {detail}")]
-    Transport {
-        /// What was being done.
-        what: &'static str,
-        /// The iceoryx2 error.
-        detail: String,
-    },
+    #[error(transparent)]
+    Transport(TransportError),
     /// The response violates the protocol.
     #[error("protocol violation: {detail}")]
     Protocol {
@@ -416,11 +412,33 @@ pub enum EnrollError {
     Request(#[from] CheckError),
 }
 
-fn transport<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> CheckError {
-    move |e| CheckError::Transport {
-        what,
-        detail: format!("{e:?}"),
+/// An iceoryx2 operation of a request failed: what was being done, with iceoryx2's error as
+/// the source ([`guardian_shared::ipc::Iceoryx2Error`]). It is shared behind an [`Arc`] so
+/// that [`CheckError`] stays `Clone` and `PartialEq` (callers keep and compare errors; the
+/// iceoryx2 errors themselves are neither): a value equals itself and its clones, never
+/// another failure.
+#[derive(Debug, Clone, thiserror::Error)]
+#[error(transparent)]
+pub struct TransportError(Arc<guardian_shared::ipc::Iceoryx2Error>);
+
+impl TransportError {
+    /// What was being done.
+    pub fn what(&self) -> &'static str {
+        self.0.what
     }
+}
+
+impl PartialEq for TransportError {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
+fn transport<E: std::error::Error + Send + Sync + 'static>(
+    what: &'static str,
+) -> impl FnOnce(E) -> CheckError {
+    let during = guardian_shared::ipc::Iceoryx2Error::during(what);
+    move |e| CheckError::Transport(TransportError(Arc::new(during(e))))
 }
 
 fn connect_err<E: std::error::Error + Send + Sync + 'static>(
