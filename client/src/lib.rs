@@ -857,3 +857,28 @@ fn class_info(e: &ClassEntry) -> Result<ClassInfo, CheckError> {
         calibrated: e.calibrated != 0,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A transport failure keeps iceoryx2's error as a typed source, and a `CheckError`
+    /// holding it is still `Clone` and `PartialEq`.
+    #[test]
+    fn transport_errors_keep_their_source() {
+        let cause = iceoryx2::port::client::RequestSendError::ExceedsMaxActiveRequests;
+        let e = transport("send request")(cause);
+        let CheckError::Transport(t) = &e else {
+            panic!("{e:?}");
+        };
+        assert_eq!(t.what(), "send request");
+        let source = std::error::Error::source(&e).expect("a source");
+        assert!(
+            source.is::<iceoryx2::port::client::RequestSendError>(),
+            "{source:?}"
+        );
+        assert_eq!(e.to_string(), format!("iceoryx2: send request: {source}"));
+        assert_eq!(e.clone(), e);
+        assert_ne!(transport("send request")(cause), e);
+    }
+}
