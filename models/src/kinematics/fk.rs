@@ -40,7 +40,8 @@ impl Panda {
     }
 
     /// Pen-tip position through the general chain (full frames), the reference
-    /// [`Panda::pen_tip_position`] is tested against.
+    /// [`Panda::pen_tip_position`] is tested against (feature `test-support`).
+    #[cfg(any(test, feature = "test-support"))]
     pub fn pen_tip_position_general(&self, q: &JointVector) -> Vector3<f64> {
         self.pen_tip(q).translation
     }

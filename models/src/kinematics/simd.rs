@@ -58,7 +58,7 @@ pub const POSITION_FK_TOLERANCE: f64 = 1e-12;
 /// multiplies), a signed axis permutation (no arithmetic) and the origin offset; f64, no
 /// allocation, no 4x4 or 3x3 products. It is built by [`Panda`] from the numbers of the
 /// loaded chain (URDF or built-in) and checked at construction against the general chain
-/// ([`Panda::pen_tip_position_general`]) at several joint vectors; if the origins are not
+/// ([`Panda::pen_tip`]) at several joint vectors; if the origins are not
 /// signed permutations (to 1e-12 per entry) or the check misses [`POSITION_FK_TOLERANCE`],
 /// there is no `PositionFk` and [`Panda`] uses the general chain, so another URDF cannot be
 /// silently mis-computed. The general chain stays the source of truth and serves IK and

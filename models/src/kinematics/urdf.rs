@@ -7,6 +7,7 @@ use super::{Frame, Panda};
 
 /// The robot model shipped with guardian (kinematic only).
 pub const PANDA_URDF: &str = include_str!("../../panda.urdf");
+
 /// Building a [`Panda`] from a URDF failed.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
