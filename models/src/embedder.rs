@@ -24,8 +24,10 @@ use crate::net::{Net, NetConfig};
 pub use crate::net::EMBED_DIM;
 
 /// How a pen path is computed from a resampled trajectory: [`crate::features::pen_path`], or
-/// the general-chain reference the tests compare it with.
-type PenPathFn = fn(&Resampled) -> [PenPoint; STEPS];
+/// the general-chain reference the tests compare it with. A type parameter rather than a
+/// function pointer, so the serving path calls `pen_path` directly.
+trait PenPathFn: Fn(&Resampled) -> [PenPoint; STEPS] + Copy {}
+impl<F: Fn(&Resampled) -> [PenPoint; STEPS] + Copy> PenPathFn for F {}
 /// One embedding.
 pub type Embedding = [f32; EMBED_DIM];
 
@@ -476,11 +478,11 @@ impl Embedder {
 
     /// The features come from the pen path `pen_path` computes. With `path` (as long as
     /// `xs`), the pen path of `xs[i]` is written to `path[i]`.
-    fn embed_into_with(
+    fn embed_into_with<P: PenPathFn>(
         &self,
         xs: &[Resampled],
         out: &mut [Embedding],
-        pen_path: PenPathFn,
+        pen_path: P,
         path: Option<&mut [[PenPoint; STEPS]]>,
     ) -> Result<(), EmbedError> {
         if out.len() != xs.len() {
@@ -500,12 +502,12 @@ impl Embedder {
         })
     }
 
-    fn embed_fast(
+    fn embed_fast<P: PenPathFn>(
         &self,
         xs: &[Resampled],
         out: &mut [Embedding],
         s: &mut EmbedScratch,
-        pen_path: PenPathFn,
+        pen_path: P,
         path: Option<&mut [[PenPoint; STEPS]]>,
     ) -> Result<(), EmbedError> {
         let copies = self.features_into(xs, &mut s.feats, pen_path, path);
@@ -551,11 +553,11 @@ impl Embedder {
     /// The pen path comes from `pen_path` ([`crate::features::pen_path`], or the general
     /// kinematic chain for the reference). With `path_out`, the pen path of trajectory `i` is
     /// written to `path_out[i]`.
-    fn features_into(
+    fn features_into<P: PenPathFn>(
         &self,
         xs: &[Resampled],
         feats: &mut Vec<f32>,
-        pen_path: PenPathFn,
+        pen_path: P,
         mut path_out: Option<&mut [[PenPoint; STEPS]]>,
     ) -> usize {
         let kind = self.net.config().features;
