@@ -155,10 +155,10 @@ pub fn raster(path: &[PenPoint; STEPS]) -> Vec<f32> {
             r[cell([a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])])] = 1.0;
         }
     }
-    if path.iter().filter(|q| down(q)).count() == 1 {
-        if let Some(q) = path.iter().find(|q| down(q)) {
-            r[cell([q[0], q[1]])] = 1.0;
-        }
+    // A path with a single pen-down sample is a dot.
+    let mut downs = path.iter().filter(|q| down(q));
+    if let (Some(q), None) = (downs.next(), downs.next()) {
+        r[cell([q[0], q[1]])] = 1.0;
     }
     let r = blur(&blur(&r));
     unit(r)
