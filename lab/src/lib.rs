@@ -14,6 +14,8 @@
 //! - [`faults`]: faulty-plan generators (corruptions of a genuine plan).
 //! - [`metrics`]: AUROC, ROC curve, TPR at an FPR and the pair AUC.
 //! - [`outliers`]: go / no-go metrics on faulty and genuine plans.
+//! - [`pool`]: the unlabelled drawing pool: reading, conversion, copies of labelled drawings
+//!   left out, pseudo-labels and self-supervised classes for training.
 //! - [`demo`]: enroll real drawings in a running `guardiand` and check genuine and faulty
 //!   plans through the client (`guardian-lab demo`).
 #![forbid(unsafe_code)]
@@ -28,6 +30,7 @@ pub mod metrics;
 pub mod outliers;
 pub mod path;
 pub mod plot;
+pub mod pool;
 pub mod report;
 pub mod strokes;
 pub mod train;

@@ -27,6 +27,9 @@ enum Command {
     Bank(guardian_lab::calibrate::Args),
     /// Faulty-plan detection metrics (AUROC, TPR at 1% FPR, detection, false rejects).
     Outliers(guardian_lab::outliers::Args),
+    /// Build a fold's unlabelled pool: copies of the excluded alphabets' drawings left out,
+    /// the rest converted (a dataset file).
+    Pool(guardian_lab::pool::Args),
     /// Enroll real drawings in a running guardiand, send genuine and faulty plans, print a
     /// go/no-go table (exit status 1 if any case is not as expected).
     Demo(guardian_lab::demo::Args),
@@ -46,6 +49,7 @@ fn main() -> anyhow::Result<()> {
         Command::Report(args) => guardian_lab::report::run(args),
         Command::Bank(args) => guardian_lab::calibrate::run(args),
         Command::Outliers(args) => guardian_lab::outliers::run(args),
+        Command::Pool(args) => guardian_lab::pool::run(args),
         Command::Demo(args) => guardian_lab::demo::main(args),
     }
 }

@@ -32,6 +32,7 @@ use crate::dataset::{Dataset, StrokeIndex};
 use crate::eval::{self, EpisodeSpec};
 use crate::faults::{self, Fault};
 use crate::path::PathSolver;
+use crate::pool::{self, ClusterParams, PoolMode};
 
 /// Which loss trains the network.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -137,6 +138,22 @@ pub struct TrainConfig {
     /// The split-half quantile of `classaug::SymmetryRule` (with `class_augment`).
     #[serde(default)]
     pub symmetry_quantile: f64,
+    /// How training learns from the unlabelled pool (`pool`): not at all, pseudo-labels or
+    /// self-supervised classes.
+    #[serde(default)]
+    pub pool_mode: PoolMode,
+    /// The pool file (`guardian-lab pool`; the fold's copies already left out).
+    #[serde(default)]
+    pub pool: Option<PathBuf>,
+    /// Fraction of each batch's P classes drawn from pool classes.
+    #[serde(default)]
+    pub pool_share: f64,
+    /// The embedder whose clusters of the pool are the pseudo-classes (`pseudo` mode).
+    #[serde(default)]
+    pub pseudo_model: Option<PathBuf>,
+    /// Clustering of the pseudo-labels (`pseudo` mode).
+    #[serde(default)]
+    pub pseudo_clusters: Option<ClusterParams>,
 }
 
 fn yes() -> bool {
@@ -252,6 +269,33 @@ pub struct Args {
     /// template is as similar to it as this quantile of the split-half similarities.
     #[arg(long, default_value_t = 0.1)]
     pub symmetry_quantile: f64,
+    /// Learn from the unlabelled pool: `pseudo` (clusters under `--pseudo-model` as
+    /// classes) or `ssl` (every pool drawing a class of two augmented views).
+    #[arg(long, value_enum, default_value = "none")]
+    pub pool_mode: PoolMode,
+    /// The pool file (from `guardian-lab pool`, with the fold's test and validation
+    /// alphabets excluded).
+    #[arg(long)]
+    pub pool: Option<PathBuf>,
+    /// Fraction of each batch's P classes drawn from the pool classes.
+    #[arg(long, default_value_t = 0.5)]
+    pub pool_share: f64,
+    /// The model whose embeddings of the pool are clustered into pseudo-classes; iterate by
+    /// passing the model this run trains.
+    #[arg(long)]
+    pub pseudo_model: Option<PathBuf>,
+    /// Pseudo-labels: neighbours per drawing (mutual k-nearest-neighbour links).
+    #[arg(long, default_value_t = ClusterParams::default().k)]
+    pub pseudo_k: usize,
+    /// Pseudo-labels: largest squared embedding distance of a link.
+    #[arg(long, default_value_t = ClusterParams::default().threshold)]
+    pub pseudo_threshold: f32,
+    /// Pseudo-labels: smallest cluster kept as a class.
+    #[arg(long, default_value_t = ClusterParams::default().min_size)]
+    pub pseudo_min_size: usize,
+    /// Pseudo-labels: largest cluster kept (larger ones are split, then dropped).
+    #[arg(long, default_value_t = ClusterParams::default().max_size)]
+    pub pseudo_max_size: usize,
 }
 
 impl Args {
@@ -301,6 +345,26 @@ impl Args {
             } else {
                 0.0
             },
+            // Without a pool the pool settings are recorded as off (old configurations
+            // parse to the same values, so `--resume` still matches them).
+            pool_mode: self.pool_mode,
+            pool: (self.pool_mode != PoolMode::None)
+                .then(|| self.pool.clone())
+                .flatten(),
+            pool_share: if self.pool_mode == PoolMode::None {
+                0.0
+            } else {
+                self.pool_share
+            },
+            pseudo_model: (self.pool_mode == PoolMode::Pseudo)
+                .then(|| self.pseudo_model.clone())
+                .flatten(),
+            pseudo_clusters: (self.pool_mode == PoolMode::Pseudo).then_some(ClusterParams {
+                k: self.pseudo_k,
+                threshold: self.pseudo_threshold,
+                min_size: self.pseudo_min_size,
+                max_size: self.pseudo_max_size,
+            }),
         }
     }
 }
@@ -437,6 +501,11 @@ pub struct Prepared {
     faults: Vec<Vec<[PenPoint; STEPS]>>,
     /// Time reversal among the augmentations.
     reverse_augment: bool,
+    /// Classes from here on are pool classes ([`Prepared::add_pool`]); `by_class.len()`
+    /// without a pool.
+    pool_start: usize,
+    /// Fraction of a batch's classes drawn from the pool classes.
+    pool_share: f64,
 }
 
 impl Prepared {
@@ -474,6 +543,7 @@ impl Prepared {
             Vec::new()
         };
         let faults = vec![Vec::new(); raw.len()];
+        let pool_start = by_class.len();
         Ok(Self {
             kind,
             pen,
@@ -483,7 +553,70 @@ impl Prepared {
             data_index,
             faults,
             reverse_augment: true,
+            pool_start,
+            pool_share: 0.0,
         })
+    }
+
+    /// Add classes of unlabelled pool drawings: one class per group of `pool` indices (a
+    /// drawing may repeat in a group: its members then differ only by augmentation). Pool
+    /// samples have no corrupted plans and are not class-augmented; call after
+    /// [`Prepared::make_faults`] and [`Prepared::augment_classes`]. `share` is the fraction
+    /// of each batch's classes [`Prepared::sample_pk`] draws from the pool classes. Groups
+    /// with fewer than two members are skipped. Returns the classes added.
+    pub fn add_pool(
+        &mut self,
+        pool: &Dataset,
+        groups: &[Vec<usize>],
+        share: f64,
+    ) -> Result<usize, TrainError> {
+        if self.kind == FeatureKind::Joints {
+            return Err(TrainError::Setup("pool classes need pen features".into()));
+        }
+        if !(0.0..=1.0).contains(&share) {
+            return Err(TrainError::Setup(format!(
+                "pool share {share} must be in [0, 1]"
+            )));
+        }
+        let pens: Vec<Option<[PenPoint; STEPS]>> = {
+            let mut used = vec![false; pool.len()];
+            for &i in groups.iter().flatten() {
+                if i >= pool.len() {
+                    return Err(TrainError::Setup(format!(
+                        "pool index {i} out of range ({} drawings)",
+                        pool.len()
+                    )));
+                }
+                used[i] = true;
+            }
+            (0..pool.len())
+                .into_par_iter()
+                .map(|i| used[i].then(|| features::pen_path(&pool.trajectories[i])))
+                .collect()
+        };
+        let mut added = 0;
+        for g in groups.iter().filter(|g| g.len() >= 2) {
+            let label = self.by_class.len() as u32;
+            let mut members = Vec::with_capacity(g.len());
+            for &i in g {
+                let Some(p) = pens[i] else { continue };
+                members.push(self.raw.len());
+                self.pen.push(p);
+                self.raw.push(pool.trajectories[i]);
+                self.faults.push(Vec::new());
+                self.labels.push(label);
+                self.data_index.push(i);
+            }
+            self.by_class.push(members);
+            added += 1;
+        }
+        self.pool_share = share;
+        Ok(added)
+    }
+
+    /// Number of pool classes ([`Prepared::add_pool`]).
+    pub fn pool_classes(&self) -> usize {
+        self.by_class.len() - self.pool_start
     }
 
     /// Make `variants` corrupted plans of every sample for fault-negative training: a random
@@ -514,10 +647,16 @@ impl Prepared {
             .map_err(|e| TrainError::Setup(format!("fault negatives: {e}")))?;
         let solver = PathSolver::new(&data.geometry)
             .map_err(|e| TrainError::Setup(format!("fault negatives: {e}")))?;
+        let pool_start = self.pool_start;
         let made: Vec<Vec<[PenPoint; STEPS]>> = self
             .data_index
             .par_iter()
-            .map(|&i| {
+            .zip(&self.labels)
+            .map(|(&i, &label)| {
+                // Pool samples index the pool, not `data`, and get no corrupted plans.
+                if label as usize >= pool_start {
+                    return Vec::new();
+                }
                 let Some(st) = index.strokes_of(data, i) else {
                     return Vec::new();
                 };
@@ -541,11 +680,17 @@ impl Prepared {
 
     /// Class augmentation: add the transforms of every class that `plan` keeps as classes
     /// of their own (pen paths and corrupted plans transformed; same dataset indices).
-    /// Call after [`Prepared::make_faults`]. Returns the plan.
+    /// Call after [`Prepared::make_faults`] and before [`Prepared::add_pool`] (pool classes
+    /// are not augmented). Returns the plan.
     pub fn augment_classes(&mut self, rule: SymmetryRule) -> Result<AugmentPlan, TrainError> {
         if self.kind == FeatureKind::Joints {
             return Err(TrainError::Setup(
                 "class augmentation needs pen features".into(),
+            ));
+        }
+        if self.pool_classes() > 0 {
+            return Err(TrainError::Setup(
+                "class augmentation must come before the pool classes are added".into(),
             ));
         }
         let groups: Vec<Vec<&[PenPoint; STEPS]>> = self
@@ -573,6 +718,7 @@ impl Prepared {
                 self.by_class.push(members);
             }
         }
+        self.pool_start = self.by_class.len();
         Ok(plan)
     }
 
@@ -676,12 +822,30 @@ impl Prepared {
     }
 
     /// A class-balanced batch: `p` classes, `k` samples each (fewer if a class is small).
+    /// With pool classes, `round(p * pool_share)` of the classes are pool classes and the
+    /// rest labelled ones.
     pub fn sample_pk(&self, p: usize, k: usize, rng: &mut StdRng) -> (Vec<usize>, Vec<u32>) {
-        let mut classes: Vec<usize> = (0..self.by_class.len()).collect();
-        classes.shuffle(rng);
+        let classes: Vec<usize> = if self.pool_classes() == 0 {
+            let mut classes: Vec<usize> = (0..self.by_class.len()).collect();
+            classes.shuffle(rng);
+            classes.truncate(p);
+            classes
+        } else {
+            let n_pool = ((p as f64 * self.pool_share).round() as usize).min(self.pool_classes());
+            let n_lab = (p - n_pool).min(self.pool_start);
+            let mut classes: Vec<usize> = rand::seq::index::sample(rng, self.pool_start, n_lab)
+                .into_iter()
+                .collect();
+            classes.extend(
+                rand::seq::index::sample(rng, self.pool_classes(), n_pool)
+                    .into_iter()
+                    .map(|c| self.pool_start + c),
+            );
+            classes
+        };
         let mut idx = Vec::with_capacity(p * k);
         let mut labels = Vec::with_capacity(p * k);
-        for &c in classes.iter().take(p) {
+        for &c in &classes {
             let mut members = self.by_class[c].clone();
             members.shuffle(rng);
             for &m in members.iter().take(k) {
@@ -1019,6 +1183,9 @@ pub fn train(
         }
         write_json(&out.join("class-augment.json"), &plan)?;
     }
+    if cfg.pool_mode != PoolMode::None {
+        add_pool_classes(&mut train_set, data, cfg, out, quiet)?;
+    }
     if train_set.classes() < cfg.p_classes.min(2) || val_set.classes() < 5 {
         return Err(TrainError::Setup(format!(
             "too few classes: train {}, val {} (val needs >= 5)",
@@ -1251,6 +1418,65 @@ pub fn train(
         model_version: best.version().to_string(),
         stopped,
     })
+}
+
+/// Load the pool of `cfg`, make its classes (pseudo-labels or SSL) and add them to
+/// `train_set`; the pseudo-classes and their statistics go to `out/pool-classes.json`.
+fn add_pool_classes(
+    train_set: &mut Prepared,
+    data: &Dataset,
+    cfg: &TrainConfig,
+    out: &Path,
+    quiet: bool,
+) -> Result<(), TrainError> {
+    let path = cfg
+        .pool
+        .as_deref()
+        .ok_or_else(|| TrainError::Setup("a pool mode needs --pool".into()))?;
+    let t0 = Instant::now();
+    let pool_data = Dataset::load(path)
+        .map_err(|e| TrainError::Setup(format!("pool {}: {e}", path.display())))?;
+    if pool_data.geometry != data.geometry {
+        return Err(TrainError::Setup(format!(
+            "pool {} was made with another geometry than the dataset",
+            path.display()
+        )));
+    }
+    let model = match (cfg.pool_mode, &cfg.pseudo_model) {
+        (PoolMode::Pseudo, Some(m)) => Some(Embedder::load(m)?),
+        (PoolMode::Pseudo, None) => {
+            return Err(TrainError::Setup(
+                "pseudo-labels need --pseudo-model".into(),
+            ));
+        }
+        _ => None,
+    };
+    let params = cfg.pseudo_clusters.unwrap_or_default();
+    let (groups, stats) = pool::training_groups(&pool_data, cfg.pool_mode, model.as_ref(), &params)
+        .map_err(|e| TrainError::Setup(format!("pool classes: {e}")))?;
+    let added = train_set.add_pool(&pool_data, &groups, cfg.pool_share)?;
+    if added == 0 {
+        return Err(TrainError::Setup("the pool gave no class".into()));
+    }
+    if !quiet {
+        eprintln!(
+            "pool: {added} classes ({} drawings) from {} pool drawings in {:.1} s{}",
+            groups.iter().map(Vec::len).sum::<usize>(),
+            pool_data.len(),
+            t0.elapsed().as_secs_f64(),
+            stats
+                .as_ref()
+                .map(|s| format!("; clusters {}", serde_json::json!(s)))
+                .unwrap_or_default()
+        );
+    }
+    if cfg.pool_mode == PoolMode::Pseudo {
+        write_json(
+            &out.join("pool-classes.json"),
+            &serde_json::json!({"stats": stats, "params": params, "groups": groups}),
+        )?;
+    }
+    Ok(())
 }
 
 /// Embeddings of every sample of a prepared set (no augmentation), in order.

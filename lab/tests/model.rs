@@ -96,6 +96,11 @@ fn tiny_config() -> TrainConfig {
         fault_kinds: Vec::new(),
         class_augment: false,
         symmetry_quantile: 0.0,
+        pool_mode: Default::default(),
+        pool: None,
+        pool_share: 0.0,
+        pseudo_model: None,
+        pseudo_clusters: None,
     }
 }
 
