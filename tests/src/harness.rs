@@ -114,10 +114,26 @@ pub fn bin() -> &'static Path {
     BIN.get_or_init(|| guardiand_bin().unwrap_or_else(|e| panic!("{e:#}")))
 }
 
+/// The `guardianctl` binary under test: `$GUARDIANCTL_BIN` if set, otherwise built like
+/// [`bin`].
+pub fn ctl_bin() -> &'static Path {
+    static BIN: OnceLock<PathBuf> = OnceLock::new();
+    BIN.get_or_init(|| {
+        built_bin("guardian-ctl", "guardianctl", "GUARDIANCTL_BIN")
+            .unwrap_or_else(|e| panic!("{e:#}"))
+    })
+}
+
 /// Locate or build `guardiand` for the current profile (see [`bin`]).
 pub fn guardiand_bin() -> anyhow::Result<PathBuf> {
+    built_bin("guardian-daemon", "guardiand", "GUARDIAND_BIN")
+}
+
+/// `$env` if set, else binary `name` of `package` built with the running executable's
+/// profile.
+fn built_bin(package: &str, name: &str, env: &str) -> anyhow::Result<PathBuf> {
     use anyhow::{Context, bail};
-    if let Some(p) = std::env::var_os("GUARDIAND_BIN") {
+    if let Some(p) = std::env::var_os(env) {
         return Ok(p.into());
     }
     let exe = std::env::current_exe()?;
@@ -132,15 +148,15 @@ pub fn guardiand_bin() -> anyhow::Result<PathBuf> {
     };
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     let status = Command::new(cargo)
-        .args(["build", "-q", "-p", "guardian-daemon", "--bin", "guardiand"])
+        .args(["build", "-q", "-p", package, "--bin", name])
         .args(["--profile", &profile])
         .current_dir(workspace_root())
         .status()
-        .context("running cargo build for guardiand")?;
+        .with_context(|| format!("running cargo build for {name}"))?;
     if !status.success() {
-        bail!("building guardiand failed");
+        bail!("building {name} failed");
     }
-    let bin = profile_dir.join("guardiand");
+    let bin = profile_dir.join(name);
     if !bin.exists() {
         bail!("{} not found after the build", bin.display());
     }

@@ -48,6 +48,14 @@ pub enum LoadBankError {
     /// The body is not a valid bank document.
     #[error("class bank body does not parse: {0}")]
     Parse(#[from] serde_json::Error),
+    /// The journal next to the snapshot is damaged (not just a torn last record).
+    #[error("class bank journal {path} is damaged: {detail}")]
+    Journal {
+        /// The journal file.
+        path: PathBuf,
+        /// What is wrong.
+        detail: String,
+    },
     /// The document parses but is inconsistent.
     #[error("class bank is inconsistent: {detail}")]
     Inconsistent {
@@ -122,7 +130,7 @@ impl ClassBank {
         Ok(bank)
     }
 
-    fn check(&self) -> Result<(), LoadBankError> {
+    pub(super) fn check(&self) -> Result<(), LoadBankError> {
         let inconsistent = |detail: String| Err(LoadBankError::Inconsistent { detail });
         if !self.default_threshold.is_finite() {
             return inconsistent("default threshold is not finite".into());
