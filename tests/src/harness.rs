@@ -119,19 +119,18 @@ pub fn bin() -> &'static Path {
 pub fn ctl_bin() -> &'static Path {
     static BIN: OnceLock<PathBuf> = OnceLock::new();
     BIN.get_or_init(|| {
-        built_bin("guardian-ctl", "guardianctl", "GUARDIANCTL_BIN")
-            .unwrap_or_else(|e| panic!("{e:#}"))
+        built_bin("guardianctl", "GUARDIANCTL_BIN").unwrap_or_else(|e| panic!("{e:#}"))
     })
 }
 
 /// Locate or build `guardiand` for the current profile (see [`bin`]).
 pub fn guardiand_bin() -> anyhow::Result<PathBuf> {
-    built_bin("guardian-daemon", "guardiand", "GUARDIAND_BIN")
+    built_bin("guardiand", "GUARDIAND_BIN")
 }
 
-/// `$env` if set, else binary `name` of `package` built with the running executable's
-/// profile.
-fn built_bin(package: &str, name: &str, env: &str) -> anyhow::Result<PathBuf> {
+/// `$env` if set, else binary `name` (`guardiand` or `guardianctl`) built with the running
+/// executable's profile, together with the other one.
+fn built_bin(name: &str, env: &str) -> anyhow::Result<PathBuf> {
     use anyhow::{Context, bail};
     if let Some(p) = std::env::var_os(env) {
         return Ok(p.into());
@@ -147,8 +146,17 @@ fn built_bin(package: &str, name: &str, env: &str) -> anyhow::Result<PathBuf> {
         Some(other) => other.to_string(),
     };
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+    // Both binaries in one build, so their dependencies are built once with one feature set.
     let status = Command::new(cargo)
-        .args(["build", "-q", "-p", package, "--bin", name])
+        .args([
+            "build",
+            "-q",
+            "-p",
+            "guardian-daemon",
+            "-p",
+            "guardian-ctl",
+            "--bins",
+        ])
         .args(["--profile", &profile])
         .current_dir(workspace_root())
         .status()
