@@ -389,7 +389,7 @@ impl Screen {
                 .append_change(&self.bank_path, name)
                 .map(|len| self.journal_bytes = len)
         } else {
-            self.bank.compact(&self.bank_path).map(|()| {
+            self.bank.save(&self.bank_path).map(|()| {
                 self.journal_bytes = 0;
                 self.journal_ok = true;
             })
@@ -418,7 +418,7 @@ impl Screen {
         }
         self.compact_pending = false;
         let start = std::time::Instant::now();
-        match self.bank.compact(&self.bank_path) {
+        match self.bank.save(&self.bank_path) {
             Ok(()) => {
                 tracing::info!(
                     journal_bytes = self.journal_bytes,
@@ -445,7 +445,7 @@ impl Screen {
         if self.bank.generation() == 0 && !self.bank_path.exists() {
             return Ok(());
         }
-        self.bank.compact(&self.bank_path)?;
+        self.bank.save(&self.bank_path)?;
         self.journal_bytes = 0;
         self.journal_ok = true;
         Ok(())

@@ -1,8 +1,9 @@
 //! The bank's append-only journal: one checksummed record per enroll or forget, appended
 //! next to the snapshot (`bank.gcb` → `bank.gcb.journal`) and fsynced before the change is
 //! acknowledged, so persisting a change costs O(the changed class), not O(the bank).
-//! Compaction writes the snapshot atomically ([`ClassBank::save`]) and then removes the
-//! journal.
+//! Compaction is [`ClassBank::save`]: it writes the snapshot atomically and then removes the
+//! journal, and [`ClassBank::load`] replays the journal, so whoever loads, changes and saves
+//! a bank with this API sees and keeps every journalled change.
 //!
 //! Format: the line `guardian-bank-journal 1\n`, then one line per record,
 //! `sha256:<64 hex> <json>\n`, the checksum over the JSON bytes. A record holds the bank
@@ -63,7 +64,7 @@ pub struct Replay {
 impl ClassBank {
     /// Load the snapshot at `path` and replay its journal, if there is one.
     pub fn load_with_journal(path: &Path) -> Result<(Self, Replay), LoadBankError> {
-        let mut bank = Self::load(path)?;
+        let mut bank = Self::load_snapshot(path)?;
         let jpath = journal_path(path);
         let bytes = match fs::read(&jpath) {
             Ok(b) => b,
@@ -204,22 +205,6 @@ impl ClassBank {
         }
         self.generation = generation;
     }
-
-    /// Compact: save the snapshot atomically ([`ClassBank::save`]), then remove the journal
-    /// (its records are all in the snapshot now). A crash in between leaves records the
-    /// snapshot holds, which replay skips.
-    pub fn compact(&self, path: &Path) -> Result<(), SaveBankError> {
-        self.save(path)?;
-        let jpath = journal_path(path);
-        match fs::remove_file(&jpath) {
-            Ok(()) => Ok(()),
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
-            Err(source) => Err(SaveBankError::Io {
-                path: jpath,
-                source,
-            }),
-        }
-    }
 }
 
 fn parse_record(line: &[u8]) -> Option<Record> {
@@ -296,7 +281,7 @@ mod tests {
         // Compaction folds the journal into the snapshot and removes it; records the
         // snapshot already holds are skipped when a stale journal is left behind.
         fs::write(journal_path(&path), &journal).unwrap();
-        b.compact(&path).unwrap();
+        b.save(&path).unwrap();
         assert!(!journal_path(&path).exists());
         fs::write(journal_path(&path), &journal).unwrap();
         let (l, r) = ClassBank::load_with_journal(&path).unwrap();
