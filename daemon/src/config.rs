@@ -308,17 +308,7 @@ impl Config {
         if let Some(d) = &self.state_dir {
             return d.clone();
         }
-        match std::env::var_os("STATE_DIRECTORY").filter(|v| !v.is_empty()) {
-            // systemd may pass several colon-separated directories; the first is ours.
-            Some(v) => PathBuf::from(
-                v.to_string_lossy()
-                    .split(':')
-                    .next()
-                    .unwrap_or_default()
-                    .to_owned(),
-            ),
-            None => PathBuf::from("guardiand-state"),
-        }
+        systemd_dir("STATE_DIRECTORY").unwrap_or_else(|| PathBuf::from("guardiand-state"))
     }
 
     /// The persisted bank file.
@@ -340,18 +330,19 @@ impl Config {
         if let Some(p) = &self.admin.socket {
             return p.clone();
         }
-        match std::env::var_os("RUNTIME_DIRECTORY").filter(|v| !v.is_empty()) {
-            Some(v) => PathBuf::from(
-                v.to_string_lossy()
-                    .split(':')
-                    .next()
-                    .unwrap_or_default()
-                    .to_owned(),
-            )
-            .join(ADMIN_SOCKET_FILE),
-            None => self.state_dir().join(ADMIN_SOCKET_FILE),
-        }
+        systemd_dir("RUNTIME_DIRECTORY")
+            .unwrap_or_else(|| self.state_dir())
+            .join(ADMIN_SOCKET_FILE)
     }
+}
+
+/// The directory systemd passes in `$var` (`StateDirectory=` etc.); it may pass several,
+/// colon-separated, and the first is ours.
+fn systemd_dir(var: &str) -> Option<PathBuf> {
+    let v = std::env::var_os(var).filter(|v| !v.is_empty())?;
+    Some(PathBuf::from(
+        v.to_string_lossy().split(':').next().unwrap_or_default(),
+    ))
 }
 
 /// `rel` in the working directory if it exists there, else in the source checkout.

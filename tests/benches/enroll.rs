@@ -17,27 +17,11 @@ use std::time::{Duration, Instant};
 use anyhow::{Result, bail};
 use guardian_client::AdminClient;
 use guardian_models::bank::{ClassBank, journal_path};
-use guardian_models::embedder::Embedder;
-use guardian_tests::harness::{Daemon, Setup, traj};
+use guardian_tests::harness::{Daemon, Setup, random_bank, traj};
 
 /// A bank for `model` with `n` classes of 5 pseudo-random embeddings each.
 fn bank_of(model: &Path, n: usize, seed: u64) -> ClassBank {
-    let embedder = Embedder::load(model).expect("load model");
-    let dim = embedder.config().embed_dim;
-    let mut bank = ClassBank::new(dim, embedder.version(), 1e9);
-    let mut x = seed | 1;
-    let mut next = || {
-        x ^= x << 13;
-        x ^= x >> 7;
-        x ^= x << 17;
-        (x >> 40) as f32 / (1u64 << 24) as f32 - 0.5
-    };
-    for c in 0..n {
-        let examples: Vec<Vec<f32>> = (0..5).map(|_| (0..dim).map(|_| next()).collect()).collect();
-        bank.enroll(&format!("base{c:04}"), &examples)
-            .expect("enroll");
-    }
-    bank
+    random_bank(model, n, 5, seed)
 }
 
 fn median(mut v: Vec<f64>) -> f64 {

@@ -367,6 +367,62 @@ pub fn run_to_exit(setup: &Setup) -> std::process::Output {
 
 pub use guardian_client::samples::task;
 
+/// A bank for `model` with `classes` classes of `examples` pseudo-random embeddings each
+/// (xorshift from `seed`): big banks for persistence tests and benchmarks.
+pub fn random_bank(
+    model: &Path,
+    classes: usize,
+    examples: usize,
+    seed: u64,
+) -> guardian_models::bank::ClassBank {
+    let embedder = Embedder::load(model).expect("load model");
+    let dim = embedder.config().embed_dim;
+    let mut bank = guardian_models::bank::ClassBank::new(dim, embedder.version(), 1e9);
+    let mut x = seed | 1;
+    let mut next = || {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        (x >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+    };
+    for c in 0..classes {
+        let e: Vec<Vec<f32>> = (0..examples)
+            .map(|_| (0..dim).map(|_| next()).collect())
+            .collect();
+        bank.enroll(&format!("base{c:04}"), &e).expect("enroll");
+    }
+    bank
+}
+
+/// The uid and gid of the second user the access tests switch to (nobody).
+pub const NOBODY: u32 = 65534;
+
+/// Run the `#[ignore]`d test `child` of the running test executable as uid/gid [`NOBODY`]
+/// (through `setpriv`; needs root), with `env` set. The executable is copied to a directory
+/// that user can read, since the test's own path may not be.
+pub fn run_as_nobody(child: &str, env: &[(&str, &std::ffi::OsStr)]) -> std::process::Output {
+    use std::os::unix::fs::PermissionsExt;
+    let bin_dir = tempfile::tempdir().expect("tempdir");
+    std::fs::set_permissions(bin_dir.path(), std::fs::Permissions::from_mode(0o755))
+        .expect("chmod");
+    let exe = bin_dir.path().join("second-uid-child");
+    std::fs::copy(std::env::current_exe().expect("current exe"), &exe).expect("copy exe");
+    std::fs::set_permissions(&exe, std::fs::Permissions::from_mode(0o755)).expect("chmod");
+    let mut cmd = Command::new("setpriv");
+    cmd.args([
+        &format!("--reuid={NOBODY}"),
+        &format!("--regid={NOBODY}"),
+        "--clear-groups",
+        "--",
+    ])
+    .arg(&exe)
+    .args(["--exact", child, "--ignored", "--nocapture"]);
+    for (k, v) in env {
+        cmd.env(k, v);
+    }
+    cmd.output().expect("run setpriv")
+}
+
 pub fn traj(class: u32, drawer: u32) -> Trajectory {
     Trajectory::from_waypoints(&task(class, drawer))
 }

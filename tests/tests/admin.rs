@@ -16,7 +16,6 @@ use guardian_client::{AdminClient, CheckError, Decision, EnrollError, LimitKind,
 use guardian_models::bank::{ClassBank, journal_path};
 use guardian_tests::harness::{self, Daemon, Setup, traj};
 
-const NOBODY: u32 = 65534;
 const CHILD: &str = "GUARDIAN_ADMIN_CHILD_SOCKET";
 
 fn admin_socket(s: &Setup) -> PathBuf {
@@ -225,28 +224,8 @@ fn a_caller_not_in_the_admin_list_is_refused_by_the_admin_socket() {
         .expect("root enrolls");
     let before = persisted(&s);
 
-    let bin_dir = tempfile::tempdir().unwrap();
-    std::fs::set_permissions(bin_dir.path(), std::fs::Permissions::from_mode(0o755)).unwrap();
-    let exe = bin_dir.path().join("admin-child");
-    std::fs::copy(std::env::current_exe().unwrap(), &exe).unwrap();
-    std::fs::set_permissions(&exe, std::fs::Permissions::from_mode(0o755)).unwrap();
-    let out = Command::new("setpriv")
-        .args([
-            &format!("--reuid={NOBODY}"),
-            &format!("--regid={NOBODY}"),
-            "--clear-groups",
-            "--",
-        ])
-        .arg(&exe)
-        .args([
-            "--exact",
-            "second_uid_admin_child",
-            "--ignored",
-            "--nocapture",
-        ])
-        .env(CHILD, admin_socket(&s))
-        .output()
-        .expect("run setpriv");
+    let socket = admin_socket(&s);
+    let out = harness::run_as_nobody("second_uid_admin_child", &[(CHILD, socket.as_os_str())]);
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(
         out.status.success(),

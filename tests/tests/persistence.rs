@@ -12,7 +12,6 @@ use std::time::{Duration, Instant};
 
 use guardian_client::{CheckError, Client, Decision, EnrollError, Trajectory};
 use guardian_models::bank::{ClassBank, Replay, journal_path};
-use guardian_models::embedder::Embedder;
 use guardian_tests::harness::{self, Daemon, Setup, traj};
 
 /// Kill rounds of the SIGKILL-during-persistence test (the issue asks for >= 100).
@@ -37,22 +36,7 @@ fn temporaries(dir: &Path) -> Vec<String> {
 
 /// A bank for `model` with `n` classes of 4 pseudo-random embeddings each.
 fn big_bank(model: &Path, n: usize) -> ClassBank {
-    let embedder = Embedder::load(model).expect("load model");
-    let dim = embedder.config().embed_dim;
-    let mut bank = ClassBank::new(dim, embedder.version(), 1e9);
-    let mut x: u64 = 0x9e37_79b9_7f4a_7c15;
-    let mut next = || {
-        x ^= x << 13;
-        x ^= x >> 7;
-        x ^= x << 17;
-        (x >> 40) as f32 / (1u64 << 24) as f32 - 0.5
-    };
-    for c in 0..n {
-        let examples: Vec<Vec<f32>> = (0..4).map(|_| (0..dim).map(|_| next()).collect()).collect();
-        bank.enroll(&format!("base{c:04}"), &examples)
-            .expect("enroll");
-    }
-    bank
+    harness::random_bank(model, n, 4, 0x9e37_79b9_7f4a_7c15)
 }
 
 /// The bank as the daemon would load it: snapshot plus journal.
