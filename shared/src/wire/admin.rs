@@ -78,7 +78,7 @@ impl In<'_> {
 /// Check a frame length announced by a peer before reading the frame.
 pub fn check_request_len(len: usize) -> Result<(), FrameError> {
     if (REQUEST_HEADER_BYTES..=MAX_ADMIN_REQUEST_BYTES).contains(&len)
-        && (len - REQUEST_HEADER_BYTES) % 4 == 0
+        && (len - REQUEST_HEADER_BYTES).is_multiple_of(4)
     {
         Ok(())
     } else {
@@ -94,7 +94,7 @@ pub fn check_request_len(len: usize) -> Result<(), FrameError> {
 pub fn check_response_len(len: usize, max_entries: usize) -> Result<(), FrameError> {
     let max = RESPONSE_HEADER_BYTES + max_entries * CLASS_ENTRY_BYTES;
     if (RESPONSE_HEADER_BYTES..=max).contains(&len)
-        && (len - RESPONSE_HEADER_BYTES) % CLASS_ENTRY_BYTES == 0
+        && (len - RESPONSE_HEADER_BYTES).is_multiple_of(CLASS_ENTRY_BYTES)
     {
         Ok(())
     } else {
@@ -132,16 +132,16 @@ pub fn encode_request(h: &RequestHeader, payload: &[f32]) -> Vec<u8> {
 pub fn decode_request(body: &[u8]) -> Result<(RequestHeader, Vec<f32>), FrameError> {
     check_request_len(body.len())?;
     let mut i = In(body);
-    let mut h = RequestHeader::default();
-    h.request_id = i.u64();
-    h.op = i.u32();
-    h.channels = i.u32();
-    h.examples = i.u32();
-    h.reserved = i.u32();
-    for w in h.waypoints.iter_mut() {
-        *w = i.u32();
-    }
-    h.class_name = i.take::<NAME_BYTES>();
+    // Fields are read in declaration order (struct expressions evaluate in source order).
+    let h = RequestHeader {
+        request_id: i.u64(),
+        op: i.u32(),
+        channels: i.u32(),
+        examples: i.u32(),
+        reserved: i.u32(),
+        waypoints: std::array::from_fn(|_| i.u32()),
+        class_name: i.take::<NAME_BYTES>(),
+    };
     let payload = body[REQUEST_HEADER_BYTES..]
         .chunks_exact(4)
         .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
@@ -218,42 +218,43 @@ pub fn decode_response(
 ) -> Result<(ResponseHeader, Vec<ClassEntry>), FrameError> {
     check_response_len(body.len(), max_entries)?;
     let mut i = In(body);
-    let mut r = ResponseHeader::default();
-    r.request_id = i.u64();
-    r.bank_version = i.u64();
-    r.uptime_ms = i.u64();
-    r.requests = i.u64();
-    r.errors = i.u64();
-    r.go = i.u64();
-    r.no_go = i.u64();
-    r.op = i.u32();
-    r.status = i.u32();
-    r.verdict = i.u32();
-    r.reason = i.u32();
-    r.invalid_kind = i.u32();
-    r.invalid_index = i.u32();
-    r.invalid_example = i.u32();
-    r.class_count = i.u32();
-    r.claimed_distance = i.f32();
-    r.threshold = i.f32();
-    r.margin = i.f32();
-    r.gap = i.f32();
-    r.latency_p50_us = i.f32();
-    r.latency_p90_us = i.f32();
-    r.latency_p99_us = i.f32();
-    r.latency_max_us = i.f32();
-    r.model_version = i.take::<NAME_BYTES>();
-    r.message = i.take::<MESSAGE_BYTES>();
-    r.class_name = i.take::<NAME_BYTES>();
-    r.workcell_kind = i.u32();
-    r.workcell_index = i.u32();
-    r.geometry_score = i.f32();
-    r.geometry_threshold = i.f32();
-    r.geometry_feature = i.u32();
-    r.limit_kind = i.u32();
-    r.limit_max = i.u64();
-    r.limit_requested = i.u64();
-    r.reserved = i.take::<24>();
+    let r = ResponseHeader {
+        request_id: i.u64(),
+        bank_version: i.u64(),
+        uptime_ms: i.u64(),
+        requests: i.u64(),
+        errors: i.u64(),
+        go: i.u64(),
+        no_go: i.u64(),
+        op: i.u32(),
+        status: i.u32(),
+        verdict: i.u32(),
+        reason: i.u32(),
+        invalid_kind: i.u32(),
+        invalid_index: i.u32(),
+        invalid_example: i.u32(),
+        class_count: i.u32(),
+        claimed_distance: i.f32(),
+        threshold: i.f32(),
+        margin: i.f32(),
+        gap: i.f32(),
+        latency_p50_us: i.f32(),
+        latency_p90_us: i.f32(),
+        latency_p99_us: i.f32(),
+        latency_max_us: i.f32(),
+        model_version: i.take::<NAME_BYTES>(),
+        message: i.take::<MESSAGE_BYTES>(),
+        class_name: i.take::<NAME_BYTES>(),
+        workcell_kind: i.u32(),
+        workcell_index: i.u32(),
+        geometry_score: i.f32(),
+        geometry_threshold: i.f32(),
+        geometry_feature: i.u32(),
+        limit_kind: i.u32(),
+        limit_max: i.u64(),
+        limit_requested: i.u64(),
+        reserved: i.take::<24>(),
+    };
     let mut entries = Vec::with_capacity((body.len() - RESPONSE_HEADER_BYTES) / CLASS_ENTRY_BYTES);
     while !i.0.is_empty() {
         entries.push(ClassEntry {
