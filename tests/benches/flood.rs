@@ -83,16 +83,22 @@ fn flood(s: &Setup, kind: Flood, stop: Arc<AtomicBool>, answered: Arc<AtomicU64>
     let mut pending: Vec<_> = (0..4)
         .map(|_| {
             id += 1;
-            send(id)
+            Some(send(id))
         })
         .collect();
     while !stop.load(Ordering::Relaxed) {
         let mut progressed = false;
-        for p in pending.iter_mut() {
-            if let Ok(Some(_)) = p.receive() {
+        for slot in pending.iter_mut() {
+            // The response and its pending request are dropped before the next send, so at
+            // most 4 requests are active.
+            let answered_now = slot
+                .as_ref()
+                .is_some_and(|p| matches!(p.receive(), Ok(Some(_))));
+            if answered_now {
+                *slot = None;
                 answered.fetch_add(1, Ordering::Relaxed);
                 id += 1;
-                *p = send(id);
+                *slot = Some(send(id));
                 progressed = true;
             }
         }
