@@ -94,9 +94,10 @@ state=$(key state-dir)
 root_path=$(key root-path)
 [ "$(sed -n 's/^StateDirectory=//p' "$unit")" = "${state#/var/lib/}" ] || fail "StateDirectory= does not match state-dir = $state"
 [ "$(sed -n 's/^RuntimeDirectory=//p' "$unit")" = "$(basename "$(dirname "$root_path")")" ] || fail "RuntimeDirectory= does not hold root-path = $root_path"
-for d in "$state" "$(dirname "$root_path")"; do
-  [ "$(stat -c '%U:%G %a' "$d")" = "$user:$user 700" ] || fail "$d is $(stat -c '%U:%G %a' "$d"), not $user:$user 700"
+for d in "$state:700" "$(dirname "$root_path"):711"; do
+  [ "$(stat -c '%U:%G %a' "${d%:*}")" = "$user:$user ${d#*:}" ] || fail "${d%:*} is $(stat -c '%U:%G %a' "${d%:*}"), not $user:$user ${d#*:}"
 done
+grep -q '^separation = true$' "$conf" || fail "the installed config does not turn admin separation on"
 echo "state-dir: $state, iceoryx2 root-path: $root_path, user: $(getent passwd "$user")"
 
 as_user() { setpriv --reuid="$user" --regid="$user" --init-groups env HOME="$state" "$@"; }
@@ -143,7 +144,13 @@ for e in 1 2 3; do
     } }' > "$tmp/example$e.csv"
 done
 chmod 644 "$tmp"/example*.csv
-ctl enroll deb-test-class "$tmp"/example{1,2,3}.csv
+# Admin separation is on: the planners' user is refused, root enrolls through the admin socket.
+if ctl enroll deb-test-class "$tmp"/example{1,2,3}.csv 2> "$tmp/refused.err"; then
+  fail "the guardian user (a planner) could enroll"
+fi
+grep -q "not permitted" "$tmp/refused.err" || { cat "$tmp/refused.err"; fail "the planner's enroll was not refused as not permitted"; }
+echo "planner enroll refused: $(grep -m1 "not permitted" "$tmp/refused.err")"
+/usr/bin/guardianctl enroll deb-test-class "$tmp"/example{1,2,3}.csv || fail "root could not enroll through the admin socket"
 ctl classes | grep -q deb-test-class || fail "the enrolled class is not listed"
 kill -TERM "$daemon_pid"
 rc=0; wait "$daemon_pid" || rc=$?

@@ -23,8 +23,8 @@ echo "systemd-sysusers: ok ($(grep '^guardian:' "$tmp/root/etc/passwd"))"
 if [ "$(id -u)" = 0 ]; then
   systemd-tmpfiles --root="$tmp/root" --create - < systemd/tmpfiles.d/guardian.conf
   uid=$(awk -F: '$1 == "guardian" { print $3 ":" $4 }' "$tmp/root/etc/passwd")
-  for d in var/lib/guardian run/guardian; do
-    test "$(stat -c '%u:%g %a' "$tmp/root/$d")" = "$uid 700" || { echo "tmpfiles: /$d is not guardian's, 0700" >&2; exit 1; }
+  for d in var/lib/guardian:700 run/guardian:711; do
+    test "$(stat -c '%u:%g %a' "$tmp/root/${d%:*}")" = "$uid ${d#*:}" || { echo "tmpfiles: /${d%:*} is not guardian's, ${d#*:}" >&2; exit 1; }
   done
-  echo "systemd-tmpfiles: ok (/var/lib/guardian, /run/guardian)"
+  echo "systemd-tmpfiles: ok (/var/lib/guardian 0700, /run/guardian 0711)"
 fi

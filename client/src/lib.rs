@@ -31,6 +31,9 @@
 #[doc(hidden)]
 pub mod samples;
 
+mod admin;
+pub use admin::AdminClient;
+
 use std::cell::Cell;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -47,6 +50,7 @@ use guardian_shared::wire::{
     self, CheckVerdict, ClassEntry, ClassNameError, Failure, MAX_EXAMPLES, NoGo, Op, ProtocolError,
     RequestHeader, ResponseHeader,
 };
+pub use guardian_shared::wire::{DEFAULT_ADMIN_SOCKET, Limit, LimitKind};
 pub use guardian_shared::workcell::{GeometryFeature, WorkcellKind};
 
 /// How to reach the daemon.
@@ -390,6 +394,32 @@ pub enum CheckError {
         /// What was wrong.
         detail: String,
     },
+    /// The enroll would take the bank past a configured limit; nothing changed.
+    #[error("{} limit of {} reached (the enroll needs {}): {message}", .limit.kind.key(), .limit.max, .limit.requested)]
+    LimitExceeded {
+        /// Which limit, its value and what the enroll asked for.
+        limit: Limit,
+        /// The daemon's explanation.
+        message: String,
+    },
+    /// The daemon does not permit this operation here: enroll and forget on the planners'
+    /// service under admin separation (use the admin socket, [`AdminClient`]), or a caller
+    /// that is not in the admin list.
+    #[error("not permitted: {message}")]
+    NotPermitted {
+        /// The daemon's explanation.
+        message: String,
+    },
+    /// The admin socket could not be reached or broke off.
+    #[error("admin socket {}: {detail}", .path.display())]
+    AdminSocket {
+        /// The socket.
+        path: PathBuf,
+        /// The I/O error's kind.
+        kind: std::io::ErrorKind,
+        /// What was being done and the error.
+        detail: String,
+    },
 }
 
 /// [`Client::enroll`] failed.
@@ -728,40 +758,9 @@ impl Client {
     /// Add `examples` (1..=[`MAX_EXAMPLES`]) to `class`, creating it if new. No retraining:
     /// the daemon embeds them, updates the prototype and persists the bank before answering.
     pub fn enroll(&self, class: &str, examples: &[Trajectory]) -> Result<ClassInfo, EnrollError> {
-        if examples.is_empty() {
-            return Err(EnrollError::NoExamples);
-        }
-        if examples.len() > MAX_EXAMPLES {
-            return Err(EnrollError::TooManyExamples {
-                got: examples.len(),
-                max: MAX_EXAMPLES,
-            });
-        }
-        let channels = examples[0].channels();
-        let lens: Vec<usize> = examples.iter().map(Trajectory::len).collect();
-        let h = RequestHeader::encode(Op::Enroll, Some(class), channels, &lens)
-            .map_err(CheckError::from)?;
-        let mut payload = Vec::new();
-        for (i, t) in examples.iter().enumerate() {
-            if t.channels() != channels {
-                return Err(CheckError::InvalidTrajectory {
-                    kind: InvalidKind::WrongChannelCount,
-                    index: u32::try_from(t.channels()).unwrap_or(u32::MAX),
-                    example: i as u32,
-                }
-                .into());
-            }
-            payload.extend_from_slice(t.as_flat());
-        }
+        let (h, payload) = enroll_request(class, examples)?;
         let (r, entries) = self.call(h, &payload)?;
-        status_ok(&r)?;
-        entries
-            .first()
-            .map(class_info)
-            .ok_or_else(|| CheckError::Protocol {
-                detail: "enroll answered without the class".into(),
-            })?
-            .map_err(Into::into)
+        enrolled(&r, &entries)
     }
 
     /// Remove `class` from the bank.
@@ -802,13 +801,62 @@ impl Client {
     }
 }
 
+/// The header and payload of an enroll of `examples` into `class` (checked here as far as
+/// the client can).
+pub(crate) fn enroll_request(
+    class: &str,
+    examples: &[Trajectory],
+) -> Result<(RequestHeader, Vec<f32>), EnrollError> {
+    if examples.is_empty() {
+        return Err(EnrollError::NoExamples);
+    }
+    if examples.len() > MAX_EXAMPLES {
+        return Err(EnrollError::TooManyExamples {
+            got: examples.len(),
+            max: MAX_EXAMPLES,
+        });
+    }
+    let channels = examples[0].channels();
+    let lens: Vec<usize> = examples.iter().map(Trajectory::len).collect();
+    let h = RequestHeader::encode(Op::Enroll, Some(class), channels, &lens)
+        .map_err(CheckError::from)?;
+    let mut payload = Vec::new();
+    for (i, t) in examples.iter().enumerate() {
+        if t.channels() != channels {
+            return Err(CheckError::InvalidTrajectory {
+                kind: InvalidKind::WrongChannelCount,
+                index: u32::try_from(t.channels()).unwrap_or(u32::MAX),
+                example: i as u32,
+            }
+            .into());
+        }
+        payload.extend_from_slice(t.as_flat());
+    }
+    Ok((h, payload))
+}
+
+/// The class an enroll answer reports.
+pub(crate) fn enrolled(
+    r: &ResponseHeader,
+    entries: &[ClassEntry],
+) -> Result<ClassInfo, EnrollError> {
+    status_ok(r)?;
+    entries
+        .first()
+        .map(class_info)
+        .ok_or_else(|| CheckError::Protocol {
+            detail: "enroll answered without the class".into(),
+        })?
+        .map_err(Into::into)
+}
+
 fn protocol(e: ProtocolError) -> CheckError {
     CheckError::Protocol {
         detail: e.to_string(),
     }
 }
 
-fn status_ok(r: &ResponseHeader) -> Result<(), CheckError> {
+pub(crate) fn status_ok(r: &ResponseHeader) -> Result<(), CheckError> {
     let Some(failure) = wire::decode_failure(r).map_err(protocol)? else {
         return Ok(());
     };
@@ -831,6 +879,8 @@ fn status_ok(r: &ResponseHeader) -> Result<(), CheckError> {
         },
         Failure::EmptyBank { .. } => CheckError::EmptyBank,
         Failure::Internal { message } => CheckError::Internal { message },
+        Failure::LimitExceeded { limit, message } => CheckError::LimitExceeded { limit, message },
+        Failure::NotPermitted { message } => CheckError::NotPermitted { message },
         // A status this client does not know yet.
         _ => CheckError::Protocol {
             detail: format!("unknown status {}", r.status),

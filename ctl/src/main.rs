@@ -7,10 +7,12 @@ use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
-use guardian_client::{CHANNELS, Client, ClientConfig, Trajectory, Verdict};
+use guardian_client::{AdminClient, CHANNELS, Client, ClientConfig, Trajectory, Verdict};
 
 /// Talk to guardiand: check, identify, enroll, forget, list classes, status.
 ///
+/// check, identify, classes and status use the planners' iceoryx2 service; enroll and
+/// forget use the daemon's admin socket, which only admin uids/gids may use.
 /// The go/no-go demo on real drawings is `guardian-lab demo`.
 #[derive(Debug, Parser)]
 #[command(version, about)]
@@ -27,6 +29,9 @@ struct Args {
     /// iceoryx2 prefix (must match the daemon's config).
     #[arg(long)]
     iceoryx2_prefix: Option<String>,
+    /// The daemon's admin socket (enroll, forget; config `[admin] socket`).
+    #[arg(long, default_value = guardian_client::DEFAULT_ADMIN_SOCKET)]
+    admin_socket: PathBuf,
     /// Print JSON instead of tables.
     #[arg(long)]
     json: bool,
@@ -79,18 +84,24 @@ enum Cmd {
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let client = Client::connect(ClientConfig {
-        service_name: args.service.clone(),
-        timeout: Duration::from_millis(args.timeout_ms),
-        iceoryx2_root_path: args.iceoryx2_root_path.clone(),
-        iceoryx2_prefix: args.iceoryx2_prefix.clone(),
-    })
-    .context("cannot connect to guardiand")?;
+    let timeout = Duration::from_millis(args.timeout_ms);
+    // Enroll and forget go through the admin socket only: an admin of another uid cannot
+    // (and need not) open the planners' iceoryx2 service.
+    let admin = AdminClient::new(&args.admin_socket, timeout);
+    let connect = || {
+        Client::connect(ClientConfig {
+            service_name: args.service.clone(),
+            timeout,
+            iceoryx2_root_path: args.iceoryx2_root_path.clone(),
+            iceoryx2_prefix: args.iceoryx2_prefix.clone(),
+        })
+        .context("cannot connect to guardiand")
+    };
     let json = args.json;
     match args.cmd {
         Cmd::Check { file, class, index } => {
             let t = read_trajectory(&file, index)?;
-            let v = client.check(&t, &class)?;
+            let v = connect()?.check(&t, &class)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&v)?);
             } else {
@@ -102,7 +113,7 @@ fn main() -> anyhow::Result<()> {
         }
         Cmd::Identify { file, index } => {
             let t = read_trajectory(&file, index)?;
-            let r = client.identify(&t)?;
+            let r = connect()?.identify(&t)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);
             } else {
@@ -132,7 +143,7 @@ fn main() -> anyhow::Result<()> {
                     examples.push(read_trajectory(f, None)?);
                 }
             }
-            let info = client.enroll(&name, &examples)?;
+            let info = admin.enroll(&name, &examples)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&info)?);
             } else {
@@ -143,7 +154,7 @@ fn main() -> anyhow::Result<()> {
             }
         }
         Cmd::Forget { name } => {
-            client.forget(&name)?;
+            admin.forget(&name)?;
             if json {
                 println!("{}", serde_json::json!({ "forgotten": name }));
             } else {
@@ -151,7 +162,7 @@ fn main() -> anyhow::Result<()> {
             }
         }
         Cmd::Classes => {
-            let classes = client.classes()?;
+            let classes = connect()?.classes()?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&classes)?);
             } else {
@@ -168,7 +179,7 @@ fn main() -> anyhow::Result<()> {
             }
         }
         Cmd::Status => {
-            let s = client.status()?;
+            let s = connect()?.status()?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&s)?);
             } else {

@@ -21,6 +21,10 @@ use serde::{Deserialize, Serialize};
 pub const SYSTEM_CONFIG: &str = "/etc/guardian/guardiand.toml";
 /// File name of the persisted class bank inside the state directory.
 pub const BANK_FILE: &str = "bank.gcb";
+/// The id the kernel reports for a uid or gid outside the daemon's user namespace.
+const OVERFLOW_ID: u32 = 65534;
+/// File name of the admin socket in the runtime (else state) directory.
+pub const ADMIN_SOCKET_FILE: &str = "admin.sock";
 const MODEL_REL: &str = "models/embedder.safetensors";
 const BANK_REL: &str = "models/default-bank.gcb";
 
@@ -45,6 +49,35 @@ pub struct Iceoryx2Config {
     pub root_path: Option<PathBuf>,
     /// `global.prefix` of iceoryx2 (prefix of every shared-memory and file name).
     pub prefix: Option<String>,
+}
+
+/// The admin endpoint: a Unix socket for enroll and forget whose callers are identified by
+/// their credentials (`SO_PEERCRED`), and whether planners may still enroll and forget over
+/// iceoryx2.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields, default)]
+pub struct AdminConfig {
+    /// Admin separation: the planners' iceoryx2 service answers enroll and forget with
+    /// `NotPermitted`; only the admin socket serves them.
+    pub separation: bool,
+    /// The socket. Unset: `$RUNTIME_DIRECTORY/admin.sock` (systemd `RuntimeDirectory=`),
+    /// else `admin.sock` in the state directory.
+    pub socket: Option<PathBuf>,
+    /// Callers with one of these uids are admins.
+    pub uids: Vec<u32>,
+    /// Callers whose (effective, primary) gid is one of these are admins.
+    pub gids: Vec<u32>,
+}
+
+impl Default for AdminConfig {
+    fn default() -> Self {
+        Self {
+            separation: false,
+            socket: None,
+            uids: vec![0],
+            gids: Vec::new(),
+        }
+    }
 }
 
 /// The daemon's settings.
@@ -80,10 +113,21 @@ pub struct Config {
     /// Micro-batching: when several checks are queued, up to this many are embedded in one
     /// forward pass (1 = one at a time). Never waits for a batch to fill.
     pub max_batch: usize,
+    /// Per-client fairness: a micro-batch takes at most one request of each client; a
+    /// client's further queued requests wait for the next batch (`docs/guardiand.md`).
+    pub fair_batching: bool,
+    /// Most classes in the bank; an enroll of a new class beyond it is refused.
+    pub max_classes: usize,
+    /// Most enrolled examples of one class.
+    pub max_examples_per_class: usize,
+    /// Most bytes of class data in the bank (as in the snapshot file).
+    pub max_bank_bytes: u64,
     /// iceoryx2 isolation settings.
     pub iceoryx2: Iceoryx2Config,
     /// Workcell geometry and tolerances of the workcell rules (`docs/guardiand.md`).
     pub workcell: Workcell,
+    /// The admin endpoint and admin separation.
+    pub admin: AdminConfig,
 }
 
 impl Default for Config {
@@ -101,8 +145,13 @@ impl Default for Config {
             watchdog: true,
             max_clients: 64,
             max_batch: 16,
+            fair_batching: true,
+            max_classes: 4096,
+            max_examples_per_class: 64,
+            max_bank_bytes: 64 << 20,
             iceoryx2: Iceoryx2Config::default(),
             workcell: Workcell::default(),
+            admin: AdminConfig::default(),
         }
     }
 }
@@ -213,6 +262,18 @@ impl Config {
         if self.max_batch == 0 {
             return Err("max-batch must be at least 1".into());
         }
+        if self.max_classes == 0 || self.max_examples_per_class == 0 || self.max_bank_bytes == 0 {
+            return Err(
+                "max-classes, max-examples-per-class and max-bank-bytes must be at least 1".into(),
+            );
+        }
+        // A caller whose uid or gid the daemon's user namespace does not map (systemd
+        // PrivateUsers=) is reported as the overflow id 65534: never an admin.
+        if self.admin.uids.contains(&OVERFLOW_ID) || self.admin.gids.contains(&OVERFLOW_ID) {
+            return Err(format!(
+                "[admin] uids and gids must not contain {OVERFLOW_ID}: unmapped callers appear as it"
+            ));
+        }
         if let Some(t) = self.default_threshold
             && !(t.is_finite() && t >= 0.0)
         {
@@ -247,23 +308,41 @@ impl Config {
         if let Some(d) = &self.state_dir {
             return d.clone();
         }
-        match std::env::var_os("STATE_DIRECTORY").filter(|v| !v.is_empty()) {
-            // systemd may pass several colon-separated directories; the first is ours.
-            Some(v) => PathBuf::from(
-                v.to_string_lossy()
-                    .split(':')
-                    .next()
-                    .unwrap_or_default()
-                    .to_owned(),
-            ),
-            None => PathBuf::from("guardiand-state"),
-        }
+        systemd_dir("STATE_DIRECTORY").unwrap_or_else(|| PathBuf::from("guardiand-state"))
     }
 
     /// The persisted bank file.
     pub fn bank_path(&self) -> PathBuf {
         self.state_dir().join(BANK_FILE)
     }
+
+    /// The bank limits.
+    pub fn limits(&self) -> guardian_models::bank::BankLimits {
+        guardian_models::bank::BankLimits {
+            max_classes: self.max_classes,
+            max_examples_per_class: self.max_examples_per_class,
+            max_bytes: self.max_bank_bytes,
+        }
+    }
+
+    /// The admin socket (see [`AdminConfig::socket`]).
+    pub fn admin_socket(&self) -> PathBuf {
+        if let Some(p) = &self.admin.socket {
+            return p.clone();
+        }
+        systemd_dir("RUNTIME_DIRECTORY")
+            .unwrap_or_else(|| self.state_dir())
+            .join(ADMIN_SOCKET_FILE)
+    }
+}
+
+/// The directory systemd passes in `$var` (`StateDirectory=` etc.); it may pass several,
+/// colon-separated, and the first is ours.
+fn systemd_dir(var: &str) -> Option<PathBuf> {
+    let v = std::env::var_os(var).filter(|v| !v.is_empty())?;
+    Some(PathBuf::from(
+        v.to_string_lossy().split(':').next().unwrap_or_default(),
+    ))
 }
 
 /// `rel` in the working directory if it exists there, else in the source checkout.
@@ -296,6 +375,15 @@ mod tests {
         assert_eq!(c.iceoryx2.prefix.as_deref(), Some("t_"));
         assert!(Config::from_toml("k-nearest = 0\n", Path::new("t")).is_err());
         assert!(Config::from_toml("default-threshold = -1.0\n", Path::new("t")).is_err());
+        assert!(Config::from_toml("max-classes = 0\n", Path::new("t")).is_err());
+        assert!(Config::from_toml("[admin]\ngids = [65534]\n", Path::new("t")).is_err());
+        let c = Config::from_toml(
+            "max-classes = 3\n[admin]\nseparation = true\nuids = [0, 1000]\n",
+            Path::new("t"),
+        )
+        .unwrap();
+        assert_eq!((c.max_classes, c.admin.separation), (3, true));
+        assert_eq!(c.admin.uids, [0, 1000]);
     }
 
     #[test]

@@ -3,6 +3,7 @@
 //! model, compares them with the persisted class bank and answers go or no-go with reasons.
 #![forbid(unsafe_code)]
 
+pub mod admin;
 pub mod config;
 pub mod engine;
 pub mod notify;

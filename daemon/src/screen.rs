@@ -7,13 +7,13 @@ use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use guardian_models::bank::{ClassBank, Decision, Outcome};
+use guardian_models::bank::{BankLimits, Class, ClassBank, Decision, Outcome, journal_path};
 use guardian_models::check::{self, PlanCheck, Prepared};
 use guardian_models::embedder::EmbedError;
 use guardian_models::workcell;
 use guardian_shared::trajectory::{InvalidTrajectory, Waypoint};
 use guardian_shared::wire::{
-    CheckAnswer, CheckVerdict, ClassEntry, DaemonState, Failure, NoGo, Op, Request, RequestError,
+    CheckAnswer, CheckVerdict, ClassEntry, DaemonState, Failure, Limit, NoGo, Op, Request,
     RequestHeader, ResponseHeader, encode_check, encode_failure, encode_state, encode_text,
 };
 use guardian_shared::workcell::Workcell;
@@ -31,7 +31,31 @@ pub struct Screen {
     stats: Stats,
     /// The workcell rules applied to every check.
     workcell: Workcell,
+    /// Bounds checked before an enroll changes anything.
+    limits: BankLimits,
+    /// Enroll and forget only through the admin endpoint ([`Screen::handle_admin`]).
+    admin_separation: bool,
+    /// Bytes of class data in the bank ([`ClassBank::classes_bytes`]), kept up to date.
+    bank_bytes: u64,
+    /// Size of the journal next to the snapshot.
+    journal_bytes: u64,
+    /// The journal is known to be intact (after a failed append it may hold a torn tail;
+    /// the next change then writes a snapshot instead).
+    journal_ok: bool,
+    /// The journal outgrew its bound; compact at the next [`Screen::maintain`].
+    compact_pending: bool,
 }
+
+/// The journal is compacted into the snapshot once it is larger than the bank's class data
+/// and at least this large (so amortised persistence stays O(the change)).
+pub const MIN_JOURNAL_COMPACT_BYTES: u64 = 1 << 20;
+
+/// Limits used until [`Screen::set_limits`] (the config's defaults).
+pub const DEFAULT_LIMITS: BankLimits = BankLimits {
+    max_classes: 4096,
+    max_examples_per_class: 64,
+    max_bytes: 64 << 20,
+};
 
 /// A prepared check plan handed from a batch to its answer.
 type PreparedPlan = Result<Prepared, EmbedError>;
@@ -39,14 +63,37 @@ type PreparedPlan = Result<Prepared, EmbedError>;
 impl Screen {
     /// A screen serving `bank` with `engine`, persisting the bank to `bank_path`.
     pub fn new(engine: Engine, bank: ClassBank, bank_path: PathBuf, k: usize) -> Self {
-        Self {
+        let mut s = Self {
             engine,
+            bank_bytes: bank.classes_bytes(),
             bank,
+            journal_bytes: 0,
             bank_path,
             k,
             stats: Stats::default(),
             workcell: Workcell::default(),
-        }
+            limits: DEFAULT_LIMITS,
+            admin_separation: false,
+            journal_ok: true,
+            compact_pending: false,
+        };
+        s.journal_bytes = s.journal_len();
+        s
+    }
+
+    /// Set the bank limits (default [`DEFAULT_LIMITS`]).
+    pub fn set_limits(&mut self, limits: BankLimits) {
+        self.limits = limits;
+    }
+
+    /// Refuse enroll and forget from planners ([`Screen::handle`], [`Screen::handle_batch`])
+    /// with `NotPermitted`; the admin endpoint ([`Screen::handle_admin`]) still serves them.
+    pub fn set_admin_separation(&mut self, on: bool) {
+        self.admin_separation = on;
+    }
+
+    fn journal_len(&self) -> u64 {
+        std::fs::metadata(journal_path(&self.bank_path)).map_or(0, |m| m.len())
     }
 
     /// Set the workcell rules (default: [`Workcell::default`], enabled).
@@ -75,8 +122,11 @@ impl Screen {
     /// Replace model and bank (after a successful reload).
     pub fn replace(&mut self, engine: Engine, bank: ClassBank, k: usize) {
         self.engine = engine;
+        self.bank_bytes = bank.classes_bytes();
         self.bank = bank;
         self.k = k;
+        self.journal_bytes = self.journal_len();
+        self.journal_ok = true;
     }
 
     /// Record the service time of one answered request.
@@ -103,7 +153,10 @@ impl Screen {
         &mut self,
         items: &[(RequestHeader, &[f32])],
     ) -> Vec<(ResponseHeader, Vec<ClassEntry>)> {
-        let requests: Vec<_> = items.iter().map(|(h, p)| Request::decode(h, p)).collect();
+        let requests: Vec<_> = items
+            .iter()
+            .map(|(h, p)| self.decode(h, p, false))
+            .collect();
         let plans: Vec<&[Waypoint]> = requests.iter().filter_map(plan_of).collect();
         let mut prepared =
             check::prepare_batch(self.engine.embedder(), &self.workcell, &plans).into_iter();
@@ -117,25 +170,56 @@ impl Screen {
             .collect()
     }
 
-    /// Answer one request. Never panics on input; errors become error statuses.
+    /// Answer one planner request. Never panics on input; errors become error statuses.
     pub fn handle(
         &mut self,
         h: &RequestHeader,
         payload: &[f32],
     ) -> (ResponseHeader, Vec<ClassEntry>) {
-        self.answer(h, Request::decode(h, payload), None)
+        let request = self.decode(h, payload, false);
+        self.answer(h, request, None)
+    }
+
+    /// Answer one request from the admin endpoint (a caller whose credentials were
+    /// checked): every op, enroll and forget included, whatever the admin separation.
+    pub fn handle_admin(
+        &mut self,
+        h: &RequestHeader,
+        payload: &[f32],
+    ) -> (ResponseHeader, Vec<ClassEntry>) {
+        let request = self.decode(h, payload, true);
+        self.answer(h, request, None)
+    }
+
+    /// Decode a request; under admin separation a planner's enroll or forget is refused
+    /// from its header alone, before its payload is looked at.
+    fn decode<'a>(
+        &self,
+        h: &'a RequestHeader,
+        payload: &'a [f32],
+        admin: bool,
+    ) -> Result<Request<'a>, Failure> {
+        if !admin
+            && self.admin_separation
+            && matches!(Op::from_u32(h.op), Some(Op::Enroll | Op::Forget))
+        {
+            return Err(Failure::NotPermitted {
+                message: "enroll and forget are admin operations here: use the admin socket".into(),
+            });
+        }
+        Request::decode(h, payload).map_err(|e| Failure::from(&e))
     }
 
     /// Dispatch a decoded request to its operation and write the response.
     fn answer(
         &mut self,
         h: &RequestHeader,
-        request: Result<Request<'_>, RequestError>,
+        request: Result<Request<'_>, Failure>,
         prepared: Option<PreparedPlan>,
     ) -> (ResponseHeader, Vec<ClassEntry>) {
         let mut r = ResponseHeader::answering(h);
         let result = match request {
-            Err(e) => Err(Failure::from(&e)),
+            Err(f) => Err(f),
             Ok(Request::Check {
                 claimed,
                 trajectory,
@@ -235,6 +319,10 @@ impl Screen {
     }
 
     fn enroll(&mut self, name: &str, ts: &[&[Waypoint]]) -> Result<Vec<ClassEntry>, Failure> {
+        // Counts first: a refused enroll costs no embedding and changes nothing.
+        self.limits
+            .check_counts(&self.bank, name, ts.len())
+            .map_err(limit_exceeded)?;
         let mut embeddings = Vec::with_capacity(ts.len());
         let mut geometry = Vec::with_capacity(ts.len());
         for (i, t) in ts.iter().enumerate() {
@@ -252,46 +340,115 @@ impl Screen {
             .into_iter()
             .collect::<Option<_>>()
             .unwrap_or_default();
-        let mut next = self.bank.clone();
-        next.enroll_with_geometry(name, &embeddings, &geometry)
+        // The change is made in place (no copy of the bank) and undone if it breaks the
+        // size limit or cannot be persisted.
+        let previous = self.bank.class(name).cloned();
+        let generation = self.bank.generation();
+        let before = self.bank.class_bytes(name);
+        self.bank
+            .enroll_with_geometry(name, &embeddings, &geometry)
             .map_err(|e| Failure::Internal {
                 message: e.to_string(),
             })?;
-        self.commit(next)?;
+        let after = self.bank_bytes.saturating_sub(before) + self.bank.class_bytes(name);
+        if let Err(limit) = self.limits.check_bytes(after) {
+            self.bank.undo_change(name, previous, generation);
+            return Err(limit_exceeded(limit));
+        }
+        self.persist(name, previous, generation, after)?;
         tracing::info!(class = %name, examples = embeddings.len(), bank = self.bank.generation(), "enrolled");
         Ok(vec![self.entry(name, f32::NAN)])
     }
 
     fn forget(&mut self, name: &str) -> Result<Vec<ClassEntry>, Failure> {
-        let mut next = self.bank.clone();
-        let Some(_) = next.forget(name) else {
+        let generation = self.bank.generation();
+        let before = self.bank.class_bytes(name);
+        let Some(previous) = self.bank.forget(name) else {
             return Err(Failure::UnknownClass {
                 message: format!("class {name:?} is not enrolled"),
             });
         };
-        self.commit(next)?;
+        let after = self.bank_bytes.saturating_sub(before);
+        self.persist(name, Some(previous), generation, after)?;
         tracing::info!(class = %name, bank = self.bank.generation(), "forgot class");
         Ok(Vec::new())
     }
 
-    /// Persist `next` atomically, then serve it. On failure the old bank stays.
-    fn commit(&mut self, next: ClassBank) -> Result<(), Failure> {
-        if let Err(e) = next.save(&self.bank_path) {
+    /// Persist the change just made to class `name` (append it to the journal; write a
+    /// snapshot if there is none yet or the journal may be damaged), before it is
+    /// acknowledged. On failure the change is undone: the old bank stays served.
+    fn persist(
+        &mut self,
+        name: &str,
+        previous: Option<Class>,
+        generation: u64,
+        bank_bytes: u64,
+    ) -> Result<(), Failure> {
+        let result = if self.journal_ok && self.bank_path.exists() {
+            self.bank
+                .append_change(&self.bank_path, name)
+                .map(|len| self.journal_bytes = len)
+        } else {
+            self.bank.save(&self.bank_path).map(|()| {
+                self.journal_bytes = 0;
+                self.journal_ok = true;
+            })
+        };
+        if let Err(e) = result {
             tracing::error!(error = %e, "cannot persist class bank; change rejected");
+            self.journal_ok = false;
+            self.bank.undo_change(name, previous, generation);
             return Err(Failure::Internal {
                 message: format!("cannot persist class bank: {e}"),
             });
         }
-        self.bank = next;
+        self.bank_bytes = bank_bytes;
+        if self.journal_bytes > MIN_JOURNAL_COMPACT_BYTES.max(self.bank_bytes) {
+            self.compact_pending = true;
+        }
         Ok(())
     }
 
-    /// Save the bank now (used at shutdown; every change is already saved).
-    pub fn flush(&self) -> Result<(), guardian_models::bank::SaveBankError> {
+    /// Work the serving loop does between requests: compact the journal into the snapshot
+    /// once it outgrew its bound. A failed compaction is logged and retried after the next
+    /// change; the journal stays valid meanwhile.
+    pub fn maintain(&mut self) {
+        if !self.compact_pending {
+            return;
+        }
+        self.compact_pending = false;
+        let start = std::time::Instant::now();
+        match self.bank.save(&self.bank_path) {
+            Ok(()) => {
+                tracing::info!(
+                    journal_bytes = self.journal_bytes,
+                    millis = start.elapsed().as_millis() as u64,
+                    "compacted the bank journal into the snapshot"
+                );
+                self.journal_bytes = 0;
+                self.journal_ok = true;
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "cannot compact the bank journal; it stays in use")
+            }
+        }
+    }
+
+    /// Bytes of the journal next to the snapshot.
+    pub fn journal_bytes(&self) -> u64 {
+        self.journal_bytes
+    }
+
+    /// Save the bank now as a snapshot and remove its journal (at start and shutdown; every
+    /// change is already persisted).
+    pub fn flush(&mut self) -> Result<(), guardian_models::bank::SaveBankError> {
         if self.bank.generation() == 0 && !self.bank_path.exists() {
             return Ok(());
         }
-        self.bank.save(&self.bank_path)
+        self.bank.save(&self.bank_path)?;
+        self.journal_bytes = 0;
+        self.journal_ok = true;
+        Ok(())
     }
 
     fn class_list(&self) -> Vec<ClassEntry> {
@@ -315,7 +472,7 @@ impl Screen {
 
 /// The plan of a check request whose trajectory has a valid shape (the ones a batch
 /// prepares).
-fn plan_of<'a>(request: &Result<Request<'a>, RequestError>) -> Option<&'a [Waypoint]> {
+fn plan_of<'a>(request: &Result<Request<'a>, Failure>) -> Option<&'a [Waypoint]> {
     match request {
         Ok(Request::Check {
             trajectory: Ok(t), ..
@@ -344,6 +501,19 @@ fn check_answer(d: &Decision) -> CheckAnswer {
         geometry_score: d.geometry_score,
         geometry_threshold: d.geometry_threshold,
         geometry_feature: d.geometry_feature,
+    }
+}
+
+/// An enroll refused by a limit.
+fn limit_exceeded(limit: Limit) -> Failure {
+    Failure::LimitExceeded {
+        message: format!(
+            "{} = {} reached: the bank would hold {}; nothing changed",
+            limit.kind.key(),
+            limit.max,
+            limit.requested
+        ),
+        limit,
     }
 }
 

@@ -12,6 +12,7 @@ use guardian_shared::wire::{
     ClassEntry, RequestHeader, ResponseHeader, request_event_name, response_event_name,
 };
 
+use crate::admin::{AdminEndpoint, AdminPolicy, WakerFactory};
 use crate::config::{Config, ServingMode};
 use crate::notify::SdNotify;
 use crate::screen::Screen;
@@ -48,6 +49,12 @@ pub enum RunError {
     /// An iceoryx2 setup or port operation failed.
     #[error(transparent)]
     Iceoryx(#[from] guardian_shared::ipc::Iceoryx2Error),
+    /// The admin socket could not be served.
+    #[error(transparent)]
+    Admin(#[from] crate::admin::AdminSocketError),
+    /// Compacting the bank journal at start failed.
+    #[error("cannot compact the class bank journal at start: {0}")]
+    Compact(guardian_models::bank::SaveBankError),
     /// Saving the bank at shutdown failed.
     #[error("cannot flush class bank at shutdown: {0}")]
     Flush(#[from] guardian_models::bank::SaveBankError),
@@ -110,6 +117,17 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     }
     let mut screen = Screen::new(engine, bank, config.bank_path(), config.k_nearest);
     screen.set_workcell(config.workcell);
+    screen.set_limits(config.limits());
+    screen.set_admin_separation(config.admin.separation);
+    // Start from a snapshot alone: fold a journal left by the last run into it.
+    if screen.journal_bytes() > 0 {
+        let bytes = screen.journal_bytes();
+        screen.flush().map_err(RunError::Compact)?;
+        tracing::info!(
+            journal_bytes = bytes,
+            "compacted the bank journal into the snapshot"
+        );
+    }
 
     let iox_config = iceoryx2_config(&config)?;
     let node = NodeBuilder::new()
@@ -175,6 +193,18 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
             "create server port (is another guardiand serving this service name?)",
         ))?;
 
+    let admin_path = config.admin_socket();
+    let make_wake = admin_waker(&iox_config, request_event_name(&config.service_name));
+    let admin = AdminEndpoint::start(
+        &admin_path,
+        AdminPolicy {
+            uids: config.admin.uids.clone(),
+            gids: config.admin.gids.clone(),
+        },
+        make_wake,
+    )?;
+    tracing::info!(socket = %admin_path.display(), separation = config.admin.separation, uids = ?config.admin.uids, gids = ?config.admin.gids, "admin socket ready");
+
     let watchdog = if config.watchdog {
         sd.watchdog_timeout().map(|t| t / 2)
     } else {
@@ -204,14 +234,18 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         wakers: &mut wakers,
         batch: Vec::with_capacity(config.max_batch),
         answered: Vec::with_capacity(config.max_batch),
+        deferred: std::collections::VecDeque::new(),
+        fair: config.fair_batching,
     };
 
     loop {
         // Answer everything queued first, so that a stop answers in-flight requests.
-        let served = drain(&server, &mut out, &mut screen, config.max_batch)?;
+        let served = drain(&server, &mut out, &mut screen, config.max_batch)?
+            + serve_admin(&admin, &mut screen);
         if served > 0 {
             last_request = Instant::now();
         }
+        screen.maintain();
         if control.shutdown.load(Ordering::SeqCst) {
             break;
         }
@@ -279,6 +313,8 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     sd.stopping();
     tracing::info!("stopping: answering queued requests and flushing state");
     let _ = drain(&server, &mut out, &mut screen, config.max_batch)?;
+    let _ = serve_admin(&admin, &mut screen);
+    drop(admin);
     screen.flush()?;
     tracing::info!("stopped");
     Ok(())
@@ -304,6 +340,50 @@ fn reload(config: &Config, screen: &mut Screen, sd: &SdNotify) {
     sd.status(&screen.summary());
 }
 
+/// Answer the admins' queued requests (their credentials were checked by the endpoint).
+fn serve_admin(admin: &AdminEndpoint, screen: &mut Screen) -> usize {
+    let mut n = 0;
+    while let Ok(job) = admin.jobs.try_recv() {
+        let answer = screen.handle_admin(&job.header, &job.payload);
+        job.answer(answer);
+        n += 1;
+    }
+    n
+}
+
+/// The admin endpoint's waker: its own node and notifier on the request event, made in the
+/// endpoint's thread. Without it admin requests wait for the loop's next tick.
+fn admin_waker(config: &iceoryx2::config::Config, event: String) -> WakerFactory {
+    let config = config.clone();
+    Box::new(move || {
+        let ports = (|| {
+            let node = NodeBuilder::new()
+                .config(&config)
+                .signal_handling_mode(SignalHandlingMode::Disabled)
+                .create::<ipc::Service>()
+                .ok()?;
+            let service = node
+                .service_builder(&ServiceName::new(&event).ok()?)
+                .event()
+                .open()
+                .ok()?;
+            let notifier = service.notifier_builder().create().ok()?;
+            // The notifier drops before its node.
+            Some((notifier, node))
+        })();
+        if ports.is_none() {
+            tracing::warn!(
+                "admin socket: cannot wake the serving loop; admin requests wait for its tick"
+            );
+        }
+        Box::new(move || {
+            if let Some((notifier, _)) = &ports {
+                let _ = notifier.notify();
+            }
+        })
+    })
+}
+
 /// Where wake-ups for answered clients go.
 struct Outbox<'a> {
     node: &'a Node<ipc::Service>,
@@ -314,6 +394,11 @@ struct Outbox<'a> {
     batch: Vec<ActiveRequest>,
     /// Clients answered in the current batch (each is woken once).
     answered: Vec<u128>,
+    /// Requests held back for a later batch because their client already had one in the
+    /// batch being built (per-client fairness).
+    deferred: std::collections::VecDeque<ActiveRequest>,
+    /// Take at most one request per client into a batch.
+    fair: bool,
 }
 
 /// Answer every queued request, taking up to `max_batch` at a time so that queued checks
@@ -333,9 +418,25 @@ fn drain(
     let mut n = 0;
     let mut batch = std::mem::take(&mut out.batch);
     let mut answered = std::mem::take(&mut out.answered);
+    let has = |batch: &[ActiveRequest], r: &ActiveRequest| {
+        let origin = r.origin().value();
+        batch.iter().any(|b| b.origin().value() == origin)
+    };
     loop {
+        // Per-client fairness: held-back requests first (they waited a batch), then new
+        // ones; a client with a request in the batch already waits for the next batch, so
+        // a client with many queued requests cannot fill a batch ahead of the others.
+        let mut i = 0;
+        while i < out.deferred.len() && batch.len() < max_batch {
+            if has(&batch, &out.deferred[i]) {
+                i += 1;
+            } else if let Some(r) = out.deferred.remove(i) {
+                batch.push(r);
+            }
+        }
         while batch.len() < max_batch {
             match server.receive() {
+                Ok(Some(r)) if out.fair && has(&batch, &r) => out.deferred.push_back(r),
                 Ok(Some(r)) => batch.push(r),
                 Ok(None) => break,
                 Err(e) => {

@@ -90,7 +90,26 @@ pub fn load_bank(
         })
     };
     let (mut bank, source) = if state.exists() {
-        (load(&state)?, BankSource::State(state))
+        let (bank, replay) =
+            ClassBank::load_with_journal(&state).map_err(|source| LoadStateError::Bank {
+                path: state.clone(),
+                source,
+            })?;
+        if replay.applied + replay.skipped > 0 {
+            tracing::info!(
+                applied = replay.applied,
+                skipped = replay.skipped,
+                journal_bytes = replay.journal_bytes,
+                "replayed the bank journal"
+            );
+        }
+        if replay.torn_bytes > 0 {
+            tracing::warn!(
+                torn_bytes = replay.torn_bytes,
+                "ignored a torn last journal record (a change interrupted before it was acknowledged)"
+            );
+        }
+        (bank, BankSource::State(state))
     } else if let Some(p) = config.default_bank_path() {
         (load(&p)?, BankSource::Default(p))
     } else {

@@ -114,10 +114,25 @@ pub fn bin() -> &'static Path {
     BIN.get_or_init(|| guardiand_bin().unwrap_or_else(|e| panic!("{e:#}")))
 }
 
+/// The `guardianctl` binary under test: `$GUARDIANCTL_BIN` if set, otherwise built like
+/// [`bin`].
+pub fn ctl_bin() -> &'static Path {
+    static BIN: OnceLock<PathBuf> = OnceLock::new();
+    BIN.get_or_init(|| {
+        built_bin("guardianctl", "GUARDIANCTL_BIN").unwrap_or_else(|e| panic!("{e:#}"))
+    })
+}
+
 /// Locate or build `guardiand` for the current profile (see [`bin`]).
 pub fn guardiand_bin() -> anyhow::Result<PathBuf> {
+    built_bin("guardiand", "GUARDIAND_BIN")
+}
+
+/// `$env` if set, else binary `name` (`guardiand` or `guardianctl`) built with the running
+/// executable's profile, together with the other one.
+fn built_bin(name: &str, env: &str) -> anyhow::Result<PathBuf> {
     use anyhow::{Context, bail};
-    if let Some(p) = std::env::var_os("GUARDIAND_BIN") {
+    if let Some(p) = std::env::var_os(env) {
         return Ok(p.into());
     }
     let exe = std::env::current_exe()?;
@@ -131,16 +146,25 @@ pub fn guardiand_bin() -> anyhow::Result<PathBuf> {
         Some(other) => other.to_string(),
     };
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+    // Both binaries in one build, so their dependencies are built once with one feature set.
     let status = Command::new(cargo)
-        .args(["build", "-q", "-p", "guardian-daemon", "--bin", "guardiand"])
+        .args([
+            "build",
+            "-q",
+            "-p",
+            "guardian-daemon",
+            "-p",
+            "guardian-ctl",
+            "--bins",
+        ])
         .args(["--profile", &profile])
         .current_dir(workspace_root())
         .status()
-        .context("running cargo build for guardiand")?;
+        .with_context(|| format!("running cargo build for {name}"))?;
     if !status.success() {
-        bail!("building guardiand failed");
+        bail!("building {name} failed");
     }
-    let bin = profile_dir.join("guardiand");
+    let bin = profile_dir.join(name);
     if !bin.exists() {
         bail!("{} not found after the build", bin.display());
     }
@@ -342,6 +366,62 @@ pub fn run_to_exit(setup: &Setup) -> std::process::Output {
 }
 
 pub use guardian_client::samples::task;
+
+/// A bank for `model` with `classes` classes of `examples` pseudo-random embeddings each
+/// (xorshift from `seed`): big banks for persistence tests and benchmarks.
+pub fn random_bank(
+    model: &Path,
+    classes: usize,
+    examples: usize,
+    seed: u64,
+) -> guardian_models::bank::ClassBank {
+    let embedder = Embedder::load(model).expect("load model");
+    let dim = embedder.config().embed_dim;
+    let mut bank = guardian_models::bank::ClassBank::new(dim, embedder.version(), 1e9);
+    let mut x = seed | 1;
+    let mut next = || {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        (x >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+    };
+    for c in 0..classes {
+        let e: Vec<Vec<f32>> = (0..examples)
+            .map(|_| (0..dim).map(|_| next()).collect())
+            .collect();
+        bank.enroll(&format!("base{c:04}"), &e).expect("enroll");
+    }
+    bank
+}
+
+/// The uid and gid of the second user the access tests switch to (nobody).
+pub const NOBODY: u32 = 65534;
+
+/// Run the `#[ignore]`d test `child` of the running test executable as uid/gid [`NOBODY`]
+/// (through `setpriv`; needs root), with `env` set. The executable is copied to a directory
+/// that user can read, since the test's own path may not be.
+pub fn run_as_nobody(child: &str, env: &[(&str, &std::ffi::OsStr)]) -> std::process::Output {
+    use std::os::unix::fs::PermissionsExt;
+    let bin_dir = tempfile::tempdir().expect("tempdir");
+    std::fs::set_permissions(bin_dir.path(), std::fs::Permissions::from_mode(0o755))
+        .expect("chmod");
+    let exe = bin_dir.path().join("second-uid-child");
+    std::fs::copy(std::env::current_exe().expect("current exe"), &exe).expect("copy exe");
+    std::fs::set_permissions(&exe, std::fs::Permissions::from_mode(0o755)).expect("chmod");
+    let mut cmd = Command::new("setpriv");
+    cmd.args([
+        &format!("--reuid={NOBODY}"),
+        &format!("--regid={NOBODY}"),
+        "--clear-groups",
+        "--",
+    ])
+    .arg(&exe)
+    .args(["--exact", child, "--ignored", "--nocapture"]);
+    for (k, v) in env {
+        cmd.env(k, v);
+    }
+    cmd.output().expect("run setpriv")
+}
 
 pub fn traj(class: u32, drawer: u32) -> Trajectory {
     Trajectory::from_waypoints(&task(class, drawer))

@@ -7,13 +7,11 @@
 
 use std::os::unix::fs::{MetadataExt, PermissionsExt};
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use guardian_client::{Client, ClientConfig, Decision};
-use guardian_tests::harness::{Daemon, Setup, traj};
+use guardian_tests::harness::{self, Daemon, Setup, traj};
 
 const CHILD: &str = "GUARDIAN_ACCESS_CHILD";
-const NOBODY: u32 = 65534;
 
 /// Every file iceoryx2 created for this deployment: `/dev/shm/<prefix>*` and the files below
 /// the root path.
@@ -86,40 +84,28 @@ fn another_user_can_neither_send_requests_nor_read_trajectories() {
         }
     }
 
-    // The second user runs a copy of this test executable (its own path may not be readable
-    // by nobody) in the child role below.
-    let bin_dir = tempfile::tempdir().unwrap();
-    std::fs::set_permissions(bin_dir.path(), std::fs::Permissions::from_mode(0o755)).unwrap();
-    let exe = bin_dir.path().join("access-child");
-    std::fs::copy(std::env::current_exe().unwrap(), &exe).unwrap();
-    std::fs::set_permissions(&exe, std::fs::Permissions::from_mode(0o755)).unwrap();
+    // The second user runs a copy of this test executable in the child role below.
     let list = files
         .iter()
         .map(|p| p.display().to_string())
         .collect::<Vec<_>>()
         .join("\n");
     let cfg = s.client_config();
-    let out = Command::new("setpriv")
-        .args([
-            &format!("--reuid={NOBODY}"),
-            &format!("--regid={NOBODY}"),
-            "--clear-groups",
-            "--",
-        ])
-        .arg(&exe)
-        .args(["--exact", "second_uid_child", "--ignored", "--nocapture"])
-        .env(CHILD, list)
-        .env("GUARDIAN_ACCESS_SERVICE", &cfg.service_name)
-        .env(
-            "GUARDIAN_ACCESS_ROOT",
-            cfg.iceoryx2_root_path.as_ref().unwrap(),
-        )
-        .env(
-            "GUARDIAN_ACCESS_PREFIX",
-            cfg.iceoryx2_prefix.as_ref().unwrap(),
-        )
-        .output()
-        .expect("run setpriv");
+    let out = harness::run_as_nobody(
+        "second_uid_child",
+        &[
+            (CHILD, list.as_ref()),
+            ("GUARDIAN_ACCESS_SERVICE", cfg.service_name.as_ref()),
+            (
+                "GUARDIAN_ACCESS_ROOT",
+                cfg.iceoryx2_root_path.as_ref().unwrap().as_os_str(),
+            ),
+            (
+                "GUARDIAN_ACCESS_PREFIX",
+                cfg.iceoryx2_prefix.as_ref().unwrap().as_ref(),
+            ),
+        ],
+    );
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(

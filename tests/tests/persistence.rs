@@ -11,8 +11,7 @@ use std::process::Output;
 use std::time::{Duration, Instant};
 
 use guardian_client::{CheckError, Client, Decision, EnrollError, Trajectory};
-use guardian_models::bank::ClassBank;
-use guardian_models::embedder::Embedder;
+use guardian_models::bank::{ClassBank, Replay, journal_path};
 use guardian_tests::harness::{self, Daemon, Setup, traj};
 
 /// Kill rounds of the SIGKILL-during-persistence test (the issue asks for >= 100).
@@ -37,22 +36,12 @@ fn temporaries(dir: &Path) -> Vec<String> {
 
 /// A bank for `model` with `n` classes of 4 pseudo-random embeddings each.
 fn big_bank(model: &Path, n: usize) -> ClassBank {
-    let embedder = Embedder::load(model).expect("load model");
-    let dim = embedder.config().embed_dim;
-    let mut bank = ClassBank::new(dim, embedder.version(), 1e9);
-    let mut x: u64 = 0x9e37_79b9_7f4a_7c15;
-    let mut next = || {
-        x ^= x << 13;
-        x ^= x >> 7;
-        x ^= x << 17;
-        (x >> 40) as f32 / (1u64 << 24) as f32 - 0.5
-    };
-    for c in 0..n {
-        let examples: Vec<Vec<f32>> = (0..4).map(|_| (0..dim).map(|_| next()).collect()).collect();
-        bank.enroll(&format!("base{c:04}"), &examples)
-            .expect("enroll");
-    }
-    bank
+    harness::random_bank(model, n, 4, 0x9e37_79b9_7f4a_7c15)
+}
+
+/// The bank as the daemon would load it: snapshot plus journal.
+fn load_state(path: &Path) -> (ClassBank, Replay) {
+    ClassBank::load_with_journal(path).unwrap_or_else(|e| panic!("bank on disk is corrupt: {e}"))
 }
 
 #[test]
@@ -68,7 +57,7 @@ fn sigkill_during_enrollment_persistence_leaves_the_old_or_the_new_bank() {
     let mut config = s.client_config();
     config.timeout = Duration::from_secs(2);
 
-    // One enrollment without a kill, for the figures.
+    // One enrollment without a kill, for the figures and the kill window.
     let enroll_time = {
         let _d = Daemon::start(&s);
         let client = Client::connect(config.clone()).expect("connect");
@@ -76,25 +65,65 @@ fn sigkill_during_enrollment_persistence_leaves_the_old_or_the_new_bank() {
         client.enroll("warm-up", &examples).expect("enroll");
         t.elapsed()
     };
-    let mut expected = bank_names(&ClassBank::load(&path).unwrap());
+    let mut expected = bank_names(&load_state(&path).0);
     assert!(expected.contains("warm-up"));
-    let window_us = (enroll_time.as_micros() as u64 * 3 / 2).max(10_000);
+    // An enrollment appends one record to the journal after embedding its examples: a kill
+    // at a random moment within 1.5 x an uninterrupted enrollment lands before, during or
+    // after the append.
+    let window_us = (enroll_time.as_micros() as u64 * 3 / 2).max(2_000);
 
-    let (mut old, mut new, mut mid_write, mut missed) = (0, 0, 0, 0);
+    let (mut old, mut new, mut torn) = (0, 0, 0);
+    let (mut compaction_kills, mut compaction_mid_write) = (0, 0);
     // (round, class, persisted in that round, the client's answer)
     let mut answers = Vec::new();
     let mut rng: u64 = 0x2545_f491_4f6c_dd1d;
-    let mut round = 0;
-    while round < ROUNDS {
-        assert!(
-            missed < ROUNDS,
-            "{missed} enrollments finished before any write"
-        );
-        let mut d = Daemon::start(&s);
+    let mut next = || {
         rng ^= rng << 13;
         rng ^= rng >> 7;
         rng ^= rng << 17;
-        let name = format!("new{round:03}-{missed}");
+        rng
+    };
+    let mut round = 0;
+    while round < ROUNDS {
+        // Every fourth round with a journal left over, first kill the daemon while its
+        // start-up compaction writes the snapshot: the bank must load as it was.
+        if round % 4 == 0 && journal_path(&path).exists() {
+            let mut d = Daemon::spawn(&s, &[], None);
+            let start = Instant::now();
+            while temporaries(&state).is_empty() && d.child.try_wait().unwrap().is_none() {
+                assert!(
+                    start.elapsed() < harness::PATIENCE,
+                    "no compaction:\n{}",
+                    d.log()
+                );
+                if d.notes().iter().any(|n| n.contains("READY=1")) {
+                    break;
+                }
+                std::hint::spin_loop();
+            }
+            std::thread::sleep(Duration::from_micros(next() % 20_000));
+            // Kill only while the snapshot is being written: a kill later in the start-up,
+            // while iceoryx2 creates the service, leaves it `HangsInCreation` for the next
+            // start (an iceoryx2 matter, outside persistence).
+            if temporaries(&state).is_empty() {
+                d.wait_note("READY=1");
+                drop(d);
+            } else {
+                d.signal("KILL");
+                d.wait_exit();
+                compaction_kills += 1;
+                if !temporaries(&state).is_empty() {
+                    compaction_mid_write += 1;
+                }
+            }
+            assert_eq!(
+                bank_names(&load_state(&path).0),
+                expected,
+                "round {round}: a killed compaction changed the bank"
+            );
+        }
+        let mut d = Daemon::start(&s);
+        let name = format!("new{round:03}");
         let (cfg, ex, n2) = (config.clone(), examples.clone(), name.clone());
         let (connected, ready) = std::sync::mpsc::channel();
         let enroll = std::thread::spawn(move || {
@@ -103,31 +132,10 @@ fn sigkill_during_enrollment_persistence_leaves_the_old_or_the_new_bank() {
             client.enroll(&n2, &ex)
         });
         ready.recv().expect("client connected");
-        // Aim at the write: wait for the daemon's temporary file to appear, then kill after a
-        // random delay, so the kill lands while it writes, syncs or renames, or just after.
-        // The window scales with the measured enrollment (at least 10 ms): on a slow disk a
-        // fixed 10 ms never reaches the rename (seen: 108 ms enrollments, 100 of 100 kills
-        // before it).
-        let start = Instant::now();
-        while temporaries(&state).is_empty() && !enroll.is_finished() {
-            assert!(
-                start.elapsed() < harness::PATIENCE,
-                "round {round}: the daemon never started writing the bank:\n{}",
-                d.log()
-            );
-            std::hint::spin_loop();
-        }
-        let aimed = !enroll.is_finished();
-        if aimed {
-            std::thread::sleep(Duration::from_micros(rng % window_us));
-        }
+        std::thread::sleep(Duration::from_micros(next() % window_us));
         d.signal("KILL");
         d.wait_exit();
-        if !temporaries(&state).is_empty() {
-            mid_write += 1;
-        }
-        let bank = ClassBank::load(&path)
-            .unwrap_or_else(|e| panic!("round {round}: bank on disk is corrupt: {e}"));
+        let (bank, replay) = load_state(&path);
         let names = bank_names(&bank);
         let mut with_new = expected.clone();
         with_new.insert(name.clone());
@@ -136,13 +144,12 @@ fn sigkill_during_enrollment_persistence_leaves_the_old_or_the_new_bank() {
             assert_eq!(names, expected, "round {round}: neither old nor new bank");
         }
         expected = names;
-        if aimed {
-            round += 1;
-            if persisted { new += 1 } else { old += 1 }
+        round += 1;
+        torn += usize::from(replay.torn_bytes > 0);
+        if persisted {
+            new += 1
         } else {
-            // The answer came before the write was seen (e.g. an error under load): not a
-            // kill during persistence; the round is repeated.
-            missed += 1;
+            old += 1
         }
         // The client waits out its timeout for a dead daemon; collect the answers later.
         answers.push((round, name, persisted, enroll));
@@ -166,13 +173,16 @@ fn sigkill_during_enrollment_persistence_leaves_the_old_or_the_new_bank() {
         }
     }
     eprintln!(
-        "{ROUNDS} kills aimed at the bank write ({bank_bytes}-byte bank, an uninterrupted \
+        "{ROUNDS} kills during enrollment ({bank_bytes}-byte snapshot, an uninterrupted \
          enrollment took {enroll_time:?}): {acked} acknowledged, {new} new bank, {old} old \
-         bank, {mid_write} killed before the rename; {missed} rounds repeated"
+         bank, {torn} torn journal tails ignored; \
+         {compaction_kills} kills during start-up compaction ({compaction_mid_write} before \
+         the rename), bank unchanged every time"
     );
     assert_eq!(old + new, ROUNDS as usize);
-    // The kills must really have hit before and after the rename, or the test proved nothing.
-    assert!(old > 0 && new > 0 && mid_write > 0, "kills missed a phase");
+    // The kills must really have hit before and after the append, or the test proved nothing.
+    assert!(old > 0 && new > 0, "kills missed a phase");
+    assert!(compaction_kills > 0);
 
     // A restarted daemon serves the surviving bank and removed the dead writers' leftovers.
     let d = Daemon::start(&s);
@@ -186,7 +196,72 @@ fn sigkill_during_enrollment_persistence_leaves_the_old_or_the_new_bank() {
         "stale temporaries: {:?}",
         temporaries(&state)
     );
+    assert!(
+        !journal_path(&path).exists(),
+        "the journal was not compacted at start"
+    );
     drop(d);
+}
+
+/// A crash in the middle of a journal append, at any of several bytes of the last record:
+/// the restarted daemon serves the bank before that enrollment (the record is a torn tail,
+/// ignored), or after it when the record is whole; it then enrolls and persists normally.
+#[test]
+fn a_journal_cut_inside_its_last_record_restarts_with_the_old_or_the_new_bank() {
+    let mut s = Setup::new(43);
+    s.extra = "default-threshold = 1e9".into();
+    let path = s.state_dir().join("bank.gcb");
+    let journal = journal_path(&path);
+    let mut d = Daemon::start(&s);
+    let client = s.client();
+    client
+        .enroll("task0", &[traj(0, 1), traj(0, 2)])
+        .expect("enroll");
+    let before = std::fs::metadata(&journal).map_or(0, |m| m.len());
+    client
+        .enroll("task1", &[traj(1, 1), traj(1, 2)])
+        .expect("enroll");
+    // Killed, so the journal is not compacted at shutdown.
+    d.signal("KILL");
+    d.wait_exit();
+    drop(client);
+    let full = std::fs::read(&journal).expect("journal written by the enrollments");
+    // The last record starts where the journal ended before it (or after the header line
+    // of a journal that the first enrollment did not create: it wrote the first snapshot).
+    let start = match before as usize {
+        0 => full.iter().position(|&b| b == b'\n').expect("header line") + 1,
+        n => n,
+    };
+    let record = full.len() - start;
+    assert!(record > 100, "record of {record} bytes");
+    for cut in [1, 70, record / 2, record - 1, record] {
+        std::fs::write(&journal, &full[..start + cut]).unwrap();
+        let d = Daemon::start(&s);
+        let c = s.client();
+        let names: Vec<String> = c
+            .classes()
+            .expect("classes")
+            .into_iter()
+            .map(|i| i.name)
+            .collect();
+        if cut == record {
+            assert_eq!(names, ["task0", "task1"], "cut {cut}");
+        } else {
+            assert_eq!(names, ["task0"], "cut {cut}");
+            assert!(d.log().contains("torn"), "cut {cut}: {}", d.log());
+        }
+        // Compacted at start: the snapshot holds what is served, the journal is gone.
+        assert!(!journal.exists(), "cut {cut}: journal not compacted");
+        assert_eq!(bank_names(&load_state(&path).0).len(), names.len());
+        drop(c);
+        drop(d);
+    }
+    // Enrollment still persists after the repairs.
+    let _d = Daemon::start(&s);
+    s.client()
+        .enroll("task2", &[traj(2, 1), traj(2, 2)])
+        .expect("enroll");
+    assert!(bank_names(&load_state(&path).0).contains("task2"));
 }
 
 /// Ways a file can be damaged on disk.
@@ -308,5 +383,5 @@ fn a_reload_of_a_damaged_bank_or_model_keeps_serving_the_old_state() {
     client
         .enroll("task2", &[traj(2, 1), traj(2, 2)])
         .expect("enroll");
-    assert_eq!(ClassBank::load(&bank).expect("bank").len(), 3);
+    assert_eq!(load_state(&bank).0.len(), 3);
 }

@@ -48,6 +48,14 @@ pub enum LoadBankError {
     /// The body is not a valid bank document.
     #[error("class bank body does not parse: {0}")]
     Parse(#[from] serde_json::Error),
+    /// The journal next to the snapshot is damaged (not just a torn last record).
+    #[error("class bank journal {path} is damaged: {detail}")]
+    Journal {
+        /// The journal file.
+        path: PathBuf,
+        /// What is wrong.
+        detail: String,
+    },
     /// The document parses but is inconsistent.
     #[error("class bank is inconsistent: {detail}")]
     Inconsistent {
@@ -122,7 +130,7 @@ impl ClassBank {
         Ok(bank)
     }
 
-    fn check(&self) -> Result<(), LoadBankError> {
+    pub(super) fn check(&self) -> Result<(), LoadBankError> {
         let inconsistent = |detail: String| Err(LoadBankError::Inconsistent { detail });
         if !self.default_threshold.is_finite() {
             return inconsistent("default threshold is not finite".into());
@@ -158,8 +166,14 @@ impl ClassBank {
         Ok(())
     }
 
-    /// Read and verify a bank file.
+    /// Read and verify a bank: the snapshot at `path` and, if there is one, its journal
+    /// ([`ClassBank::load_with_journal`]).
     pub fn load(path: &Path) -> Result<Self, LoadBankError> {
+        Self::load_with_journal(path).map(|(bank, _)| bank)
+    }
+
+    /// Read and verify the snapshot file alone.
+    pub(super) fn load_snapshot(path: &Path) -> Result<Self, LoadBankError> {
         let bytes = fs::read(path).map_err(|source| LoadBankError::Io {
             path: path.to_owned(),
             source,
@@ -169,6 +183,9 @@ impl ClassBank {
 
     /// Save atomically: write a temporary file in the same directory, fsync it, rename it
     /// over `path`, fsync the directory. A crash leaves either the old or the new file.
+    /// Then remove the journal next to `path` (the snapshot holds the whole bank now): this
+    /// is also the journal's compaction. A crash before the removal leaves records the new
+    /// snapshot already holds, which a load skips by generation.
     pub fn save(&self, path: &Path) -> Result<(), SaveBankError> {
         let bytes = self.to_bytes()?;
         let dir = match path.parent() {
@@ -197,7 +214,14 @@ impl ClassBank {
             fs::File::open(&dir)
                 .and_then(|d| d.sync_all())
                 .map_err(io(&dir))?;
-            Ok(())
+            let journal = super::journal_path(path);
+            match fs::remove_file(&journal) {
+                Ok(()) => fs::File::open(&dir)
+                    .and_then(|d| d.sync_all())
+                    .map_err(io(&dir)),
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+                Err(e) => Err(io(&journal)(e)),
+            }
         })();
         if result.is_err() {
             let _ = fs::remove_file(&tmp);

@@ -34,11 +34,15 @@
 //! One ASCII header line, `guardian-class-bank <version> sha256:<64 hex>\n`, then a UTF-8 JSON
 //! body; the checksum is SHA-256 of the body bytes exactly as stored. Saving is atomic: a
 //! temporary file in the target directory, `fsync`, `rename`, `fsync` of the directory.
+//! Between snapshots, each enroll or forget is appended to the bank's journal
+//! (`journal.rs`: one checksummed record per change, replayed at load).
 
 mod calibrate;
 mod decide;
 mod distance;
 mod file;
+mod journal;
+mod limits;
 
 use std::collections::BTreeMap;
 
@@ -53,6 +57,8 @@ pub use calibrate::{
 pub use decide::{Decision, Outcome, is_outlier, is_wrong_task};
 pub use distance::distance;
 pub use file::{LoadBankError, SaveBankError, remove_stale_temporaries};
+pub use journal::{Replay, journal_path};
+pub use limits::BankLimits;
 
 /// Version of the on-disk format written by [`ClassBank::to_bytes`].
 pub const FORMAT_VERSION: u32 = 2;

@@ -23,12 +23,13 @@
 
 use iceoryx2::prelude::ZeroCopySend;
 
+pub mod admin;
 mod request;
 mod response;
 
 pub use request::{Request, RequestError};
 pub use response::{
-    CheckAnswer, CheckVerdict, DaemonState, Failure, NoGo, ProtocolError, decode_check,
+    CheckAnswer, CheckVerdict, DaemonState, Failure, Limit, NoGo, ProtocolError, decode_check,
     decode_failure, decode_state, encode_check, encode_failure, encode_state,
 };
 
@@ -36,9 +37,12 @@ use crate::trajectory::{CHANNELS, InvalidKind, MAX_WAYPOINTS};
 use crate::workcell::{GeometryFeature, WorkcellKind};
 
 /// Version of this wire contract; part of the service name.
-pub const PROTOCOL_VERSION: u32 = 2;
+pub const PROTOCOL_VERSION: u32 = 3;
 /// Default name of the request-response service.
-pub const DEFAULT_SERVICE_NAME: &str = "guardian/v2/rpc";
+pub const DEFAULT_SERVICE_NAME: &str = "guardian/v3/rpc";
+/// Where an installed daemon listens for administrative requests (enroll, forget) from
+/// other users: its Unix socket in the runtime directory (`docs/wire-protocol.md` §8).
+pub const DEFAULT_ADMIN_SOCKET: &str = "/run/guardian/admin.sock";
 /// Size of every fixed name field (class names, model version), NUL-padded.
 pub const NAME_BYTES: usize = 64;
 /// Longest class name in bytes (UTF-8); one byte of [`NAME_BYTES`] stays NUL.
@@ -128,6 +132,13 @@ pub enum Status {
     EmptyBank = 5,
     /// The daemon failed internally (embedding, persistence); see `message`.
     Internal = 6,
+    /// An enroll would take the bank past one of the daemon's configured limits; see
+    /// `limit_kind`, `limit_max`, `limit_requested`. Nothing changed.
+    LimitExceeded = 7,
+    /// The operation is not permitted on this endpoint (enroll and forget on the planners'
+    /// service under admin separation, or a caller not in the admin list on the admin
+    /// socket). Nothing changed.
+    NotPermitted = 8,
 }
 
 impl Status {
@@ -141,6 +152,8 @@ impl Status {
             4 => Self::UnknownClass,
             5 => Self::EmptyBank,
             6 => Self::Internal,
+            7 => Self::LimitExceeded,
+            8 => Self::NotPermitted,
             _ => return None,
         })
     }
@@ -212,9 +225,44 @@ impl ReasonCode {
     }
 }
 
+/// Which configured bank limit refused an enroll ([`ResponseHeader::limit_kind`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+#[repr(u32)]
+#[non_exhaustive]
+pub enum LimitKind {
+    /// `max-classes`: classes in the bank.
+    Classes = 1,
+    /// `max-examples-per-class`: examples of one class.
+    ExamplesPerClass = 2,
+    /// `max-bank-bytes`: the bank's size in bytes (its snapshot form).
+    BankBytes = 3,
+}
+
+impl LimitKind {
+    /// Decode a wire value.
+    pub fn from_u32(v: u32) -> Option<Self> {
+        Some(match v {
+            1 => Self::Classes,
+            2 => Self::ExamplesPerClass,
+            3 => Self::BankBytes,
+            _ => return None,
+        })
+    }
+
+    /// The config key of the limit.
+    pub fn key(self) -> &'static str {
+        match self {
+            Self::Classes => "max-classes",
+            Self::ExamplesPerClass => "max-examples-per-class",
+            Self::BankBytes => "max-bank-bytes",
+        }
+    }
+}
+
 /// The request user header. 152 bytes, alignment 8; see `docs/wire-protocol.md`.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("guardian_v2_RequestHeader")]
+#[type_name("guardian_v3_RequestHeader")]
 #[repr(C)]
 pub struct RequestHeader {
     /// Chosen by the client, echoed in the response.
@@ -257,7 +305,7 @@ impl RequestHeader {
 
 /// The response user header. 440 bytes, alignment 8; see `docs/wire-protocol.md`.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("guardian_v2_ResponseHeader")]
+#[type_name("guardian_v3_ResponseHeader")]
 #[repr(C)]
 pub struct ResponseHeader {
     /// The request's `request_id`.
@@ -325,8 +373,15 @@ pub struct ResponseHeader {
     pub geometry_threshold: f32,
     /// The [`GeometryFeature`] behind `geometry_score` (value 1..=12), 0 when none.
     pub geometry_feature: u32,
+    /// A [`LimitKind`] value when an enroll was refused with [`Status::LimitExceeded`],
+    /// else 0.
+    pub limit_kind: u32,
+    /// The configured limit that was hit (status `LimitExceeded`).
+    pub limit_max: u64,
+    /// What the bank would have held after the enroll (status `LimitExceeded`).
+    pub limit_requested: u64,
     /// Reserved, zero.
-    pub reserved: [u8; 44],
+    pub reserved: [u8; 24],
 }
 
 impl Default for ResponseHeader {
@@ -370,7 +425,10 @@ impl ResponseHeader {
             geometry_score: f32::NAN,
             geometry_threshold: f32::NAN,
             geometry_feature: 0,
-            reserved: [0; 44],
+            limit_kind: 0,
+            limit_max: 0,
+            limit_requested: 0,
+            reserved: [0; 24],
         }
     }
 
@@ -394,7 +452,7 @@ impl ResponseHeader {
 
 /// One class in a response payload. 80 bytes, alignment 4.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("guardian_v2_ClassEntry")]
+#[type_name("guardian_v3_ClassEntry")]
 #[repr(C)]
 pub struct ClassEntry {
     /// Class name, UTF-8, NUL-padded.
@@ -546,7 +604,10 @@ mod tests {
         assert_eq!(offset_of!(ResponseHeader, geometry_score), 384);
         assert_eq!(offset_of!(ResponseHeader, geometry_threshold), 388);
         assert_eq!(offset_of!(ResponseHeader, geometry_feature), 392);
-        assert_eq!(offset_of!(ResponseHeader, reserved), 396);
+        assert_eq!(offset_of!(ResponseHeader, limit_kind), 396);
+        assert_eq!(offset_of!(ResponseHeader, limit_max), 400);
+        assert_eq!(offset_of!(ResponseHeader, limit_requested), 408);
+        assert_eq!(offset_of!(ResponseHeader, reserved), 416);
 
         assert_eq!(size_of::<ClassEntry>(), 80);
         assert_eq!(align_of::<ClassEntry>(), 4);
@@ -593,9 +654,14 @@ mod tests {
             assert_eq!(Op::from_u32(v).map(|o| o as u32), Some(v));
         }
         assert_eq!(Op::from_u32(7), None);
-        for v in 0..=6 {
+        for v in 0..=8 {
             assert_eq!(Status::from_u32(v).map(|s| s as u32), Some(v));
         }
+        assert_eq!(Status::from_u32(9), None);
+        for v in 1..=3 {
+            assert_eq!(LimitKind::from_u32(v).map(|s| s as u32), Some(v));
+        }
+        assert_eq!(LimitKind::from_u32(0), None);
         for v in 0..=6 {
             assert_eq!(ReasonCode::from_u32(v).map(|s| s as u32), Some(v));
         }

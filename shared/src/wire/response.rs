@@ -6,8 +6,8 @@
 use std::borrow::Cow;
 
 use super::{
-    MESSAGE_BYTES, NAME_BYTES, ReasonCode, RequestError, RequestHeader, ResponseHeader, Status,
-    VerdictCode, decode_text, encode_text,
+    LimitKind, MESSAGE_BYTES, NAME_BYTES, ReasonCode, RequestError, RequestHeader, ResponseHeader,
+    Status, VerdictCode, decode_text, encode_text,
 };
 use crate::trajectory::{InvalidKind, InvalidTrajectory};
 use crate::workcell::{GeometryFeature, WorkcellViolation};
@@ -25,6 +25,9 @@ pub enum ProtocolError {
     /// `workcell_kind` is not a workcell rule.
     #[error("unknown workcell kind {0}")]
     UnknownWorkcellKind(u32),
+    /// `limit_kind` is not a [`LimitKind`] value.
+    #[error("unknown limit kind {0}")]
+    UnknownLimitKind(u32),
     /// `geometry_feature` is not a [`GeometryFeature`] value.
     #[error("unknown geometry feature {0}")]
     UnknownGeometryFeature(u32),
@@ -74,6 +77,29 @@ pub enum Failure {
         /// The daemon's explanation.
         message: String,
     },
+    /// [`Status::LimitExceeded`]: an enroll was refused before anything changed.
+    LimitExceeded {
+        /// Which limit, its value and what the enroll asked for.
+        limit: Limit,
+        /// The daemon's explanation.
+        message: String,
+    },
+    /// [`Status::NotPermitted`]: the op is not allowed on this endpoint or for this caller.
+    NotPermitted {
+        /// The daemon's explanation.
+        message: String,
+    },
+}
+
+/// A configured bank limit an enroll would have exceeded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub struct Limit {
+    /// Which limit.
+    pub kind: LimitKind,
+    /// Its configured value.
+    pub max: u64,
+    /// What the bank would have held after the enroll.
+    pub requested: u64,
 }
 
 impl From<&RequestError> for Failure {
@@ -101,6 +127,8 @@ impl Failure {
             Self::UnknownClass { .. } => Status::UnknownClass,
             Self::EmptyBank { .. } => Status::EmptyBank,
             Self::Internal { .. } => Status::Internal,
+            Self::LimitExceeded { .. } => Status::LimitExceeded,
+            Self::NotPermitted { .. } => Status::NotPermitted,
         }
     }
 
@@ -112,7 +140,9 @@ impl Failure {
             | Self::InvalidClassName { message }
             | Self::UnknownClass { message }
             | Self::EmptyBank { message }
-            | Self::Internal { message } => message,
+            | Self::Internal { message }
+            | Self::LimitExceeded { message, .. }
+            | Self::NotPermitted { message } => message,
         }
     }
 }
@@ -129,6 +159,11 @@ pub fn encode_failure(r: &mut ResponseHeader, failure: &Failure) {
         r.invalid_kind = invalid.kind as u32;
         r.invalid_index = invalid.index;
         r.invalid_example = *example;
+    }
+    if let Failure::LimitExceeded { limit, .. } = failure {
+        r.limit_kind = limit.kind as u32;
+        r.limit_max = limit.max;
+        r.limit_requested = limit.requested;
     }
     r.verdict = VerdictCode::None as u32;
 }
@@ -151,6 +186,16 @@ pub fn decode_failure(r: &ResponseHeader) -> Result<Option<Failure>, ProtocolErr
         Some(Status::UnknownClass) => Failure::UnknownClass { message },
         Some(Status::EmptyBank) => Failure::EmptyBank { message },
         Some(Status::Internal) => Failure::Internal { message },
+        Some(Status::LimitExceeded) => Failure::LimitExceeded {
+            limit: Limit {
+                kind: LimitKind::from_u32(r.limit_kind)
+                    .ok_or(ProtocolError::UnknownLimitKind(r.limit_kind))?,
+                max: r.limit_max,
+                requested: r.limit_requested,
+            },
+            message,
+        },
+        Some(Status::NotPermitted) => Failure::NotPermitted { message },
         None => return Err(ProtocolError::UnknownStatus(r.status)),
     }))
 }
@@ -394,6 +439,17 @@ mod tests {
             },
             Failure::Internal {
                 message: "embedding failed".into(),
+            },
+            Failure::LimitExceeded {
+                limit: Limit {
+                    kind: LimitKind::BankBytes,
+                    max: 1 << 26,
+                    requested: (1 << 26) + 5,
+                },
+                message: "bank full".into(),
+            },
+            Failure::NotPermitted {
+                message: "admin only".into(),
             },
         ];
         for f in failures {
