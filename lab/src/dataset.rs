@@ -453,16 +453,7 @@ impl Dataset {
 
     /// Write to `path` atomically (a temporary file beside it, then rename).
     pub fn save(&self, path: &Path) -> Result<(), SaveDatasetError> {
-        let bytes = self.to_bytes()?;
-        let io = |source| SaveDatasetError::Io {
-            path: path.to_path_buf(),
-            source,
-        };
-        let mut tmp = path.as_os_str().to_owned();
-        tmp.push(".tmp");
-        let tmp = PathBuf::from(tmp);
-        std::fs::write(&tmp, &bytes).map_err(io)?;
-        std::fs::rename(&tmp, path).map_err(io)
+        write_atomic(path, &self.to_bytes()?)
     }
 
     /// Read a dataset file.
@@ -660,4 +651,17 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         eprintln!("skipped {}: {}", s.path.display(), s.reason);
     }
     Ok(())
+}
+
+/// Write `bytes` to `path` atomically: a temporary file beside it, then a rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), SaveDatasetError> {
+    let io = |source| SaveDatasetError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".tmp");
+    let tmp = PathBuf::from(tmp);
+    std::fs::write(&tmp, bytes).map_err(io)?;
+    std::fs::rename(&tmp, path).map_err(io)
 }

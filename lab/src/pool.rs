@@ -771,16 +771,7 @@ pub fn save_pool(
     info: &PoolInfo,
     path: &Path,
 ) -> Result<(), dataset::SaveDatasetError> {
-    let bytes = pool_bytes(data, info)?;
-    let io = |source| dataset::SaveDatasetError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let mut tmp = path.as_os_str().to_owned();
-    tmp.push(".tmp");
-    let tmp = PathBuf::from(tmp);
-    std::fs::write(&tmp, &bytes).map_err(io)?;
-    std::fs::rename(&tmp, path).map_err(io)
+    dataset::write_atomic(path, &pool_bytes(data, info)?)
 }
 
 /// The `pool` metadata entry of a dataset file (`None` if it has none or it does not parse).
