@@ -389,10 +389,7 @@ impl Screen {
                 .append_change(&self.bank_path, name)
                 .map(|len| self.journal_bytes = len)
         } else {
-            self.bank.save(&self.bank_path).map(|()| {
-                self.journal_bytes = 0;
-                self.journal_ok = true;
-            })
+            self.snapshot()
         };
         if let Err(e) = result {
             tracing::error!(error = %e, "cannot persist class bank; change rejected");
@@ -418,15 +415,14 @@ impl Screen {
         }
         self.compact_pending = false;
         let start = std::time::Instant::now();
-        match self.bank.save(&self.bank_path) {
+        let journal_bytes = self.journal_bytes;
+        match self.snapshot() {
             Ok(()) => {
                 tracing::info!(
-                    journal_bytes = self.journal_bytes,
+                    journal_bytes,
                     millis = start.elapsed().as_millis() as u64,
                     "compacted the bank journal into the snapshot"
                 );
-                self.journal_bytes = 0;
-                self.journal_ok = true;
             }
             Err(e) => {
                 tracing::error!(error = %e, "cannot compact the bank journal; it stays in use")
@@ -445,6 +441,11 @@ impl Screen {
         if self.bank.generation() == 0 && !self.bank_path.exists() {
             return Ok(());
         }
+        self.snapshot()
+    }
+
+    /// Write the bank as a snapshot, which removes its journal.
+    fn snapshot(&mut self) -> Result<(), guardian_models::bank::SaveBankError> {
         self.bank.save(&self.bank_path)?;
         self.journal_bytes = 0;
         self.journal_ok = true;

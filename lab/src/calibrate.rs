@@ -116,25 +116,33 @@ pub fn geometry_of(xs: &[Resampled]) -> Vec<Option<PlanGeometry>> {
 /// the geometry threshold for the part of the `target_rate` budget the embedding
 /// calibration `cal` left, from the genuine plans of `reps` random `shots`-shot enrollments
 /// (the same enrollments as [`genuine_scores`] with the same seed, so `scores` line up).
+/// `pools` are the calibration sets as (plan geometry, dense labels), in the order their
+/// genuine scores were concatenated into `scores` (one set, or one per cross-fitted model).
 #[allow(clippy::too_many_arguments)]
 pub fn calibrate_geometry_pool(
     scores: &[GenuineScore],
     cal: &Calibration,
-    geo: &[Option<PlanGeometry>],
-    labels: &[u32],
+    pools: &[(&[Option<PlanGeometry>], &[u32])],
     shots: usize,
     reps: usize,
     target_rate: f32,
     seed: u64,
     note: &str,
 ) -> anyhow::Result<GeometryCalibration> {
-    let groups: Vec<Vec<PlanGeometry>> = by_class(labels)
+    let groups: Vec<Vec<PlanGeometry>> = pools
         .iter()
-        .map(|idx| idx.iter().filter_map(|&i| geo[i]).collect())
+        .flat_map(|(geo, labels)| {
+            by_class(labels)
+                .into_iter()
+                .map(|idx| idx.iter().filter_map(|&i| geo[i]).collect())
+        })
         .collect();
     let scales =
         geometry::pooled_scales(&groups).context("no geometry spread on the calibration data")?;
-    let g = geometry_scores(geo, labels, shots, reps, seed, &scales);
+    let g: Vec<Option<f32>> = pools
+        .iter()
+        .flat_map(|(geo, labels)| geometry_scores(geo, labels, shots, reps, seed, &scales))
+        .collect();
     anyhow::ensure!(
         g.len() == scores.len(),
         "geometry and embedding scores differ in number"
@@ -248,40 +256,21 @@ pub fn cross_fit(
         return Ok((cal, None));
     }
     let geos: Vec<Vec<Option<PlanGeometry>>> = pools.iter().map(|p| geometry_of(&p.xs)).collect();
-    let mut groups: Vec<Vec<PlanGeometry>> = Vec::new();
-    for (pool, geo) in pools.iter().zip(&geos) {
-        groups.extend(
-            by_class(&pool.labels)
-                .iter()
-                .map(|idx| idx.iter().filter_map(|&i| geo[i]).collect()),
-        );
-    }
-    let scales =
-        geometry::pooled_scales(&groups).context("no geometry spread on the calibration data")?;
-    let mut g = Vec::new();
-    for (pool, geo) in pools.iter().zip(&geos) {
-        g.extend(geometry_scores(
-            geo,
-            &pool.labels,
-            shots,
-            reps,
-            seed,
-            &scales,
-        ));
-    }
-    anyhow::ensure!(
-        g.len() == scores.len(),
-        "geometry and embedding scores differ in number"
-    );
-    let gcal = bank::calibrate_geometry(
+    let sets: Vec<(&[Option<PlanGeometry>], &[u32])> = geos
+        .iter()
+        .zip(&pools)
+        .map(|(g, p)| (g.as_slice(), p.labels.as_slice()))
+        .collect();
+    let gcal = calibrate_geometry_pool(
         &scores,
-        &g,
         &cal,
+        &sets,
+        shots,
+        reps,
         target_frr,
-        scales,
+        seed,
         &format!("{note}; geometry share {geometry_share}"),
-    )
-    .context("geometry calibration failed")?;
+    )?;
     Ok((cal, Some(gcal)))
 }
 
@@ -392,8 +381,7 @@ fn calibrate_on_alphabets(
         Some(calibrate_geometry_pool(
             &scores,
             &cal,
-            &cgeo,
-            &cpool.labels,
+            &[(cgeo.as_slice(), cpool.labels.as_slice())],
             args.shots,
             args.reps,
             args.target_frr,
