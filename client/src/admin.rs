@@ -10,7 +10,7 @@ use std::time::Duration;
 
 use guardian_shared::wire::{ClassEntry, Op, RequestHeader, ResponseHeader, admin};
 
-use crate::{CHANNELS, CheckError, ClassInfo, EnrollError, Trajectory};
+use crate::{CheckError, ClassInfo, EnrollError, Trajectory};
 
 /// Most class entries an admin response may carry (an enroll answers one).
 const MAX_ENTRIES: usize = 1;
@@ -47,7 +47,7 @@ impl AdminClient {
 
     /// Remove `class` from the bank.
     pub fn forget(&self, class: &str) -> Result<(), CheckError> {
-        let h = RequestHeader::encode(Op::Forget, Some(class), CHANNELS, &[])?;
+        let h = RequestHeader::encode(Op::Forget, Some(class), 0, &[])?;
         let (r, _) = self.call(h, &[])?;
         crate::status_ok(&r)
     }

@@ -6,8 +6,11 @@
 //! use guardian_client::{Client, ClientConfig, Trajectory};
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
 //! let client = Client::connect(ClientConfig::default())?;
-//! let waypoints = vec![[0.0, -0.7, 0.0, -2.3, 0.0, 1.6, 0.8, 0.0]; 50];
-//! let verdict = client.check(&Trajectory::from_waypoints(&waypoints), "character01")?;
+//! // The daemon says which robot it serves; a plan has that robot's joints + the tool.
+//! let robot = client.status()?.robot;
+//! assert_eq!(robot.joints, 7, "this planner plans for the Panda");
+//! let plan: Vec<f32> = [0.0, -0.7, 0.0, -2.3, 0.0, 1.6, 0.8, 0.0].repeat(50);
+//! let verdict = client.check(&Trajectory::from_flat(plan, robot.channels()), "character01")?;
 //! if verdict.is_go() { /* execute */ } else { println!("no-go: {:?}", verdict.decision); }
 //! # Ok(()) }
 //! ```
@@ -44,11 +47,11 @@ use iceoryx2::prelude::*;
 use serde::Serialize;
 
 pub use guardian_shared::trajectory::{
-    CHANNELS, InvalidKind, MAX_WAYPOINTS, MIN_WAYPOINTS, Waypoint,
+    InvalidKind, MAX_JOINTS, MAX_WAYPOINTS, MIN_WAYPOINTS, Waypoint, waypoint,
 };
 use guardian_shared::wire::{
-    self, CheckVerdict, ClassEntry, ClassNameError, Failure, MAX_EXAMPLES, NoGo, Op, ProtocolError,
-    RequestHeader, ResponseHeader,
+    self, CheckVerdict, ClassEntry, ClassNameError, Failure, MAX_CHANNELS, MAX_EXAMPLES, NoGo, Op,
+    ProtocolError, RequestHeader, ResponseHeader,
 };
 pub use guardian_shared::wire::{DEFAULT_ADMIN_SOCKET, Limit, LimitKind};
 pub use guardian_shared::workcell::{GeometryFeature, WorkcellKind};
@@ -77,11 +80,14 @@ impl Default for ClientConfig {
     }
 }
 
-/// A trajectory as sent: row-major waypoints of `channels` floats each. Build it from
-/// [`Waypoint`]s (7 joint positions in rad + tool 0/1); [`Trajectory::from_flat`] allows any
-/// channel count so that a wrong one reaches the daemon and is reported, as for a C planner.
-/// Bounds: [`MIN_WAYPOINTS`]..=[`MAX_WAYPOINTS`] waypoints, joints within the Panda limits,
-/// tool exactly 0 or 1 — checked by the daemon, not here.
+/// A trajectory as sent: row-major waypoints of `channels` floats each, the served robot's
+/// joint positions (rad, or m for a prismatic joint) then the tool (0/1): 8 for the Panda,
+/// 7 for the UR5e ([`RobotInfo::channels`] from [`Client::status`]). Build it from a flat
+/// buffer ([`Trajectory::from_flat`], any channel count, so a wrong one reaches the daemon
+/// and is reported, as for a C planner) or from in-memory [`Waypoint`]s of a robot with
+/// `joints` joints ([`Trajectory::from_waypoints`]). Bounds: [`MIN_WAYPOINTS`]..=
+/// [`MAX_WAYPOINTS`] waypoints, joints within the served robot's limits, tool exactly 0 or
+/// 1 — checked by the daemon, not here.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Trajectory {
     data: Vec<f32>,
@@ -89,11 +95,13 @@ pub struct Trajectory {
 }
 
 impl Trajectory {
-    /// From 8-channel waypoints.
-    pub fn from_waypoints(waypoints: &[Waypoint]) -> Self {
+    /// From in-memory waypoints of a robot with `joints` joints (slots `0..joints` and the
+    /// tool are sent: `joints + 1` channels).
+    pub fn from_waypoints(waypoints: &[Waypoint], joints: usize) -> Self {
+        let joints = joints.min(MAX_JOINTS);
         Self {
-            data: waypoints.iter().flatten().copied().collect(),
-            channels: CHANNELS,
+            data: guardian_shared::trajectory::to_flat(waypoints, joints),
+            channels: joints + 1,
         }
     }
 
@@ -122,12 +130,6 @@ impl Trajectory {
     /// The flat data.
     pub fn as_flat(&self) -> &[f32] {
         &self.data
-    }
-}
-
-impl From<&[Waypoint]> for Trajectory {
-    fn from(w: &[Waypoint]) -> Self {
-        Self::from_waypoints(w)
     }
 }
 
@@ -309,6 +311,26 @@ pub struct DaemonStatus {
     /// Service-time percentiles over recent requests in microseconds: p50, p90, p99, max
     /// (`None` before the first request).
     pub latency_us: Option<[f32; 4]>,
+    /// The robot the daemon serves (its trajectories have `joints + 1` channels).
+    pub robot: RobotInfo,
+}
+
+/// The robot a daemon serves.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct RobotInfo {
+    /// Its name (`panda`, `ur5e`, or the name in a description file).
+    pub name: String,
+    /// Joints.
+    pub joints: u32,
+    /// SHA-256 of its URDF, 64 hex digits.
+    pub urdf_sha256: String,
+}
+
+impl RobotInfo {
+    /// Floats per waypoint of this robot's trajectories: its joints and the tool.
+    pub fn channels(&self) -> usize {
+        self.joints as usize + 1
+    }
 }
 
 /// [`Client::connect`] failed.
@@ -553,7 +575,7 @@ impl Client {
             .map_err(connect_err("create notifier"))?;
         let client = rpc
             .client_builder()
-            .initial_max_slice_len(MAX_WAYPOINTS * CHANNELS)
+            .initial_max_slice_len(MAX_WAYPOINTS * MAX_CHANNELS)
             .allocation_strategy(AllocationStrategy::PowerOfTwo)
             .create()
             .map_err(connect_err("create client port"))?;
@@ -765,7 +787,7 @@ impl Client {
 
     /// Remove `class` from the bank.
     pub fn forget(&self, class: &str) -> Result<(), CheckError> {
-        let h = RequestHeader::encode(Op::Forget, Some(class), CHANNELS, &[])?;
+        let h = RequestHeader::encode(Op::Forget, Some(class), 0, &[])?;
         let (r, _) = self.call(h, &[])?;
         status_ok(&r)
     }
@@ -796,6 +818,11 @@ impl Client {
                 None
             } else {
                 Some(lat)
+            },
+            robot: RobotInfo {
+                urdf_sha256: s.robot.urdf_sha256_hex(),
+                name: s.robot.name.into_owned(),
+                joints: s.robot.joints,
             },
         })
     }

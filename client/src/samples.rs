@@ -7,6 +7,9 @@
 
 use crate::Waypoint;
 
+/// Joints of the Panda, the robot these samples are for.
+pub const JOINTS: usize = 7;
+
 /// The Franka ready pose (rad).
 pub const READY: [f32; 7] = [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785];
 
@@ -21,7 +24,7 @@ pub fn task(class: u32, drawer: u32) -> Vec<Waypoint> {
         .map(|i| {
             let t = i as f32 / (n - 1) as f32;
             let s = t + 0.03 * (d + 1.0).sin() * (std::f32::consts::PI * t).sin();
-            let mut w = [0.0f32; 8];
+            let mut w = [0.0f32; guardian_shared::trajectory::SLOTS];
             for (j, q) in w.iter_mut().take(7).enumerate() {
                 let f = 1.0 + ((class as usize * 3 + j * 5) % 4) as f32;
                 let ph = c * 1.3 + j as f32 * 0.7 + phase;
@@ -31,7 +34,7 @@ pub fn task(class: u32, drawer: u32) -> Vec<Waypoint> {
             w[3] = w[3].clamp(-3.0, -0.1);
             w[5] = w[5].clamp(0.0, 3.7);
             let band = ((s * (2.0 + (class % 3) as f32)) as u32) % 2;
-            w[7] = if band == 0 { 1.0 } else { 0.0 };
+            w[guardian_shared::trajectory::TOOL] = if band == 0 { 1.0 } else { 0.0 };
             w
         })
         .collect()
@@ -39,13 +42,21 @@ pub fn task(class: u32, drawer: u32) -> Vec<Waypoint> {
 
 #[cfg(test)]
 mod tests {
-    use guardian_shared::trajectory::validate;
+    use guardian_shared::trajectory::{JointLimits, validate};
 
     #[test]
     fn samples_are_valid() {
+        // The Panda's published limits.
+        let limits = JointLimits::new(
+            vec![
+                -2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973,
+            ],
+            vec![2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973],
+        )
+        .unwrap();
         for c in 0..8 {
             for d in 0..40 {
-                validate(&super::task(c, d)).unwrap();
+                validate(&super::task(c, d), &limits).unwrap();
             }
         }
     }

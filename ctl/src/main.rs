@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
-use guardian_client::{AdminClient, CHANNELS, Client, ClientConfig, Trajectory, Verdict};
+use guardian_client::{AdminClient, Client, ClientConfig, Trajectory, Verdict};
 
 /// Talk to guardiand: check, identify, enroll, forget, list classes, status.
 ///
@@ -43,7 +43,8 @@ struct Args {
 enum Cmd {
     /// Is the trajectory in FILE the task NAME?
     Check {
-        /// CSV (one waypoint per line: q1..q7,tool) or dataset safetensors.
+        /// CSV (one waypoint per line: q1..qn,tool for the served robot's n joints) or
+        /// dataset safetensors.
         file: PathBuf,
         /// The claimed class.
         #[arg(long)]
@@ -183,6 +184,13 @@ fn main() -> anyhow::Result<()> {
             if json {
                 println!("{}", serde_json::to_string_pretty(&s)?);
             } else {
+                println!(
+                    "robot           {} ({} joints, {} channels, URDF sha256 {})",
+                    s.robot.name,
+                    s.robot.joints,
+                    s.robot.channels(),
+                    s.robot.urdf_sha256
+                );
                 println!("model version   {}", s.model_version);
                 println!("bank version    {}", s.bank_version);
                 println!("classes         {}", s.classes);
@@ -243,14 +251,15 @@ fn read_trajectory(path: &Path, index: Option<usize>) -> anyhow::Result<Trajecto
             .tensor("trajectories")
             .with_context(|| format!("{}: no `trajectories` tensor", path.display()))?;
         let shape = t.shape();
-        if t.dtype() != safetensors::Dtype::F32 || shape.len() != 3 || shape[2] != CHANNELS {
+        if t.dtype() != safetensors::Dtype::F32 || shape.len() != 3 || shape[2] == 0 {
             bail!(
-                "{}: trajectories must be f32 [N, steps, {CHANNELS}], got {:?} {:?}",
+                "{}: trajectories must be f32 [N, steps, joints + 1], got {:?} {:?}",
                 path.display(),
                 t.dtype(),
                 shape
             );
         }
+        let channels = shape[2];
         if i >= shape[0] {
             bail!(
                 "{}: index {i} out of range (N = {})",
@@ -258,12 +267,12 @@ fn read_trajectory(path: &Path, index: Option<usize>) -> anyhow::Result<Trajecto
                 shape[0]
             );
         }
-        let row = shape[1] * CHANNELS * 4;
+        let row = shape[1] * channels * 4;
         let data: Vec<f32> = t.data()[i * row..(i + 1) * row]
             .chunks_exact(4)
             .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
             .collect();
-        return Ok(Trajectory::from_flat(data, CHANNELS));
+        return Ok(Trajectory::from_flat(data, channels));
     }
     let text =
         String::from_utf8(bytes).with_context(|| format!("{}: not UTF-8", path.display()))?;
@@ -295,5 +304,6 @@ fn read_trajectory(path: &Path, index: Option<usize>) -> anyhow::Result<Trajecto
         }
         data.extend(vals);
     }
-    Ok(Trajectory::from_flat(data, channels.unwrap_or(CHANNELS)))
+    // An empty file sends no waypoints; the daemon answers TooFewWaypoints.
+    Ok(Trajectory::from_flat(data, channels.unwrap_or(0)))
 }

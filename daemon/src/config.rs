@@ -14,6 +14,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use guardian_models::kinematics::{DEFAULT_ROBOT, RobotDescription};
 use guardian_shared::workcell::Workcell;
 use serde::{Deserialize, Serialize};
 
@@ -84,6 +85,9 @@ impl Default for AdminConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case", deny_unknown_fields, default)]
 pub struct Config {
+    /// The robot served: a built-in name (`panda`, `ur5e`) or the path of a robot
+    /// description file (`docs/robots.md`). Trajectories have its joints + 1 channels.
+    pub robot: String,
     /// Embedding model weights (safetensors). Unset: see the module docs.
     pub model: Option<PathBuf>,
     /// Class bank used when the state directory holds none. Unset: see the module docs;
@@ -124,8 +128,10 @@ pub struct Config {
     pub max_bank_bytes: u64,
     /// iceoryx2 isolation settings.
     pub iceoryx2: Iceoryx2Config,
-    /// Workcell geometry and tolerances of the workcell rules (`docs/guardiand.md`).
-    pub workcell: Workcell,
+    /// Workcell geometry and tolerances of the workcell rules (`docs/guardiand.md`): keys
+    /// set here override the robot description's `[workcell]` defaults one by one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub workcell: Option<toml::Table>,
     /// The admin endpoint and admin separation.
     pub admin: AdminConfig,
 }
@@ -133,6 +139,7 @@ pub struct Config {
 impl Default for Config {
     fn default() -> Self {
         Self {
+            robot: DEFAULT_ROBOT.to_owned(),
             model: None,
             default_bank: None,
             state_dir: None,
@@ -150,7 +157,7 @@ impl Default for Config {
             max_examples_per_class: 64,
             max_bank_bytes: 64 << 20,
             iceoryx2: Iceoryx2Config::default(),
-            workcell: Workcell::default(),
+            workcell: None,
             admin: AdminConfig::default(),
         }
     }
@@ -241,7 +248,9 @@ impl Config {
              # serving-mode: \"event\" | \"busy-poll\" | \"spin-then-sleep\"\n\
              # [iceoryx2] keys (unset: iceoryx2's defaults):\n\
              #   root-path = \"/tmp/iceoryx2/\", prefix = \"iox2_\"\n\
+             # robot: \"panda\" | \"ur5e\" | the path of a robot description (docs/robots.md)\n\
              # [workcell]: canvas geometry and tolerances of the workcell rules (m, rad);\n\
+             #   defaults from the robot description, each key set here overrides one;\n\
              #   enabled = false turns them off (docs/guardiand.md).\n\
              {body}",
             guardian_models::bank::DEFAULT_THRESHOLD
@@ -252,7 +261,9 @@ impl Config {
         if self.k_nearest == 0 {
             return Err("k-nearest must be at least 1".into());
         }
-        self.workcell.validate().map_err(|e| e.to_string())?;
+        // The robot must load and the workcell overrides must fit it.
+        let robot = self.robot_description()?;
+        self.workcell_for(&robot)?;
         if self.tick_ms == 0 {
             return Err("tick-ms must be at least 1".into());
         }
@@ -282,6 +293,19 @@ impl Config {
             ));
         }
         Ok(())
+    }
+
+    /// The robot served ([`Config::robot`]).
+    pub fn robot_description(&self) -> Result<RobotDescription, String> {
+        RobotDescription::resolve(&self.robot).map_err(|e| format!("robot: {e}"))
+    }
+
+    /// The workcell rules for `robot`: its description's defaults with this config's
+    /// `[workcell]` keys applied.
+    pub fn workcell_for(&self, robot: &RobotDescription) -> Result<Workcell, String> {
+        robot
+            .workcell_with(self.workcell.as_ref())
+            .map_err(|e| format!("[workcell]: {e}"))
     }
 
     /// The serving loop's longest sleep.
@@ -384,6 +408,28 @@ mod tests {
         .unwrap();
         assert_eq!((c.max_classes, c.admin.separation), (3, true));
         assert_eq!(c.admin.uids, [0, 1000]);
+        // The robot: built-in names, a description path, or an error naming it.
+        let c = Config::from_toml(
+            "robot = \"ur5e\"\n[workcell]\ncanvas-z = 0.2\n",
+            Path::new("t"),
+        )
+        .unwrap();
+        let d = c.robot_description().unwrap();
+        assert_eq!(d.robot.joints(), 6);
+        let cell = c.workcell_for(&d).unwrap();
+        assert_eq!((cell.canvas_z, cell.canvas_side), (0.2, 0.15));
+        let e = Config::from_toml("robot = \"kuka\"\n", Path::new("t")).unwrap_err();
+        assert!(e.to_string().contains("kuka"), "{e}");
+        let e = Config::from_toml("[workcell]\ncanvas-zz = 0.2\n", Path::new("t")).unwrap_err();
+        assert!(e.to_string().contains("canvas-zz"), "{e}");
+        assert!(Config::from_toml("[workcell]\nhover = -1.0\n", Path::new("t")).is_err());
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/robots/ur5e.toml");
+        let c = Config::from_toml(
+            &format!("robot = {:?}\n", path.display().to_string()),
+            Path::new("t"),
+        )
+        .unwrap();
+        assert_eq!(c.robot_description().unwrap().robot.name(), "ur5e");
     }
 
     #[test]

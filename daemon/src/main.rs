@@ -45,10 +45,13 @@ fn main() -> anyhow::Result<()> {
     if args.check {
         let engine = guardian_daemon::state::load_engine(&config)?;
         let (bank, src) = guardian_daemon::state::load_bank(&config, &engine)?;
+        guardian_daemon::state::load_workcell(&config)?;
         println!(
-            "ok: model {} ({}), {} with {} classes",
+            "ok: model {} ({}), robot {} ({} joints), {} with {} classes",
             engine.version(),
             config.model_path().display(),
+            engine.robot().name(),
+            engine.robot().joints(),
             src,
             bank.len()
         );

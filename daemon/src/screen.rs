@@ -14,7 +14,8 @@ use guardian_models::workcell;
 use guardian_shared::trajectory::{InvalidTrajectory, Waypoint};
 use guardian_shared::wire::{
     CheckAnswer, CheckVerdict, ClassEntry, DaemonState, Failure, Limit, NoGo, Op, Request,
-    RequestHeader, ResponseHeader, encode_check, encode_failure, encode_state, encode_text,
+    RequestHeader, ResponseHeader, RobotInfo, encode_check, encode_failure, encode_state,
+    encode_text,
 };
 use guardian_shared::workcell::Workcell;
 
@@ -207,7 +208,7 @@ impl Screen {
                 message: "enroll and forget are admin operations here: use the admin socket".into(),
             });
         }
-        Request::decode(h, payload).map_err(|e| Failure::from(&e))
+        Request::decode(h, payload, self.engine.robot().limits()).map_err(|e| Failure::from(&e))
     }
 
     /// Dispatch a decoded request to its operation and write the response.
@@ -229,7 +230,7 @@ impl Screen {
                     encode_check(&mut r, &answer);
                     entries
                 }),
-            Ok(Request::Identify { trajectory }) => self.identify(trajectory),
+            Ok(Request::Identify { trajectory }) => self.identify(&trajectory),
             Ok(Request::Enroll { class, examples }) => self.enroll(class, &examples),
             Ok(Request::Forget { class }) => self.forget(class),
             Ok(Request::Classes) => Ok(self.class_list()),
@@ -260,6 +261,11 @@ impl Screen {
                 go: counters.go,
                 no_go: counters.no_go,
                 latency_us,
+                robot: RobotInfo {
+                    name: Cow::Borrowed(self.engine.robot().name()),
+                    joints: self.engine.robot().joints() as u32,
+                    urdf_sha256: *self.engine.robot().urdf_sha256(),
+                },
             },
         );
         (r, entries)
@@ -268,7 +274,7 @@ impl Screen {
     fn check(
         &self,
         claimed: &str,
-        trajectory: Result<&[Waypoint], InvalidTrajectory>,
+        trajectory: Result<Vec<Waypoint>, InvalidTrajectory>,
         prepared: Option<PreparedPlan>,
     ) -> Result<(CheckAnswer, Vec<ClassEntry>), Failure> {
         let early = |no_go| Ok((CheckAnswer::early_no_go(no_go), Vec::new()));
@@ -277,7 +283,7 @@ impl Screen {
             Err(inv) => return early(NoGo::InvalidTrajectory(inv)),
         };
         let prepared = prepared
-            .unwrap_or_else(|| check::prepare(self.engine.embedder(), &self.workcell, t))
+            .unwrap_or_else(|| check::prepare(self.engine.embedder(), &self.workcell, &t))
             .map_err(|e| {
                 tracing::error!(error = %e, "embedding failed");
                 embedding_failed(&e)
@@ -318,7 +324,7 @@ impl Screen {
             .collect())
     }
 
-    fn enroll(&mut self, name: &str, ts: &[&[Waypoint]]) -> Result<Vec<ClassEntry>, Failure> {
+    fn enroll(&mut self, name: &str, ts: &[Vec<Waypoint>]) -> Result<Vec<ClassEntry>, Failure> {
         // Counts first: a refused enroll costs no embedding and changes nothing.
         self.limits
             .check_counts(&self.bank, name, ts.len())
@@ -326,14 +332,16 @@ impl Screen {
         let mut embeddings = Vec::with_capacity(ts.len());
         let mut geometry = Vec::with_capacity(ts.len());
         for (i, t) in ts.iter().enumerate() {
-            let x =
-                guardian_models::preprocess::preprocess(t).map_err(|inv| invalid(inv, i as u32))?;
-            let e = self
+            let x = self
                 .engine
-                .embed_resampled(std::slice::from_ref(&x))
+                .preprocess(t)
+                .map_err(|inv| invalid(inv, i as u32))?;
+            let (e, path) = self
+                .engine
+                .embed_with_pen_path(&x)
                 .map_err(|e| embedding_failed(&e))?;
-            embeddings.extend(e.iter().map(|e| e.to_vec()));
-            geometry.push(workcell::plan_geometry(&x));
+            embeddings.push(e.to_vec());
+            geometry.push(workcell::plan_geometry_of_path(&path));
         }
         // Descriptors only if every example draws on the canvas.
         let geometry: Vec<_> = geometry
@@ -473,11 +481,11 @@ impl Screen {
 
 /// The plan of a check request whose trajectory has a valid shape (the ones a batch
 /// prepares).
-fn plan_of<'a>(request: &Result<Request<'a>, Failure>) -> Option<&'a [Waypoint]> {
+fn plan_of<'b>(request: &'b Result<Request<'_>, Failure>) -> Option<&'b [Waypoint]> {
     match request {
         Ok(Request::Check {
             trajectory: Ok(t), ..
-        }) => Some(*t),
+        }) => Some(t.as_slice()),
         _ => None,
     }
 }
@@ -546,7 +554,7 @@ mod tests {
         h.examples = 1;
         h.waypoints[0] = t.len() as u32;
         h.class_name = encode_class_name(class).unwrap();
-        (h, t.iter().flatten().copied().collect())
+        (h, guardian_shared::trajectory::to_flat(t, 7))
     }
 
     /// A batch answers every request exactly as one-by-one handling does: valid checks,

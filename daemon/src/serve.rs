@@ -16,7 +16,7 @@ use crate::admin::{AdminEndpoint, AdminPolicy, WakerFactory};
 use crate::config::{Config, ServingMode};
 use crate::notify::SdNotify;
 use crate::screen::Screen;
-use crate::state::{LoadStateError, load_bank, load_engine};
+use crate::state::{LoadStateError, load_bank, load_engine, load_workcell};
 use crate::wakers::{ClientWakers, Woken};
 
 /// Flags set from signal handlers (or a test harness) to steer the loop.
@@ -108,7 +108,15 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         Err(e) => tracing::warn!(error = %e, "cannot remove stale bank temporaries"),
     }
     let engine = load_engine(&config)?;
-    tracing::info!(model = %config.model_path().display(), version = engine.version(), "model loaded");
+    let workcell = load_workcell(&config)?;
+    tracing::info!(
+        model = %config.model_path().display(),
+        version = engine.version(),
+        robot = engine.robot().name(),
+        joints = engine.robot().joints(),
+        urdf_sha256 = %engine.robot().urdf_sha256_hex(),
+        "model loaded"
+    );
     let (bank, source) = load_bank(&config, &engine)?;
     if bank.is_empty() {
         tracing::info!(%source, "class bank is empty: enroll classes before checking");
@@ -116,7 +124,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         tracing::info!(%source, classes = bank.len(), version = bank.generation(), "class bank loaded");
     }
     let mut screen = Screen::new(engine, bank, config.bank_path(), config.k_nearest);
-    screen.set_workcell(config.workcell);
+    screen.set_workcell(workcell);
     screen.set_limits(config.limits());
     screen.set_admin_separation(config.admin.separation);
     // Start from a snapshot alone: fold a journal left by the last run into it.
@@ -325,12 +333,12 @@ fn reload(config: &Config, screen: &mut Screen, sd: &SdNotify) {
     sd.status("reloading");
     let result = load_engine(config).and_then(|engine| {
         let (bank, source) = load_bank(config, &engine)?;
-        Ok((engine, bank, source))
+        Ok((engine, bank, source, load_workcell(config)?))
     });
     match result {
-        Ok((engine, bank, source)) => {
+        Ok((engine, bank, source, workcell)) => {
             screen.replace(engine, bank, config.k_nearest);
-            screen.set_workcell(config.workcell);
+            screen.set_workcell(workcell);
             tracing::info!(%source, "reload complete: {}", screen.summary());
         }
         Err(e) => {

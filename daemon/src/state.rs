@@ -4,6 +4,9 @@
 use std::path::PathBuf;
 
 use guardian_models::bank::{ClassBank, DEFAULT_THRESHOLD};
+use guardian_models::kinematics::{PANDA_JOINTS, RobotRecord};
+
+use guardian_shared::workcell::Workcell;
 
 use crate::config::Config;
 use crate::engine::Engine;
@@ -49,6 +52,25 @@ pub enum LoadStateError {
         /// Why.
         source: guardian_models::bank::LoadBankError,
     },
+    /// The robot could not be loaded.
+    #[error("cannot load the robot: {detail}")]
+    Robot {
+        /// Why.
+        detail: String,
+    },
+    /// The bank's classes were enrolled on another robot.
+    #[error(
+        "class bank {path} holds plans of robot {bank_robot} but this daemon serves {robot}; \
+         use a bank enrolled on {robot} (or remove the file and re-enroll)"
+    )]
+    BankRobotMismatch {
+        /// The bank file.
+        path: PathBuf,
+        /// The bank's robot (name, joints, URDF checksum prefix).
+        bank_robot: String,
+        /// The served robot.
+        robot: String,
+    },
     /// The bank was built with another model.
     #[error(
         "class bank {path} was built with model {bank_model} ({bank_dim}-d) but the loaded model is {model} ({model_dim}-d); \
@@ -68,13 +90,27 @@ pub enum LoadStateError {
     },
 }
 
-/// Load the model named by `config`.
+/// Load the model named by `config` for the robot it names.
 pub fn load_engine(config: &Config) -> Result<Engine, LoadStateError> {
     let path = config.model_path();
-    Engine::load(&path).map_err(|e| LoadStateError::Model {
+    let robot = config
+        .robot_description()
+        .map_err(|detail| LoadStateError::Robot { detail })?;
+    Engine::load(&path, robot.robot).map_err(|e| LoadStateError::Model {
         path,
         detail: e.to_string(),
     })
+}
+
+/// The workcell rules named by `config`: its robot's defaults with the config's
+/// `[workcell]` keys applied.
+pub fn load_workcell(config: &Config) -> Result<Workcell, LoadStateError> {
+    let robot = config
+        .robot_description()
+        .map_err(|detail| LoadStateError::Robot { detail })?;
+    config
+        .workcell_for(&robot)
+        .map_err(|detail| LoadStateError::Robot { detail })
 }
 
 /// Load the bank for `engine`: the persisted one, else the default one, else empty.
@@ -119,13 +155,31 @@ pub fn load_bank(
             BankSource::Empty,
         )
     };
+    let path = || match &source {
+        BankSource::State(p) | BankSource::Default(p) => p.clone(),
+        BankSource::Empty => PathBuf::new(),
+    };
+    // A bank records the robot its plans came from; one without a record (format <= 2)
+    // was made with the Panda.
+    let served = RobotRecord::of(engine.robot());
+    let compatible = match bank.robot() {
+        Some(r) => r == &served,
+        None => served.name == "panda" && served.joints == PANDA_JOINTS,
+    };
+    if !compatible {
+        return Err(LoadStateError::BankRobotMismatch {
+            path: path(),
+            bank_robot: bank.robot().map_or_else(
+                || "panda (format 2, no record)".to_owned(),
+                |r| r.to_string(),
+            ),
+            robot: served.to_string(),
+        });
+    }
+    bank.set_robot(served);
     if bank.dim() != engine.dim() || bank.model_version() != engine.version() {
-        let path = match &source {
-            BankSource::State(p) | BankSource::Default(p) => p.clone(),
-            BankSource::Empty => PathBuf::new(),
-        };
         return Err(LoadStateError::BankModelMismatch {
-            path,
+            path: path(),
             bank_model: bank.model_version().to_owned(),
             bank_dim: bank.dim(),
             model: engine.version().to_owned(),

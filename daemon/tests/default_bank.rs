@@ -2,8 +2,7 @@
 //! with the shipped model and carries the calibrated thresholds the decision uses.
 
 use guardian_daemon::config::Config;
-use guardian_daemon::engine::Engine;
-use guardian_daemon::state::{BankSource, load_bank};
+use guardian_daemon::state::{BankSource, LoadStateError, load_bank, load_engine};
 use guardian_models::bank::MIN_CLASS_CALIBRATION;
 
 #[test]
@@ -13,8 +12,11 @@ fn shipped_default_bank_matches_the_shipped_model_and_is_calibrated() {
         state_dir: Some(state.path().to_owned()),
         ..Config::default()
     };
-    let engine = Engine::load(&config.model_path()).unwrap();
+    let engine = load_engine(&config).unwrap();
     let (bank, source) = load_bank(&config, &engine).unwrap();
+    // The shipped bank predates the robot record: it is the Panda's, and now says so.
+    let robot = bank.robot().expect("recorded at load");
+    assert_eq!((robot.name.as_str(), robot.joints), ("panda", 7));
     assert!(matches!(source, BankSource::Default(_)), "{source}");
     assert!(!bank.is_empty());
     let cal = bank.calibration().expect("the default bank is calibrated");
@@ -31,4 +33,21 @@ fn shipped_default_bank_matches_the_shipped_model_and_is_calibrated() {
             assert_eq!(d.threshold, Some(t));
         }
     }
+}
+
+/// A daemon serving the UR5e refuses the shipped bank (Panda plans) with a clear error.
+#[test]
+fn a_ur5e_daemon_refuses_the_panda_bank() {
+    let state = tempfile::tempdir().unwrap();
+    let config = Config {
+        robot: "ur5e".into(),
+        state_dir: Some(state.path().to_owned()),
+        ..Config::default()
+    };
+    let engine = load_engine(&config).unwrap();
+    assert_eq!(engine.robot().joints(), 6);
+    let e = load_bank(&config, &engine).unwrap_err();
+    assert!(matches!(e, LoadStateError::BankRobotMismatch { .. }), "{e}");
+    let text = e.to_string();
+    assert!(text.contains("panda") && text.contains("ur5e"), "{text}");
 }

@@ -10,7 +10,8 @@ use guardian_daemon::engine::Engine;
 use guardian_daemon::screen::Screen;
 use guardian_models::bank::ClassBank;
 use guardian_models::embedder::Embedder;
-use guardian_shared::trajectory::{CHANNELS, Waypoint, from_flat};
+use guardian_models::kinematics::{PANDA_JOINTS, Robot};
+use guardian_shared::trajectory::{Waypoint, from_flat};
 use guardian_shared::wire::{
     MAX_EXAMPLES, NAME_BYTES, Op, RequestHeader, ResponseHeader, Status, VerdictCode,
     decode_class_name, encode_class_name,
@@ -22,6 +23,9 @@ use std::sync::{Mutex, OnceLock};
 const CASES: u32 = 5_000;
 
 const ENROLLED: [&str; 3] = ["task0", "task1", "task2"];
+
+/// The screen serves the Panda: 7 joints and the tool.
+const CHANNELS: usize = PANDA_JOINTS + 1;
 
 /// One screen for all cases of a test (building it embeds nine trajectories). Requests
 /// may enroll and forget classes; the properties hold for whatever the bank holds.
@@ -76,7 +80,8 @@ fn payload() -> impl Strategy<Value = Vec<f32>> {
             prop::option::of((any::<prop::sample::Index>(), f32_any()))
         )
             .prop_map(|(c, d, m)| {
-                let mut p: Vec<f32> = task(c, d).iter().flatten().copied().collect();
+                let mut p: Vec<f32> =
+                    guardian_shared::trajectory::to_flat(&task(c, d), PANDA_JOINTS);
                 if let Some((i, v)) = m {
                     let i = i.index(p.len());
                     p[i] = v;
@@ -154,7 +159,7 @@ fn genuine_check(bank: &ClassBank, h: &RequestHeader, payload: &[f32]) -> bool {
         && h.examples == 1
         && u64::from(h.waypoints[0]) * CHANNELS as u64 == payload.len() as u64
         && decode_class_name(&h.class_name).is_ok_and(|n| bank.class(n).is_some())
-        && from_flat(payload, CHANNELS).is_ok()
+        && from_flat(payload, CHANNELS, Robot::panda().limits()).is_ok()
 }
 
 fn assert_sound(
@@ -263,9 +268,10 @@ fn overflowing_sizes_are_bad_requests() {
     // A genuine check still passes afterwards.
     let t: Vec<Waypoint> = task(1, 30);
     let mut h = RequestHeader::new(10, Op::Check);
+    h.channels = CHANNELS as u32;
     h.examples = 1;
     h.waypoints[0] = t.len() as u32;
     h.class_name = encode_class_name("task1").unwrap();
-    let p: Vec<f32> = t.iter().flatten().copied().collect();
+    let p: Vec<f32> = guardian_shared::trajectory::to_flat(&t, PANDA_JOINTS);
     assert_eq!(s.handle(&h, &p).0.verdict, VerdictCode::Go as u32);
 }

@@ -14,6 +14,7 @@ use anyhow::Context as _;
 use guardian_models::bank::{self, Calibration, ClassBank, GenuineScore, GeometryCalibration};
 use guardian_models::embedder::Embedder;
 use guardian_models::geometry::{self, PlanGeometry};
+use guardian_models::kinematics::{Robot, RobotRecord};
 use guardian_shared::trajectory::Resampled;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -104,11 +105,15 @@ pub fn genuine_scores(
     Ok(out)
 }
 
-/// Plan geometry of every trajectory (`None`: the pen never touches the canvas).
-pub fn geometry_of(xs: &[Resampled]) -> Vec<Option<PlanGeometry>> {
+/// Plan geometry of every trajectory of `robot` (`None`: the pen never touches the canvas).
+pub fn geometry_of(xs: &[Resampled], robot: &Robot) -> Vec<Option<PlanGeometry>> {
     use rayon::prelude::*;
     xs.par_iter()
-        .map(guardian_models::workcell::plan_geometry)
+        .map(|x| {
+            guardian_models::workcell::plan_geometry_of_path(
+                &guardian_models::features::pen_path_with(robot, x),
+            )
+        })
         .collect()
 }
 
@@ -231,8 +236,9 @@ pub fn cross_fit(
     let mut pools = Vec::new();
     let mut names = Vec::new();
     for p in pairs {
-        let model =
-            Embedder::load(&p.model).with_context(|| format!("loading {}", p.model.display()))?;
+        let model = Embedder::load(&p.model)
+            .with_context(|| format!("loading {}", p.model.display()))?
+            .with_robot(data.robot()?)?;
         let pool = Pool::new(data, &p.alphabets)?;
         let emb = pool.embed(&model)?;
         scores.extend(genuine_scores(
@@ -255,7 +261,9 @@ pub fn cross_fit(
     if geometry_share <= 0.0 {
         return Ok((cal, None));
     }
-    let geos: Vec<Vec<Option<PlanGeometry>>> = pools.iter().map(|p| geometry_of(&p.xs)).collect();
+    let robot = data.robot()?;
+    let geos: Vec<Vec<Option<PlanGeometry>>> =
+        pools.iter().map(|p| geometry_of(&p.xs, &robot)).collect();
     let sets: Vec<(&[Option<PlanGeometry>], &[u32])> = geos
         .iter()
         .zip(&pools)
@@ -377,7 +385,7 @@ fn calibrate_on_alphabets(
     let cal = bank::calibrate(&scores, emb_target, &note)
         .with_context(|| format!("cannot calibrate: {} scores", scores.len()))?;
     let gcal = if args.geometry_share > 0.0 {
-        let cgeo = geometry_of(&cpool.xs);
+        let cgeo = geometry_of(&cpool.xs, model.robot());
         Some(calibrate_geometry_pool(
             &scores,
             &cal,
@@ -397,8 +405,9 @@ fn calibrate_on_alphabets(
 /// Run `guardian-lab bank`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let data = Dataset::load(&args.dataset)?;
-    let model =
-        Embedder::load(&args.model).with_context(|| format!("loading {}", args.model.display()))?;
+    let model = Embedder::load(&args.model)
+        .with_context(|| format!("loading {}", args.model.display()))?
+        .with_robot(data.robot()?)?;
     anyhow::ensure!(
         (0.0..=1.0).contains(&args.geometry_share),
         "--geometry-share must be in [0, 1]"
@@ -425,11 +434,16 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     };
     let pool = Pool::new(&data, &args.alphabets)?;
     let emb = pool.embed(&model)?;
-    let geo = geometry_of(&pool.xs);
+    let geo = geometry_of(&pool.xs, model.robot());
     let mut rng = StdRng::seed_from_u64(args.seed ^ 0x5eed);
     let (support, _) = split(&pool.labels, args.shots, &mut rng);
     let dim = emb.first().map_or(0, Vec::len);
     let mut b = ClassBank::new(dim, model.version(), bank::DEFAULT_THRESHOLD);
+    // A Panda bank stays in the format every daemon reads (no record means the Panda);
+    // any other robot is recorded so that a daemon serving another arm refuses the bank.
+    if data.robot != RobotRecord::panda() {
+        b.set_robot(data.robot.clone());
+    }
     for (l, idx) in support.iter().enumerate() {
         if idx.is_empty() {
             continue;

@@ -10,8 +10,9 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+use guardian_models::kinematics::{Robot, RobotRecord};
 use guardian_models::preprocess::preprocess_with;
-use guardian_shared::trajectory::{CHANNELS, InvalidTrajectory, Resampled, STEPS};
+use guardian_shared::trajectory::{InvalidTrajectory, Resampled, SLOTS, STEPS, TOOL};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -67,14 +68,14 @@ pub struct Converted {
     pub path: Vec<PathPoint>,
     /// The dense joint path (what a planner would send).
     pub dense: DensePath,
-    /// The 128 x 8 model input.
+    /// The model input: 128 waypoints of the robot's joints and the tool.
     pub sample: Resampled,
 }
 
 /// Strokes -> Cartesian path -> IK -> dense waypoints -> shared preprocessing.
 pub fn convert_strokes(solver: &PathSolver, strokes: &[Stroke]) -> Result<Converted, ConvertError> {
     let (path, dense) = solver.solve_strokes(strokes)?;
-    let sample = preprocess_with(solver.panda(), &dense.waypoints)?;
+    let sample = preprocess_with(solver.robot(), &dense.waypoints)?;
     Ok(Converted {
         path,
         dense,
@@ -85,7 +86,8 @@ pub fn convert_strokes(solver: &PathSolver, strokes: &[Stroke]) -> Result<Conver
 /// The dataset in memory.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Dataset {
-    /// One 128 x 8 trajectory per drawing.
+    /// One 128-step trajectory per drawing (the robot's joints and the tool; on disk
+    /// `[N, 128, joints + 1]`).
     pub trajectories: Vec<Resampled>,
     /// Class index per drawing (into `classes`).
     pub labels: Vec<i64>,
@@ -101,6 +103,8 @@ pub struct Dataset {
     pub geometry: Geometry,
     /// Generator name and version.
     pub generator: String,
+    /// The robot that drew the trajectories (files without a `robot` record: the Panda).
+    pub robot: RobotRecord,
 }
 
 /// A skipped drawing and why.
@@ -210,6 +214,7 @@ pub fn generate_files(
         alphabets,
         geometry: geometry.clone(),
         generator: generator_name(),
+        robot: RobotRecord::of(solver.robot()),
     };
     let mut report = GenerateReport {
         files: files.len(),
@@ -372,6 +377,21 @@ impl Dataset {
         self.trajectories.is_empty()
     }
 
+    /// The robot that drew the trajectories, loaded from the geometry's robot and checked
+    /// against the file's record (name, joints, URDF checksum), with the geometry's pen.
+    pub fn robot(&self) -> Result<Robot, crate::path::SolvePathError> {
+        let robot = self.geometry.robot()?;
+        if !self.robot.matches(&robot) {
+            return Err(crate::path::SolvePathError::Robot(format!(
+                "the data set was drawn by {} but {:?} loads as {}",
+                self.robot,
+                self.geometry.robot,
+                RobotRecord::of(&robot)
+            )));
+        }
+        Ok(robot)
+    }
+
     fn check(&self) -> Result<(), SaveDatasetError> {
         let n = self.trajectories.len();
         for (what, got) in [
@@ -399,6 +419,9 @@ impl Dataset {
         metadata.insert("classes", json(&self.classes));
         metadata.insert("generator", self.generator.clone());
         metadata.insert("geometry", json(&self.geometry));
+        metadata.insert("robot", json(&self.robot));
+        let joints = self.robot.joints;
+        let channels = joints + 1;
         // I64 tensors first (8-byte aligned), then f32, each group by name.
         let i64_tensors: [(&str, &[i64]); 3] = [
             ("alphabet_ids", &self.alphabet_ids),
@@ -420,10 +443,10 @@ impl Dataset {
             ));
             offset += len;
         }
-        let tlen = n * STEPS * CHANNELS * 4;
+        let tlen = n * STEPS * channels * 4;
         entries.push((
             "trajectories".into(),
-            serde_json::json!({"dtype": "F32", "shape": [n, STEPS, CHANNELS], "data_offsets": [offset, offset + tlen]}),
+            serde_json::json!({"dtype": "F32", "shape": [n, STEPS, channels], "data_offsets": [offset, offset + tlen]}),
         ));
         offset += tlen;
         for (k, v) in entries {
@@ -443,7 +466,7 @@ impl Dataset {
         }
         for t in &self.trajectories {
             for w in t {
-                for v in w {
+                for v in w[..joints].iter().chain(std::iter::once(&w[TOOL])) {
                     out.extend_from_slice(&v.to_le_bytes());
                 }
             }
@@ -487,13 +510,23 @@ impl Dataset {
         let alphabets: Vec<String> = parse("alphabets", get("alphabets")?)?;
         let geometry: Geometry = parse("geometry", get("geometry")?)?;
         let generator = get("generator")?.clone();
+        // Files from before robot records are the Panda's.
+        let robot: RobotRecord = match meta.get("robot") {
+            Some(text) => parse("robot", text)?,
+            None => RobotRecord::panda(),
+        };
+        let joints = robot.joints;
+        let channels = joints + 1;
 
         let traj = tensor(&st, "trajectories", safetensors::Dtype::F32)?;
         let shape = traj.shape().to_vec();
-        if shape.len() != 3 || shape[1] != STEPS || shape[2] != CHANNELS {
+        if shape.len() != 3 || shape[1] != STEPS || shape[2] != channels || channels > SLOTS {
             return Err(LoadDatasetError::Tensor {
                 name: "trajectories",
-                expected: format!("shape [N, {STEPS}, {CHANNELS}]"),
+                expected: format!(
+                    "shape [N, {STEPS}, {channels}] ({} joints + tool)",
+                    robot.name
+                ),
                 got: format!("{shape:?}"),
             });
         }
@@ -504,11 +537,12 @@ impl Dataset {
             .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
             .collect();
         let trajectories: Vec<Resampled> = values
-            .chunks_exact(STEPS * CHANNELS)
+            .chunks_exact(STEPS * channels)
             .map(|t| {
-                let mut r = [[0.0f32; CHANNELS]; STEPS];
-                for (s, w) in r.iter_mut().zip(t.chunks_exact(CHANNELS)) {
-                    s.copy_from_slice(w);
+                let mut r = [[0.0f32; SLOTS]; STEPS];
+                for (s, w) in r.iter_mut().zip(t.chunks_exact(channels)) {
+                    s[..joints].copy_from_slice(&w[..joints]);
+                    s[TOOL] = w[joints];
                 }
                 r
             })
@@ -547,6 +581,7 @@ impl Dataset {
             alphabets,
             geometry,
             generator,
+            robot,
         })
     }
 }
@@ -585,8 +620,12 @@ pub struct Args {
     #[arg(long)]
     pub out: PathBuf,
     /// Geometry as a JSON file (kebab-case keys of `Geometry`); default: the guide's.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "robot")]
     pub geometry: Option<PathBuf>,
+    /// The robot that draws: a built-in name (panda, ur5e) or a robot description file;
+    /// its pen, home seed and canvas come from its description (default: panda).
+    #[arg(long)]
+    pub robot: Option<String>,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -601,7 +640,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
             serde_json::from_str(&text).with_context(|| format!("parsing {}", p.display()))?
         }
-        None => Geometry::default(),
+        None => match &args.robot {
+            Some(r) => Geometry::for_robot(r)?,
+            None => Geometry::default(),
+        },
     };
     let files = strokes::scan(&args.strokes)?;
     let bar = if args.quiet {
@@ -621,24 +663,27 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     dataset.save(&args.out)?;
     eprintln!(
         "threads:              {}\n\
+         robot:                {}\n\
          drawings read:        {}\n\
          converted:            {}\n\
          skipped:              {}\n\
          IK failures:          {}\n\
          max FK error:         {:.3e} m\n\
-         min joint margin:     {:.4} rad\n\
+         min joint margin:     {:.4} rad (limit violations: {})\n\
          dense waypoints:      {} ({:.0} per drawing)\n\
          elapsed:              {:.3} s\n\
          drawings/s:           {:.0}\n\
          classes / alphabets:  {} / {}\n\
          written:              {}",
         rayon::current_num_threads(),
+        dataset.robot,
         report.files,
         report.converted,
         report.skipped.len(),
         report.ik_failures,
         report.max_fk_error,
         report.min_limit_margin,
+        usize::from(report.min_limit_margin < 0.0),
         report.dense_waypoints,
         report.dense_waypoints as f64 / report.converted.max(1) as f64,
         report.elapsed.as_secs_f64(),

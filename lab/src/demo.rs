@@ -7,11 +7,12 @@
 //! Cartesian pen path) and compare each verdict with the expected one. The demo classes are
 //! forgotten at the end unless asked to keep them.
 
+use guardian_models::kinematics::PANDA_JOINTS;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use guardian_client::{CheckError, Client, Decision, EnrollError, NoGoReason, Trajectory, Verdict};
-use guardian_shared::trajectory::{JOINTS, Waypoint};
+use guardian_shared::trajectory::Waypoint;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use serde::Serialize;
@@ -228,6 +229,18 @@ pub enum DemoError {
         /// Why.
         source: EnrollError,
     },
+    /// The daemon serves another robot than the Panda the demo (and its default bank) is
+    /// for.
+    #[error(
+        "the demo draws with the Panda and checks its default bank; the daemon serves {served}"
+    )]
+    WrongRobot {
+        /// The robot the daemon serves.
+        served: String,
+    },
+    /// The daemon's status could not be read.
+    #[error("status: {0}")]
+    Status(CheckError),
     /// Forgetting a demo class failed.
     #[error("forget {class}: {source}")]
     Forget {
@@ -344,6 +357,12 @@ type Case = (String, Trajectory, String, Outcome);
 
 /// Run the demo against the daemon behind `client`.
 pub fn run(client: &Client, opts: &Options) -> Result<Report, DemoError> {
+    let served = client.status().map_err(DemoError::Status)?.robot;
+    if served.name != "panda" || served.joints as usize != PANDA_JOINTS {
+        return Err(DemoError::WrongRobot {
+            served: format!("{} ({} joints)", served.name, served.joints),
+        });
+    }
     let geometry = Geometry::default();
     let d = Drawings {
         root: opts.strokes.clone(),
@@ -358,7 +377,10 @@ pub fn run(client: &Client, opts: &Options) -> Result<Report, DemoError> {
     for (&c, name) in LATIN.iter().zip(&names) {
         let mut examples = Vec::new();
         for &drawer in &ENROLL_DRAWERS {
-            examples.push(Trajectory::from_waypoints(&d.plan("Latin", c, drawer)?));
+            examples.push(Trajectory::from_waypoints(
+                &d.plan("Latin", c, drawer)?,
+                PANDA_JOINTS,
+            ));
         }
         client
             .enroll(name, &examples)
@@ -378,7 +400,7 @@ pub fn run(client: &Client, opts: &Options) -> Result<Report, DemoError> {
     for (&c, name) in LATIN.iter().zip(&names) {
         cases.push((
             format!("genuine Latin {c:02} drawer {CHECK_DRAWER}"),
-            Trajectory::from_waypoints(&d.plan("Latin", c, CHECK_DRAWER)?),
+            Trajectory::from_waypoints(&d.plan("Latin", c, CHECK_DRAWER)?, PANDA_JOINTS),
             name.clone(),
             Outcome::Go,
         ));
@@ -386,13 +408,13 @@ pub fn run(client: &Client, opts: &Options) -> Result<Report, DemoError> {
     let (a, b) = (LATIN[0], LATIN[1]);
     cases.push((
         format!("Latin {a:02} claimed as {b:02}"),
-        Trajectory::from_waypoints(&d.plan("Latin", a, FAULT_DRAWER)?),
+        Trajectory::from_waypoints(&d.plan("Latin", a, FAULT_DRAWER)?, PANDA_JOINTS),
         names[1].clone(),
         Outcome::WrongTask,
     ));
     cases.push((
         "never-enrolled class".into(),
-        Trajectory::from_waypoints(&d.plan("Latin", a, FAULT_DRAWER)?),
+        Trajectory::from_waypoints(&d.plan("Latin", a, FAULT_DRAWER)?, PANDA_JOINTS),
         NEVER_ENROLLED.into(),
         Outcome::UnknownClass,
     ));
@@ -405,17 +427,18 @@ pub fn run(client: &Client, opts: &Options) -> Result<Report, DemoError> {
     // (seeded), so severity 1/3 is 0.1 rad.
     let severity = (JOINT_OFFSET - 0.05) / 0.15;
     let offset = corrupt_joints(
+        d.solver.robot(),
         Fault::JointOffset,
         severity,
         &genuine,
         &mut StdRng::seed_from_u64(7),
     );
-    let joint = (0..JOINTS)
+    let joint = (0..PANDA_JOINTS)
         .find(|&j| offset.iter().zip(&genuine).any(|(o, g)| o[j] != g[j]))
         .map_or("a joint".to_string(), |j| format!("joint {}", j + 1));
     cases.push((
         format!("{joint} offset {JOINT_OFFSET} rad"),
-        Trajectory::from_waypoints(&offset),
+        Trajectory::from_waypoints(&offset, PANDA_JOINTS),
         names[2].clone(),
         Outcome::Workcell,
     ));
@@ -444,7 +467,7 @@ pub fn run(client: &Client, opts: &Options) -> Result<Report, DemoError> {
     let base = [dir[1] * SHIFT * 100.0, -dir[0] * SHIFT * 100.0];
     cases.push((
         format!("moved {:.0} cm on the canvas", SHIFT * 100.0),
-        Trajectory::from_waypoints(&d.solve(&path, &moved)?),
+        Trajectory::from_waypoints(&d.solve(&path, &moved)?, PANDA_JOINTS),
         names[2].clone(),
         Outcome::Geometry,
     ));
@@ -465,7 +488,7 @@ pub fn run(client: &Client, opts: &Options) -> Result<Report, DemoError> {
     w[10][2] = f32::NAN;
     cases.push((
         "NaN joint value".into(),
-        Trajectory::from_waypoints(&w),
+        Trajectory::from_waypoints(&w, PANDA_JOINTS),
         names[2].clone(),
         Outcome::Invalid,
     ));
@@ -473,20 +496,23 @@ pub fn run(client: &Client, opts: &Options) -> Result<Report, DemoError> {
     w[20][3] = 0.5;
     cases.push((
         "joint 4 beyond limit".into(),
-        Trajectory::from_waypoints(&w),
+        Trajectory::from_waypoints(&w, PANDA_JOINTS),
         names[2].clone(),
         Outcome::Invalid,
     ));
-    let seven: Vec<f32> = genuine.iter().flat_map(|w| w[..JOINTS].to_vec()).collect();
+    let seven: Vec<f32> = genuine
+        .iter()
+        .flat_map(|w| w[..PANDA_JOINTS].to_vec())
+        .collect();
     cases.push((
         "7 channels".into(),
-        Trajectory::from_flat(seven, JOINTS),
+        Trajectory::from_flat(seven, PANDA_JOINTS),
         names[2].clone(),
         Outcome::Invalid,
     ));
     cases.push((
         "1 waypoint".into(),
-        Trajectory::from_waypoints(&genuine[..1]),
+        Trajectory::from_waypoints(&genuine[..1], PANDA_JOINTS),
         names[2].clone(),
         Outcome::Invalid,
     ));
@@ -495,7 +521,7 @@ pub fn run(client: &Client, opts: &Options) -> Result<Report, DemoError> {
     let greek = format!("Greek/character{g:02}");
     cases.push((
         format!("Greek {g:02} drawer {gd}, default bank"),
-        Trajectory::from_waypoints(&d.plan("Greek", g, gd)?),
+        Trajectory::from_waypoints(&d.plan("Greek", g, gd)?, PANDA_JOINTS),
         greek.clone(),
         Outcome::Go,
     ));

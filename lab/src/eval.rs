@@ -14,7 +14,7 @@
 use std::path::PathBuf;
 
 use guardian_models::embedder::{EMBED_DIM, Embedder};
-use guardian_shared::trajectory::{CHANNELS, Resampled, STEPS};
+use guardian_shared::trajectory::{Resampled, STEPS, TOOL};
 use rand::rngs::StdRng;
 use rand::seq::IndexedRandom;
 use rand::{Rng, SeedableRng};
@@ -208,22 +208,26 @@ pub fn run_episodes(
     })
 }
 
-/// Per-channel standardised, flattened raw trajectories (the 1-NN baseline's vectors).
-pub fn standardised_raw(xs: &[Resampled]) -> Vec<Vec<f32>> {
-    let mut mean = [0.0f64; CHANNELS];
-    let mut var = [0.0f64; CHANNELS];
+/// Per-channel standardised, flattened raw trajectories of a robot with `joints` joints
+/// (the 1-NN baseline's vectors: its joints and the tool per step).
+pub fn standardised_raw(xs: &[Resampled], joints: usize) -> Vec<Vec<f32>> {
+    // The channels: the joint slots in use, then the tool.
+    let slots: Vec<usize> = (0..joints).chain(std::iter::once(TOOL)).collect();
+    let channels = slots.len();
+    let mut mean = vec![0.0f64; channels];
+    let mut var = vec![0.0f64; channels];
     let n = (xs.len() * STEPS).max(1) as f64;
     for x in xs {
         for w in x {
-            for c in 0..CHANNELS {
-                mean[c] += f64::from(w[c]) / n;
+            for (c, &s) in slots.iter().enumerate() {
+                mean[c] += f64::from(w[s]) / n;
             }
         }
     }
     for x in xs {
         for w in x {
-            for c in 0..CHANNELS {
-                var[c] += (f64::from(w[c]) - mean[c]).powi(2) / n;
+            for (c, &s) in slots.iter().enumerate() {
+                var[c] += (f64::from(w[s]) - mean[c]).powi(2) / n;
             }
         }
     }
@@ -231,7 +235,12 @@ pub fn standardised_raw(xs: &[Resampled]) -> Vec<Vec<f32>> {
     xs.iter()
         .map(|x| {
             x.iter()
-                .flat_map(|w| (0..CHANNELS).map(|c| ((f64::from(w[c]) - mean[c]) / sd[c]) as f32))
+                .flat_map(|w| {
+                    slots
+                        .iter()
+                        .enumerate()
+                        .map(|(c, &s)| ((f64::from(w[s]) - mean[c]) / sd[c]) as f32)
+                })
                 .collect()
         })
         .collect()
@@ -248,6 +257,8 @@ pub struct Pool {
     pub class_names: Vec<String>,
     /// Alphabets in the pool.
     pub alphabets: Vec<String>,
+    /// Joints of the robot that drew the samples.
+    pub joints: usize,
 }
 
 impl Pool {
@@ -267,6 +278,7 @@ impl Pool {
             labels: Vec::new(),
             class_names: Vec::new(),
             alphabets: names,
+            joints: data.robot.joints,
         };
         for i in 0..data.len() {
             if !ids.contains(&data.alphabet_ids[i]) {
@@ -389,7 +401,7 @@ pub fn evaluate(
             run_episodes(&pool.labels, spec, &mut Scorer::Random)?,
         ),
         Some(Baseline::Knn) => {
-            let v = standardised_raw(&pool.xs);
+            let v = standardised_raw(&pool.xs, pool.joints);
             (
                 "knn",
                 None,
@@ -435,11 +447,17 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     anyhow::bail!("--baseline siamese needs --siamese-model or --model")
                 }
             };
-            Some(Embedder::load(&path).with_context(|| format!("loading {}", path.display()))?)
+            Some(
+                Embedder::load(&path)
+                    .with_context(|| format!("loading {}", path.display()))?
+                    .with_robot(data.robot()?)?,
+            )
         }
-        (None, Some(m)) => {
-            Some(Embedder::load(m).with_context(|| format!("loading {}", m.display()))?)
-        }
+        (None, Some(m)) => Some(
+            Embedder::load(m)
+                .with_context(|| format!("loading {}", m.display()))?
+                .with_robot(data.robot()?)?,
+        ),
         (None, None) => anyhow::bail!("--model is required unless --baseline random|knn"),
         (Some(_), _) => None,
     };

@@ -11,8 +11,9 @@
 //! Wrong-task and unknown-task faults are not corruptions of one plan (another class's
 //! genuine plan claims a class); they are drawn by the `outliers` evaluation.
 
+use guardian_models::kinematics::Robot;
 use guardian_models::preprocess::preprocess_with;
-use guardian_shared::trajectory::{JOINTS, Q_MAX, Q_MIN, Resampled, Waypoint};
+use guardian_shared::trajectory::{Resampled, Waypoint};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
@@ -297,20 +298,23 @@ pub fn corrupt_strokes<R: Rng>(
     Ok(Some(out))
 }
 
-/// A joint-space fault applied to a dense joint path (clamped to the joint limits).
+/// A joint-space fault applied to a dense joint path of `robot` (clamped to its joint
+/// limits).
 pub fn corrupt_joints<R: Rng>(
+    robot: &Robot,
     fault: Fault,
     severity: f64,
     waypoints: &[Waypoint],
     rng: &mut R,
 ) -> Vec<Waypoint> {
-    let clamp = |j: usize, v: f64| v.clamp(Q_MIN[j] + 1e-4, Q_MAX[j] - 1e-4) as f32;
+    let (lo, hi, joints) = (robot.q_min(), robot.q_max(), robot.joints());
+    let clamp = |j: usize, v: f64| v.clamp(lo[j] + 1e-4, hi[j] - 1e-4) as f32;
     let mut out = waypoints.to_vec();
     match fault {
         Fault::JointNoise => {
             let sigma = 0.03 * severity;
             for w in &mut out {
-                for (j, q) in w.iter_mut().take(JOINTS).enumerate() {
+                for (j, q) in w.iter_mut().take(joints).enumerate() {
                     // Box–Muller.
                     let u1: f64 = rng.random_range(f64::EPSILON..1.0);
                     let u2: f64 = rng.random();
@@ -320,7 +324,7 @@ pub fn corrupt_joints<R: Rng>(
             }
         }
         Fault::JointOffset => {
-            let j = rng.random_range(0..JOINTS);
+            let j = rng.random_range(0..joints);
             let sign = if rng.random::<bool>() { 1.0 } else { -1.0 };
             let off = sign * (0.05 + 0.15 * severity);
             for w in &mut out {
@@ -345,8 +349,14 @@ pub fn corrupt<R: Rng>(
         Some(s) => Ok(convert_strokes(solver, &s)?.sample),
         None => {
             let genuine = convert_strokes(solver, strokes)?;
-            let w = corrupt_joints(fault, severity, &genuine.dense.waypoints, rng);
-            Ok(preprocess_with(solver.panda(), &w).map_err(ConvertError::from)?)
+            let w = corrupt_joints(
+                solver.robot(),
+                fault,
+                severity,
+                &genuine.dense.waypoints,
+                rng,
+            );
+            Ok(preprocess_with(solver.robot(), &w).map_err(ConvertError::from)?)
         }
     }
 }

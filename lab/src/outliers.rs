@@ -341,8 +341,11 @@ fn pool_data_indices(data: &Dataset, alphabets: &[String]) -> anyhow::Result<Vec
 /// Run `guardian-lab outliers`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let data = Dataset::load(&args.dataset)?;
-    let model =
-        Embedder::load(&args.model).with_context(|| format!("loading {}", args.model.display()))?;
+    // Pen paths by the forward kinematics of the robot that drew the data set.
+    let robot = data.robot()?;
+    let model = Embedder::load(&args.model)
+        .with_context(|| format!("loading {}", args.model.display()))?
+        .with_robot(robot.clone())?;
     if args
         .calib_alphabets
         .iter()
@@ -442,7 +445,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let cell = Workcell::default();
     let wc_of = |xs: &[Resampled]| -> Vec<f32> {
         xs.par_iter()
-            .map(|x| workcell::inspect(&cell, x).map_or(f32::INFINITY, |i| i.score))
+            .map(|x| workcell::inspect_with(&robot, &cell, x).map_or(f32::INFINITY, |i| i.score))
             .collect()
     };
     let (cgeo, tgeo, fgeo) = (geo_of(&ec), geo_of(&et), geo_of(&ef));
@@ -455,7 +458,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         geometry::pooled_scales(&groups).context("no geometry spread on the calibration data")?
     };
     if let Some(p) = &args.siamese_model {
-        let s = Embedder::load(p).with_context(|| format!("loading {}", p.display()))?;
+        let s = Embedder::load(p)
+            .with_context(|| format!("loading {}", p.display()))?
+            .with_robot(robot.clone())?;
         methods.push((
             Method::Siamese,
             vectors(&embed(&s, &cpool.xs)?),
@@ -471,7 +476,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             .chain(&fxs)
             .copied()
             .collect();
-        let mut v = standardised_raw(&all);
+        let mut v = standardised_raw(&all, pool.joints);
         let f = v.split_off(cpool.xs.len() + pool.xs.len());
         let t = v.split_off(cpool.xs.len());
         methods.push((Method::Knn, v, t, f));

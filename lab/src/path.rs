@@ -2,13 +2,17 @@
 //! descent, strokes, lifts, travel, final lift) and inverse kinematics along it.
 //!
 //! The default [`Geometry`] is the one in the engineering guide (§3), so datasets stay
-//! comparable: a horizontal 0.15 m canvas centred at (0.50, 0.00) m at pen-tip height
-//! z = 0.15 m, 1 motor unit = 1.25 mm, motor +y -> base +x, motor +x -> base -y, 2 cm hover
-//! and lifts, pen 0.15 m along flange z rotated -pi/4, tool z straight down and tool x along
-//! base +x while drawing.
+//! comparable: the Panda, a horizontal 0.15 m canvas centred at (0.50, 0.00) m at pen-tip
+//! height z = 0.15 m, 1 motor unit = 1.25 mm, motor +y -> base +x, motor +x -> base -y, 2 cm
+//! hover and lifts, pen 0.15 m along flange z rotated -pi/4, tool z straight down and tool x
+//! along base +x while drawing. [`Geometry::for_robot`] draws the same with another arm (its
+//! description's pen, home seed and canvas).
 
-use guardian_models::kinematics::{Frame, IkError, IkOptions, JointVector, Panda, READY_POSE};
-use guardian_shared::trajectory::{JOINTS, MAX_WAYPOINTS, TOOL, Waypoint};
+use guardian_models::kinematics::{
+    DEFAULT_ROBOT, Frame, IkError, IkOptions, JointVector, READY_POSE, Robot, RobotDescription,
+    joint_vector,
+};
+use guardian_shared::trajectory::{MAX_WAYPOINTS, TOOL, Waypoint};
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
@@ -18,6 +22,8 @@ use crate::strokes::Stroke;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case", default)]
 pub struct Geometry {
+    /// The robot: a built-in name (`panda`, `ur5e`) or a robot description file.
+    pub robot: String,
     /// Canvas centre (x, y) in the base frame (m).
     pub canvas_center: [f64; 2],
     /// Canvas side (m); informational (drawings are not rescaled or clipped).
@@ -38,8 +44,8 @@ pub struct Geometry {
     pub pen_yaw: f64,
     /// Largest spacing of the dense Cartesian path solved by IK (m).
     pub spacing: f64,
-    /// Seed of the home-pose IK (the Franka ready pose).
-    pub ready_pose: [f64; JOINTS],
+    /// Seed of the home-pose IK, one value per joint (the Panda: the Franka ready pose).
+    pub ready_pose: Vec<f64>,
     /// IK acceptance: pen-tip position error (m).
     pub ik_position_tolerance: f64,
     /// IK acceptance: pen orientation error (rad).
@@ -49,6 +55,7 @@ pub struct Geometry {
 impl Default for Geometry {
     fn default() -> Self {
         Self {
+            robot: DEFAULT_ROBOT.to_string(),
             canvas_center: [0.50, 0.00],
             canvas_side: 0.15,
             canvas_z: 0.15,
@@ -59,7 +66,7 @@ impl Default for Geometry {
             pen_length: guardian_models::kinematics::PEN_LENGTH,
             pen_yaw: guardian_models::kinematics::PEN_YAW,
             spacing: 0.0015,
-            ready_pose: READY_POSE,
+            ready_pose: READY_POSE[..guardian_models::kinematics::PANDA_JOINTS].to_vec(),
             ik_position_tolerance: 1e-5,
             ik_orientation_tolerance: 1e-4,
         }
@@ -77,9 +84,45 @@ impl Geometry {
         )
     }
 
+    /// The default geometry drawn with another robot (a built-in name or a description
+    /// file): its description's pen (a tool along flange z, rotated about it), home seed
+    /// and canvas; spacing, hover, lifts and the motor mapping as for the Panda.
+    pub fn for_robot(robot: &str) -> Result<Self, SolvePathError> {
+        let d =
+            RobotDescription::resolve(robot).map_err(|e| SolvePathError::Robot(e.to_string()))?;
+        let t = d.tool;
+        if t.xyz[0] != 0.0 || t.xyz[1] != 0.0 || t.rpy[0] != 0.0 || t.rpy[1] != 0.0 {
+            return Err(SolvePathError::Robot(format!(
+                "{}: the drawing geometry needs a pen along flange z ([tool] xyz = [0, 0, length], rpy = [0, 0, yaw])",
+                d.source
+            )));
+        }
+        let n = d.robot.joints();
+        Ok(Self {
+            robot: robot.to_string(),
+            canvas_center: [d.workcell.canvas_x, d.workcell.canvas_y],
+            canvas_side: d.workcell.canvas_side,
+            canvas_z: d.workcell.canvas_z,
+            pen_length: t.xyz[2],
+            pen_yaw: t.rpy[2],
+            ready_pose: d.home_seed[..n].to_vec(),
+            ..Self::default()
+        })
+    }
+
     /// The robot with this geometry's pen.
-    pub fn panda(&self) -> Panda {
-        Panda::default().with_tool(self.pen_length, self.pen_yaw)
+    pub fn robot(&self) -> Result<Robot, SolvePathError> {
+        let d = RobotDescription::resolve(&self.robot)
+            .map_err(|e| SolvePathError::Robot(e.to_string()))?;
+        if self.ready_pose.len() != d.robot.joints() {
+            return Err(SolvePathError::Robot(format!(
+                "ready-pose has {} values, robot {} has {} joints",
+                self.ready_pose.len(),
+                d.robot.name(),
+                d.robot.joints()
+            )));
+        }
+        Ok(d.robot.with_tool(self.pen_length, self.pen_yaw))
     }
 
     /// Pen orientation while drawing: tool z down (-z of the base), tool x along base +x.
@@ -161,6 +204,9 @@ pub fn cartesian_path(strokes: &[Stroke], geometry: &Geometry, spacing: f64) -> 
 #[derive(Debug, Clone, thiserror::Error)]
 #[non_exhaustive]
 pub enum SolvePathError {
+    /// The robot could not be loaded, or does not fit this geometry.
+    #[error("robot: {0}")]
+    Robot(String),
     /// The home pose (pen hovering above the canvas centre) has no IK solution.
     #[error("no IK solution for the home pose: {0}")]
     Home(IkError),
@@ -184,7 +230,7 @@ pub enum SolvePathError {
 /// A solved dense joint path with its quality figures.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DensePath {
-    /// One waypoint per Cartesian path point: q1..q7 (rad, f32) and the tool channel.
+    /// One waypoint per Cartesian path point: the robot's joints (f32) and the tool channel.
     pub waypoints: Vec<Waypoint>,
     /// Largest distance between the target pen tip and the FK of the stored (f32) joints (m).
     pub max_fk_error: f64,
@@ -195,7 +241,7 @@ pub struct DensePath {
 /// IK along Cartesian paths for one geometry: the robot, the home pose and the settings.
 #[derive(Debug, Clone)]
 pub struct PathSolver {
-    panda: Panda,
+    panda: Robot,
     rotation: Matrix3<f64>,
     home: JointVector,
     geometry: Geometry,
@@ -206,34 +252,33 @@ impl PathSolver {
     /// Build the robot for `geometry` and solve the home pose (pen 2 cm above the canvas
     /// centre, from the ready pose, along an unrecorded straight approach).
     pub fn new(geometry: &Geometry) -> Result<Self, SolvePathError> {
-        let panda = geometry.panda();
+        let panda = geometry.robot()?;
         let rotation = geometry.tool_rotation();
         let options = IkOptions {
             position_tolerance: geometry.ik_position_tolerance,
             orientation_tolerance: geometry.ik_orientation_tolerance,
             ..IkOptions::default()
         };
+        let seed = joint_vector(&geometry.ready_pose);
         let mut solver = Self {
             panda,
             rotation,
-            home: geometry.ready_pose,
+            home: seed,
             geometry: geometry.clone(),
             options,
         };
         let centre = geometry.motor_to_base(geometry.motor_center[0], geometry.motor_center[1])
             + Vector3::new(0.0, 0.0, geometry.hover);
-        let home = solver
-            .approach(&geometry.ready_pose, centre)
-            .map_err(|e| match e {
-                SolvePathError::Ik { source, .. } => SolvePathError::Home(source),
-                other => other,
-            })?;
+        let home = solver.approach(&seed, centre).map_err(|e| match e {
+            SolvePathError::Ik { source, .. } => SolvePathError::Home(source),
+            other => other,
+        })?;
         solver.home = home;
         Ok(solver)
     }
 
     /// The robot model used.
-    pub fn panda(&self) -> &Panda {
+    pub fn robot(&self) -> &Robot {
         &self.panda
     }
 
@@ -300,9 +345,9 @@ impl PathSolver {
                     source,
                 })?;
             let q = &state.q;
-            let mut w = [0.0f32; guardian_shared::trajectory::CHANNELS];
-            let mut stored = [0.0f64; JOINTS];
-            for j in 0..JOINTS {
+            let mut w = [0.0f32; guardian_shared::trajectory::SLOTS];
+            let mut stored: JointVector = [0.0f64; guardian_models::kinematics::MAX_JOINTS];
+            for j in 0..self.panda.joints() {
                 w[j] = to_f32_within(q[j], self.panda.q_min()[j], self.panda.q_max()[j]);
                 stored[j] = f64::from(w[j]);
             }

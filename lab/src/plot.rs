@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use guardian_models::preprocess::joints_of;
-use guardian_shared::trajectory::{JOINTS, TOOL};
+use guardian_shared::trajectory::TOOL;
 use plotters::prelude::*;
 
 use crate::dataset::Dataset;
@@ -97,7 +97,8 @@ pub fn plot_drawing(
         message: e.to_string(),
     };
     let g = &dataset.geometry;
-    let panda = g.panda();
+    let panda = dataset.robot().map_err(|e| draw_err(&e))?;
+    let joints = panda.joints();
     let tips: Vec<(f64, f64, f64, bool)> = sample
         .iter()
         .map(|s| {
@@ -210,7 +211,7 @@ pub fn plot_drawing(
         let mut lo = f64::INFINITY;
         let mut hi = f64::NEG_INFINITY;
         for s in sample {
-            for &v in &s[..JOINTS] {
+            for &v in &s[..joints] {
                 lo = lo.min(f64::from(v));
                 hi = hi.max(f64::from(v));
             }
@@ -218,14 +219,17 @@ pub fn plot_drawing(
         lo = lo.min(0.0) - 0.1;
         hi = hi.max(1.0) + 0.1;
         let mut chart = ChartBuilder::on(&panels[2])
-            .caption("joints q1..q7 (rad) and tool", ("sans-serif", 16))
+            .caption(
+                format!("{} joints q1..q{joints} and tool", panda.name()),
+                ("sans-serif", 16),
+            )
             .margin(10)
             .x_label_area_size(25)
             .y_label_area_size(35)
             .build_cartesian_2d(0f64..(sample.len() - 1) as f64, lo..hi)
             .map_err(|e| draw_err(&e))?;
         chart.configure_mesh().draw().map_err(|e| draw_err(&e))?;
-        for j in 0..JOINTS {
+        for j in 0..joints {
             let color = Palette99::pick(j).to_rgba();
             chart
                 .draw_series(LineSeries::new(

@@ -707,6 +707,7 @@ pub fn build_pool(
         alphabets: vec![POOL_ALPHABET.to_string()],
         geometry: geometry.clone(),
         generator: dataset::generator_name(),
+        robot: guardian_models::kinematics::RobotRecord::of(&geometry.robot()?),
     };
     for (&i, r) in kept.iter().zip(converted) {
         if let Ok(x) = r {
@@ -1183,7 +1184,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     save_pool(&data, &info, &args.out)?;
     println!("{}", serde_json::to_string_pretty(&report)?);
     if let Some(m) = &args.cluster_model {
-        let model = Embedder::load(m)?;
+        let model = Embedder::load(m)?.with_robot(data.robot()?)?;
         let t0 = Instant::now();
         let emb = embed_pool(&model, &data)?;
         let nn = knn(&emb, args.cluster_k)?;

@@ -437,8 +437,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         .with_context(|| format!("creating {}", args.out.display()))?;
     let data = Dataset::load(&args.dataset)?;
     let pool = Pool::new(&data, &args.alphabets)?;
-    let model =
-        Embedder::load(&args.model).with_context(|| format!("loading {}", args.model.display()))?;
+    let robot = data.robot()?;
+    let model = Embedder::load(&args.model)
+        .with_context(|| format!("loading {}", args.model.display()))?
+        .with_robot(robot.clone())?;
     let siamese_path = args
         .siamese_model
         .clone()
@@ -446,7 +448,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let siamese = if siamese_path.exists() {
         Some(
             Embedder::load(&siamese_path)
-                .with_context(|| format!("loading {}", siamese_path.display()))?,
+                .with_context(|| format!("loading {}", siamese_path.display()))?
+                .with_robot(robot)?,
         )
     } else {
         None
@@ -458,7 +461,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
 
     let emb = pool.embed(&model)?;
     let siam_emb = siamese.as_ref().map(|s| pool.embed(s)).transpose()?;
-    let raw = eval::standardised_raw(&pool.xs);
+    let raw = eval::standardised_raw(&pool.xs, pool.joints);
     let max_way = pool.class_names.len().min(20);
     let mut md = String::new();
     writeln!(md, "# Few-shot report: model `{}`\n", model.version())?;

@@ -538,7 +538,16 @@ impl Prepared {
             data_index.push(i);
         }
         let pen = if kind != FeatureKind::Joints {
-            raw.iter().map(features::pen_path).collect()
+            // Pen paths by the forward kinematics of the robot that drew the data set.
+            let robot = data.robot().map_err(|e| TrainError::Setup(e.to_string()))?;
+            raw.iter()
+                .map(|x| features::pen_path_with(&robot, x))
+                .collect()
+        } else if data.robot.joints != guardian_models::kinematics::PANDA_JOINTS {
+            return Err(TrainError::Setup(format!(
+                "joint features are for Panda data sets; this one was drawn by {}",
+                data.robot
+            )));
         } else {
             Vec::new()
         };
@@ -578,6 +587,7 @@ impl Prepared {
                 "pool share {share} must be in [0, 1]"
             )));
         }
+        let robot = pool.robot().map_err(|e| TrainError::Setup(e.to_string()))?;
         let pens: Vec<Option<[PenPoint; STEPS]>> = {
             let mut used = vec![false; pool.len()];
             for &i in groups.iter().flatten() {
@@ -591,7 +601,7 @@ impl Prepared {
             }
             (0..pool.len())
                 .into_par_iter()
-                .map(|i| used[i].then(|| features::pen_path(&pool.trajectories[i])))
+                .map(|i| used[i].then(|| features::pen_path_with(&robot, &pool.trajectories[i])))
                 .collect()
         };
         let mut added = 0;
@@ -668,7 +678,7 @@ impl Prepared {
                     let fault = kinds[rng.random_range(0..kinds.len())];
                     let severity = rng.random_range(0.25..=1.0);
                     if let Ok(x) = faults::corrupt(&solver, fault, severity, &st, &mut rng) {
-                        out.push(features::pen_path(&x));
+                        out.push(features::pen_path_with(solver.robot(), &x));
                     }
                 }
                 out

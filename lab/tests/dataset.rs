@@ -10,7 +10,7 @@ use guardian_lab::dataset::{
 use guardian_lab::path::{Geometry, PathSolver};
 use guardian_lab::strokes::{DrawingFile, Point, Stroke, read_strokes, scan};
 use guardian_models::preprocess::joints_of;
-use guardian_shared::trajectory::{CHANNELS, InvalidKind, MAX_WAYPOINTS, STEPS, TOOL};
+use guardian_shared::trajectory::{InvalidKind, MAX_WAYPOINTS, SLOTS, STEPS, TOOL};
 use nalgebra::Vector3;
 
 /// `<workspace root>/../shared/omniglot/strokes`.
@@ -38,7 +38,7 @@ fn few_per_alphabet() -> Vec<DrawingFile> {
     picked
 }
 
-fn pen_down_runs(sample: &[[f32; CHANNELS]]) -> usize {
+fn pen_down_runs(sample: &[[f32; SLOTS]]) -> usize {
     let mut runs = 0;
     let mut prev = 0.0;
     for s in sample {
@@ -71,7 +71,7 @@ fn distance_to_strokes(p: &Vector3<f64>, strokes: &[Stroke], g: &Geometry) -> f6
 
 fn check_samples(ds: &Dataset, files: &[DrawingFile]) {
     let g = &ds.geometry;
-    let panda = g.panda();
+    let panda = ds.robot().expect("the data set's robot loads");
     assert_eq!(ds.len(), files.len());
     for (i, f) in files.iter().enumerate() {
         let strokes = read_strokes(&f.path).expect("read");
@@ -138,10 +138,7 @@ fn a_few_drawings_per_alphabet_convert_deterministically() {
     assert_eq!(Dataset::load(&path).expect("load"), ds);
     let st = safetensors::SafeTensors::deserialize(&bytes).expect("safetensors");
     let n = files.len();
-    assert_eq!(
-        st.tensor("trajectories").expect("t").shape(),
-        [n, STEPS, CHANNELS]
-    );
+    assert_eq!(st.tensor("trajectories").expect("t").shape(), [n, STEPS, 8]);
     assert_eq!(
         st.tensor("trajectories").expect("t").dtype(),
         safetensors::Dtype::F32

@@ -93,7 +93,8 @@ fn pool_drawings_convert_through_the_robot_pipeline() {
     assert!(report.converted >= 118, "{report:?}");
     // Every converted plan draws: its tool channel is down somewhere and up somewhere.
     for x in out.iter().flatten() {
-        assert!(x.iter().any(|w| w[7] > 0.5) && x.iter().any(|w| w[7] < 0.5));
+        let tool = guardian_shared::trajectory::TOOL;
+        assert!(x.iter().any(|w| w[tool] > 0.5) && x.iter().any(|w| w[tool] < 0.5));
     }
 }
 
@@ -179,6 +180,7 @@ fn latin_copies_pool() -> &'static (Dataset, Vec<String>) {
             alphabets: vec!["unlabelled".into()],
             geometry: Geometry::default(),
             generator: "test".into(),
+            robot: guardian_models::kinematics::RobotRecord::panda(),
         };
         (data, truth)
     })

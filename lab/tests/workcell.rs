@@ -7,8 +7,9 @@ use std::path::Path;
 use guardian_lab::dataset::convert_strokes;
 use guardian_lab::path::{Geometry, PathSolver};
 use guardian_lab::strokes::{Stroke, character_files, read_strokes};
+use guardian_models::kinematics::{PANDA_JOINTS, PANDA_Q_MAX, PANDA_Q_MIN};
 use guardian_models::workcell::{inspect, plan_geometry};
-use guardian_shared::trajectory::{JOINTS, Q_MAX, Q_MIN, Waypoint};
+use guardian_shared::trajectory::Waypoint;
 use guardian_shared::workcell::{GeometryFeature, Workcell, WorkcellKind};
 
 fn drawing(character: u32, drawer: usize) -> Vec<Stroke> {
@@ -42,11 +43,11 @@ fn genuine_plans_obey_every_rule() {
 #[test]
 fn a_joint_offset_breaks_the_tool_orientation() {
     let ws = solve(&Geometry::default(), &drawing(3, 0));
-    for j in 0..JOINTS {
+    for j in 0..PANDA_JOINTS {
         let mut bad = ws.clone();
         for w in &mut bad {
             // 0.05 rad, towards the middle of the joint range so the plan stays valid.
-            let mid = 0.5 * (Q_MIN[j] + Q_MAX[j]) as f32;
+            let mid = 0.5 * (PANDA_Q_MIN[j] + PANDA_Q_MAX[j]) as f32;
             w[j] += if w[j] < mid { 0.05 } else { -0.05 };
         }
         assert_eq!(
@@ -69,7 +70,10 @@ fn drawing_above_the_canvas_breaks_the_pen_height() {
         ..Geometry::default()
     };
     let ws = solve(&g, &drawing(3, 0));
-    let first_down = ws.iter().position(|w| w[7] > 0.5).unwrap() as u32;
+    let first_down = ws
+        .iter()
+        .position(|w| w[guardian_shared::trajectory::TOOL] > 0.5)
+        .unwrap() as u32;
     assert_eq!(violation(&ws), Some((WorkcellKind::PenHeight, first_down)));
 }
 

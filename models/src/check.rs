@@ -56,9 +56,15 @@ pub enum PlanCheck {
     Decided(Decision),
 }
 
-/// Inspect `waypoints` against `cell`: the early outcome, or the inspection to embed.
-fn inspect(cell: &Workcell, waypoints: &[Waypoint]) -> Result<Inspection, Prepared> {
-    let inspection = workcell::inspect(cell, waypoints).map_err(Prepared::Invalid)?;
+/// Inspect `waypoints` of the embedder's robot against `cell`: the early outcome, or the
+/// inspection to embed.
+fn inspect(
+    embedder: &Embedder,
+    cell: &Workcell,
+    waypoints: &[Waypoint],
+) -> Result<Inspection, Prepared> {
+    let inspection =
+        workcell::inspect_with(embedder.robot(), cell, waypoints).map_err(Prepared::Invalid)?;
     match inspection.violation {
         Some(v) => Err(Prepared::Workcell(v)),
         None => Ok(inspection),
@@ -71,7 +77,7 @@ pub fn prepare(
     cell: &Workcell,
     waypoints: &[Waypoint],
 ) -> Result<Prepared, EmbedError> {
-    let inspection = match inspect(cell, waypoints) {
+    let inspection = match inspect(embedder, cell, waypoints) {
         Ok(i) => i,
         Err(early) => return Ok(early),
     };
@@ -101,7 +107,7 @@ pub fn prepare_batch(
     plans: &[&[Waypoint]],
 ) -> Vec<Result<Prepared, EmbedError>> {
     let inspected: Vec<Result<Inspection, Prepared>> =
-        plans.iter().map(|w| inspect(cell, w)).collect();
+        plans.iter().map(|w| inspect(embedder, cell, w)).collect();
     let xs: Vec<_> = inspected
         .iter()
         .filter_map(|i| i.as_ref().ok().map(|i| i.resampled))
@@ -169,7 +175,10 @@ mod tests {
     #[test]
     fn a_batch_prepares_like_single_plans() {
         let embedder = Embedder::random(5);
-        let home = [0.0f32, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785, 0.0];
+        let home = guardian_shared::trajectory::waypoint(
+            &[0.0f32, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785],
+            0.0,
+        );
         let a: Vec<Waypoint> = (0..40)
             .map(|i| {
                 let mut w = home;
@@ -179,7 +188,11 @@ mod tests {
             .collect();
         let b: Vec<Waypoint> = a
             .iter()
-            .map(|w| [w[0], w[1] + 0.01, w[2], w[3], w[4], w[5], w[6], w[7]])
+            .map(|w| {
+                let mut w = *w;
+                w[1] += 0.01;
+                w
+            })
             .collect();
         let mut bad = a.clone();
         bad[3][0] = f32::NAN;

@@ -1,8 +1,14 @@
 //! The inference-side embedder: load/save a trained network, embed resampled trajectories.
 //!
+//! An embedder serves one robot ([`Embedder::with_robot`], the Panda unless set): the
+//! network sees the pen-tip path that robot's forward kinematics makes of a trajectory, so
+//! one trained model screens any arm drawing the same tasks. Models on joint features
+//! ([`FeatureKind::Joints`], the paper's baseline) are Panda-only.
+//!
 //! File format: safetensors with one f32 tensor per parameter and `__metadata__`:
 //! `format` (`guardian-embedder/1`), `config` (the [`NetConfig`] as JSON), `input-shape`
-//! (`128x8`), `embed-dim`, and `sha256` — a hex SHA-256 over every tensor (in name order:
+//! (`128x8`: the 128 steps of the Panda's 8 channels the format was defined on), `embed-dim`,
+//! and `sha256` — a hex SHA-256 over every tensor (in name order:
 //! name, shape, little-endian bytes). [`Embedder::load`] refuses a file whose format,
 //! shapes or checksum do not match.
 
@@ -13,23 +19,27 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use candle_core::{DType, Device, Tensor};
-use guardian_shared::trajectory::{CHANNELS, Resampled, STEPS};
+use guardian_shared::trajectory::{Resampled, STEPS};
 use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 use sha2::{Digest, Sha256};
 
 use crate::fast::{FastNet, FastNetError, Scratch};
-use crate::features::{Augment, FeatureKind, PenPoint};
+use crate::features::{Augment, FeatureKind, PenPoint, pen_path_with};
+use crate::kinematics::{PANDA_JOINTS, Robot};
 use crate::net::{Net, NetConfig};
 
 pub use crate::net::EMBED_DIM;
 
-/// How a pen path is computed from a resampled trajectory: [`crate::features::pen_path`], or
+/// How a pen path is computed from a resampled trajectory: [`pen_path_with`] the served robot, or
 /// the general-chain reference the tests compare it with. A type parameter rather than a
 /// function pointer, so the serving path calls `pen_path` directly.
 trait PenPathFn: Fn(&Resampled) -> [PenPoint; STEPS] + Copy {}
 impl<F: Fn(&Resampled) -> [PenPoint; STEPS] + Copy> PenPathFn for F {}
 /// One embedding.
 pub type Embedding = [f32; EMBED_DIM];
+
+/// Value of the `input-shape` metadata key (the file format's, whatever the robot).
+const INPUT_SHAPE: &str = "128x8";
 
 /// Value of the `format` metadata key.
 pub const FORMAT: &str = "guardian-embedder/1";
@@ -155,6 +165,12 @@ pub enum EmbedError {
         /// Output slots given.
         got: usize,
     },
+    /// A joint-feature model was asked to serve a robot other than the Panda.
+    #[error("a joint-feature model serves the Panda only, not {robot}")]
+    JointFeaturesNeedPanda {
+        /// The robot asked for.
+        robot: String,
+    },
     /// The network produced a non-finite embedding.
     #[error("embedding {index} is non-finite")]
     NonFiniteOutput {
@@ -170,6 +186,8 @@ pub struct Embedder {
     fast: Arc<FastNet>,
     version: String,
     checksum: String,
+    /// The robot whose forward kinematics turns trajectories into pen paths.
+    robot: Arc<Robot>,
 }
 
 impl Embedder {
@@ -204,7 +222,7 @@ impl Embedder {
             });
         }
         let input_shape = get("input-shape")?;
-        let want_shape = format!("{STEPS}x{CHANNELS}");
+        let want_shape = INPUT_SHAPE.to_string();
         if input_shape != want_shape {
             return Err(LoadModelError::BadMetadata {
                 key: "input-shape",
@@ -338,7 +356,25 @@ impl Embedder {
             net,
             version: checksum[..16].to_string(),
             checksum,
+            robot: Arc::new(crate::preprocess::default_panda().clone()),
         })
+    }
+
+    /// The same model serving `robot`: pen paths by its forward kinematics. A model on
+    /// joint features serves only a 7-joint robot (the Panda whose limits scale them).
+    pub fn with_robot(mut self, robot: Robot) -> Result<Self, EmbedError> {
+        if self.net.config().features == FeatureKind::Joints && robot.joints() != PANDA_JOINTS {
+            return Err(EmbedError::JointFeaturesNeedPanda {
+                robot: robot.name().to_string(),
+            });
+        }
+        self.robot = Arc::new(robot);
+        Ok(self)
+    }
+
+    /// The robot this embedder serves.
+    pub fn robot(&self) -> &Robot {
+        &self.robot
     }
 
     /// Write the model atomically: a temporary file beside `path`, fsync, rename.
@@ -396,7 +432,7 @@ impl Embedder {
         let meta = HashMap::from([
             ("format".to_string(), FORMAT.to_string()),
             ("config".to_string(), config),
-            ("input-shape".to_string(), format!("{STEPS}x{CHANNELS}")),
+            ("input-shape".to_string(), INPUT_SHAPE.to_string()),
             ("embed-dim".to_string(), EMBED_DIM.to_string()),
             ("sha256".to_string(), self.checksum.clone()),
         ]);
@@ -421,7 +457,8 @@ impl Embedder {
     /// Embed `xs` into `out` (same length) with the fast path, using per-thread scratch
     /// buffers: after the first call with the largest batch, no allocation.
     pub fn embed_into(&self, xs: &[Resampled], out: &mut [Embedding]) -> Result<(), EmbedError> {
-        self.embed_into_with(xs, out, crate::features::pen_path, None)
+        let robot = &*self.robot;
+        self.embed_into_with(xs, out, |x: &Resampled| pen_path_with(robot, x), None)
     }
 
     /// [`Embedder::embed`], also returning the pen path ([`crate::features::pen_path`]) the
@@ -433,10 +470,11 @@ impl Embedder {
     ) -> Result<(Embedding, [PenPoint; STEPS]), EmbedError> {
         let mut out = [[0.0f32; EMBED_DIM]];
         let mut path = [[[0.0f32; 3]; STEPS]];
+        let robot = &*self.robot;
         self.embed_into_with(
             std::slice::from_ref(x),
             &mut out,
-            crate::features::pen_path,
+            |x: &Resampled| pen_path_with(robot, x),
             Some(&mut path),
         )?;
         Ok((out[0], path[0]))
@@ -456,7 +494,13 @@ impl Embedder {
             });
         }
         let mut out = vec![[0.0f32; EMBED_DIM]; xs.len()];
-        self.embed_into_with(xs, &mut out, crate::features::pen_path, Some(paths))?;
+        let robot = &*self.robot;
+        self.embed_into_with(
+            xs,
+            &mut out,
+            |x: &Resampled| pen_path_with(robot, x),
+            Some(paths),
+        )?;
         Ok(out)
     }
 
@@ -467,10 +511,11 @@ impl Embedder {
     #[cfg(any(test, feature = "test-support"))]
     pub fn embed_reference(&self, x: &Resampled) -> Result<Embedding, EmbedError> {
         let mut out = [[0.0f32; EMBED_DIM]];
+        let robot = &*self.robot;
         self.embed_into_with(
             std::slice::from_ref(x),
             &mut out,
-            crate::features::pen_path_reference,
+            |x: &Resampled| crate::features::pen_path_reference_with(robot, x),
             None,
         )?;
         Ok(out[0])
@@ -582,7 +627,7 @@ impl Embedder {
             if kind == FeatureKind::Joints {
                 crate::features::compute(kind, x, out);
                 if let Some(p) = path_slot {
-                    *p = crate::features::pen_path(x);
+                    *p = pen_path_with(&self.robot, x);
                 }
                 continue;
             }
@@ -609,7 +654,13 @@ impl Embedder {
         check_finite(xs)?;
         let c = self.net.config().features.channels();
         let mut feats = Vec::new();
-        let copies = self.features_into(xs, &mut feats, crate::features::pen_path, None);
+        let robot = &*self.robot;
+        let copies = self.features_into(
+            xs,
+            &mut feats,
+            |x: &Resampled| pen_path_with(robot, x),
+            None,
+        );
         let input = Tensor::from_vec(feats, (copies * xs.len(), STEPS, c), &Device::Cpu)?;
         let mut e = self.net.forward(&input)?;
         if copies == 2 {
@@ -721,10 +772,10 @@ mod tests {
     use super::*;
 
     fn sample(phase: f32) -> Resampled {
-        let mut x = [[0.0f32; CHANNELS]; STEPS];
+        let mut x = [[0.0f32; guardian_shared::trajectory::SLOTS]; STEPS];
         for (t, w) in x.iter_mut().enumerate() {
             let s = t as f32 / STEPS as f32;
-            *w = [
+            let row = [
                 0.1 * (6.0 * s + phase).sin(),
                 0.2 + 0.1 * (4.0 * s + phase).cos(),
                 0.0,
@@ -732,8 +783,8 @@ mod tests {
                 0.0,
                 2.2,
                 0.78,
-                if t % 40 < 30 { 1.0 } else { 0.0 },
             ];
+            *w = guardian_shared::trajectory::waypoint(&row, if t % 40 < 30 { 1.0 } else { 0.0 });
         }
         x
     }

@@ -559,7 +559,7 @@ mod tests {
     use crate::embedder::Embedder;
     use crate::features::FeatureKind;
     use candle_core::{Device, Tensor};
-    use guardian_shared::trajectory::{CHANNELS, Resampled, STEPS};
+    use guardian_shared::trajectory::{Resampled, SLOTS, STEPS, TOOL};
     use rand::{Rng, SeedableRng};
 
     /// `||a - b|| / ||b||` (L2 over the whole slices).
@@ -688,14 +688,14 @@ mod tests {
             .map(|_| {
                 let phase: [f32; 7] = std::array::from_fn(|_| rng.random_range(0.0..6.0));
                 let amp: [f32; 7] = std::array::from_fn(|_| rng.random_range(0.0..0.3));
-                let mut x = [[0.0f32; CHANNELS]; STEPS];
+                let mut x = [[0.0f32; SLOTS]; STEPS];
                 let centre = [0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.78];
                 for (t, w) in x.iter_mut().enumerate() {
                     let s = t as f32 / STEPS as f32;
                     for j in 0..7 {
                         w[j] = centre[j] + amp[j] * (6.0 * s + phase[j]).sin();
                     }
-                    w[7] = if (t / 20) % 2 == 0 { 1.0 } else { 0.0 };
+                    w[TOOL] = if (t / 20) % 2 == 0 { 1.0 } else { 0.0 };
                 }
                 x
             })

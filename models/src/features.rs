@@ -2,7 +2,7 @@
 //! callers only ever pass [`Resampled`].
 //!
 //! * [`FeatureKind::Joints`] — the paper's input: the 7 joint angles scaled to `[-1, 1]` by
-//!   the Panda limits, and the tool channel as `±1`.
+//!   the Panda limits, and the tool channel as `±1` (Panda trajectories only).
 //! * [`FeatureKind::Pen`] — the pen-tip path on the canvas from forward kinematics, with the
 //!   drawing's position and size normalised away: `x, y` (bounding box of the pen-down part
 //!   centred, longest side scaled to 2), the pen state, the undirected tangent
@@ -11,7 +11,9 @@
 //!   is removed here; what joint angles hide (the pen path is their forward kinematics) is
 //!   made explicit.
 
-use guardian_shared::trajectory::{JOINTS, Q_MAX, Q_MIN, Resampled, STEPS, TOOL};
+use guardian_shared::trajectory::{Resampled, STEPS, TOOL};
+
+use crate::kinematics::{PANDA_JOINTS, PANDA_Q_MAX, PANDA_Q_MIN, Robot};
 use serde::{Deserialize, Serialize};
 
 /// Which features the network sees.
@@ -74,10 +76,15 @@ impl Default for Augment {
     }
 }
 
-/// Pen-tip path of a resampled trajectory by forward kinematics (the specialised
+/// Pen-tip path of a resampled Panda trajectory by forward kinematics (the specialised
 /// position FK of [`crate::kinematics::PositionFk`] when available; no allocation).
 pub fn pen_path(x: &Resampled) -> [PenPoint; STEPS] {
-    let panda = crate::preprocess::default_panda();
+    pen_path_with(crate::preprocess::default_panda(), x)
+}
+
+/// [`pen_path`] of a trajectory of `robot`: the one place joints become the model's
+/// robot-independent input.
+pub fn pen_path_with(panda: &Robot, x: &Resampled) -> [PenPoint; STEPS] {
     let mut positions = [[0.0f64; 3]; STEPS];
     panda.pen_tip_positions_into(x, &mut positions);
     let mut out = [[0.0f32; 3]; STEPS];
@@ -92,7 +99,12 @@ pub fn pen_path(x: &Resampled) -> [PenPoint; STEPS] {
 /// path is tested against (feature `test-support`).
 #[cfg(any(test, feature = "test-support"))]
 pub fn pen_path_reference(x: &Resampled) -> [PenPoint; STEPS] {
-    let panda = crate::preprocess::default_panda();
+    pen_path_reference_with(crate::preprocess::default_panda(), x)
+}
+
+/// [`pen_path_reference`] of a trajectory of `robot` (feature `test-support`).
+#[cfg(any(test, feature = "test-support"))]
+pub fn pen_path_reference_with(panda: &Robot, x: &Resampled) -> [PenPoint; STEPS] {
     let mut out = [[0.0f32; 3]; STEPS];
     for (o, w) in out.iter_mut().zip(x.iter()) {
         let p = panda.pen_tip_position_general(&crate::preprocess::joints_of(w));
@@ -101,8 +113,8 @@ pub fn pen_path_reference(x: &Resampled) -> [PenPoint; STEPS] {
     out
 }
 
-/// Write the features of `x` for `kind` into `out` (`STEPS * kind.channels()`, row-major by
-/// time step).
+/// Write the features of the Panda trajectory `x` for `kind` into `out`
+/// (`STEPS * kind.channels()`, row-major by time step).
 pub fn compute(kind: FeatureKind, x: &Resampled, out: &mut [f32]) {
     match kind {
         FeatureKind::Joints => joint_features(x, out),
@@ -249,12 +261,12 @@ fn joint_features(x: &Resampled, out: &mut [f32]) {
     let c = FeatureKind::Joints.channels();
     for (t, w) in x.iter().enumerate() {
         let row = &mut out[t * c..(t + 1) * c];
-        for j in 0..JOINTS {
-            let mid = 0.5 * (Q_MAX[j] + Q_MIN[j]);
-            let half = 0.5 * (Q_MAX[j] - Q_MIN[j]);
+        for j in 0..PANDA_JOINTS {
+            let mid = 0.5 * (PANDA_Q_MAX[j] + PANDA_Q_MIN[j]);
+            let half = 0.5 * (PANDA_Q_MAX[j] - PANDA_Q_MIN[j]);
             row[j] = ((f64::from(w[j]) - mid) / half) as f32;
         }
-        row[JOINTS] = 2.0 * w[TOOL] - 1.0;
+        row[PANDA_JOINTS] = 2.0 * w[TOOL] - 1.0;
     }
 }
 

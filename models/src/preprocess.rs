@@ -8,17 +8,18 @@ use std::sync::LazyLock;
 use guardian_shared::trajectory::{self, InvalidTrajectory, Resampled, Waypoint};
 use nalgebra::Vector3;
 
-use crate::kinematics::{JointVector, Panda};
+use crate::kinematics::{JointVector, Robot};
 
-/// The default robot (published Panda, default pen), built once.
-static PANDA: LazyLock<Panda> = LazyLock::new(Panda::default);
+/// The default robot (published Panda, default pen), built once: the lab's data sets and
+/// the paths that take no robot use it.
+static PANDA: LazyLock<Robot> = LazyLock::new(Robot::panda);
 
 /// The default robot model used by [`preprocess`].
-pub fn default_panda() -> &'static Panda {
+pub fn default_panda() -> &'static Robot {
     &PANDA
 }
 
-/// Joint part of a waypoint in f64.
+/// Joint part of a waypoint in f64 (the unused slots of a waypoint are 0, so they stay 0).
 #[inline]
 pub fn joints_of(w: &Waypoint) -> JointVector {
     std::array::from_fn(|j| f64::from(w[j]))
@@ -30,7 +31,7 @@ pub fn pen_tip_positions(waypoints: &[Waypoint]) -> Vec<Vector3<f64>> {
 }
 
 /// Pen-tip positions (m, base frame) of each waypoint, with a given robot.
-pub fn pen_tip_positions_with(panda: &Panda, waypoints: &[Waypoint]) -> Vec<Vector3<f64>> {
+pub fn pen_tip_positions_with(panda: &Robot, waypoints: &[Waypoint]) -> Vec<Vector3<f64>> {
     let mut out = vec![[0.0; 3]; waypoints.len()];
     panda.pen_tip_positions_into(waypoints, &mut out);
     out.into_iter().map(Vector3::from).collect()
@@ -43,7 +44,7 @@ pub fn pen_path_lengths(waypoints: &[Waypoint]) -> Vec<f64> {
 }
 
 /// [`pen_path_lengths`] with a given robot.
-pub fn pen_path_lengths_with(panda: &Panda, waypoints: &[Waypoint]) -> Vec<f64> {
+pub fn pen_path_lengths_with(panda: &Robot, waypoints: &[Waypoint]) -> Vec<f64> {
     let mut positions = vec![[0.0; 3]; waypoints.len()];
     let mut out = vec![0.0; waypoints.len()];
     path_lengths_into(panda, waypoints, &mut positions, &mut out);
@@ -53,7 +54,7 @@ pub fn pen_path_lengths_with(panda: &Panda, waypoints: &[Waypoint]) -> Vec<f64> 
 /// Pen-tip positions into `positions`, cumulative lengths into `out` (both as long as
 /// `waypoints`).
 fn path_lengths_into(
-    panda: &Panda,
+    panda: &Robot,
     waypoints: &[Waypoint],
     positions: &mut [[f64; 3]],
     out: &mut [f64],
@@ -76,11 +77,11 @@ pub(crate) fn cumulative_lengths(positions: &[[f64; 3]], out: &mut [f64]) {
     }
 }
 
-/// [`pen_path_lengths_with`] through the general chain ([`Panda::pen_tip_position_general`],
+/// [`pen_path_lengths_with`] through the general chain ([`Robot::pen_tip_position_general`],
 /// full frames per joint): the reference the fast path is tested against (feature
 /// `test-support`).
 #[cfg(any(test, feature = "test-support"))]
-pub fn pen_path_lengths_reference(panda: &Panda, waypoints: &[Waypoint]) -> Vec<f64> {
+pub fn pen_path_lengths_reference(panda: &Robot, waypoints: &[Waypoint]) -> Vec<f64> {
     let mut out = Vec::with_capacity(waypoints.len());
     let mut total = 0.0;
     let mut prev: Option<Vector3<f64>> = None;
@@ -106,17 +107,18 @@ thread_local! {
     static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
 }
 
-/// Validate `raw` ([`trajectory::validate`]) and resample it to 128 x 8 uniformly in pen-tip
-/// path length ([`trajectory::resample`]). The daemon and the dataset generator both call
+/// Validate `raw` against the Panda's limits ([`trajectory::validate`]) and resample it to
+/// [`STEPS`](guardian_shared::trajectory::STEPS) waypoints uniformly in pen-tip path length ([`trajectory::resample`]). The daemon and the dataset generator both call
 /// this, so a trajectory is seen the same way in training and in service.
 pub fn preprocess(raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
     preprocess_with(&PANDA, raw)
 }
 
-/// [`preprocess`] with a given robot (e.g. another pen length). Uses per-thread buffers:
+/// [`preprocess`] with a given robot (another arm, or another pen length): validated
+/// against its limits, path length by its forward kinematics. Uses per-thread buffers:
 /// after the longest trajectory has been seen once, nothing is allocated.
-pub fn preprocess_with(panda: &Panda, raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
-    trajectory::validate(raw)?;
+pub fn preprocess_with(panda: &Robot, raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
+    trajectory::validate(raw, panda.limits())?;
     let n = raw.len();
     let resample = |s: &mut Scratch| {
         if s.positions.len() < n {
@@ -138,10 +140,10 @@ pub fn preprocess_with(panda: &Panda, raw: &[Waypoint]) -> Result<Resampled, Inv
 /// (feature `test-support`).
 #[cfg(any(test, feature = "test-support"))]
 pub fn preprocess_reference(
-    panda: &Panda,
+    panda: &Robot,
     raw: &[Waypoint],
 ) -> Result<Resampled, InvalidTrajectory> {
-    trajectory::validate(raw)?;
+    trajectory::validate(raw, panda.limits())?;
     let cumulative = pen_path_lengths_reference(panda, raw);
     Ok(trajectory::resample(raw, &cumulative))
 }
@@ -150,11 +152,11 @@ pub fn preprocess_reference(
 mod tests {
     use super::*;
     use crate::kinematics::READY_POSE;
-    use guardian_shared::trajectory::{InvalidKind, JOINTS, STEPS, TOOL};
+    use guardian_shared::trajectory::{InvalidKind, STEPS, TOOL};
 
     fn wp(q: &JointVector, tool: f32) -> Waypoint {
-        let mut w = [0.0f32; 8];
-        for j in 0..JOINTS {
+        let mut w = [0.0f32; guardian_shared::trajectory::SLOTS];
+        for j in 0..crate::kinematics::PANDA_JOINTS {
             w[j] = q[j] as f32;
         }
         w[TOOL] = tool;

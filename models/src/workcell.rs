@@ -22,13 +22,14 @@ use nalgebra::{Matrix3, Vector3};
 
 use crate::features::PenPoint;
 use crate::geometry::PlanGeometry;
-use crate::kinematics::{FK_LANES, Frame, Panda, PositionFk};
+use crate::kinematics::{FK_LANES, Frame, PositionFk, Robot};
 use crate::preprocess::{cumulative_lengths, default_panda};
 
 /// Result of [`inspect`].
 #[derive(Debug, Clone)]
 pub struct Inspection {
-    /// The model input (validated, resampled to 128 x 8 uniform in pen-tip path length).
+    /// The model input (validated, resampled to 128 waypoints uniform in pen-tip path
+    /// length).
     pub resampled: Resampled,
     /// The first waypoint that breaks a workcell rule (rules in the order orientation,
     /// pen height, canvas, hover height at that waypoint); `None` if every waypoint obeys
@@ -172,7 +173,7 @@ fn check_poses(
 }
 
 /// Validate `raw`, check the workcell rules on it and resample it, with one forward
-/// kinematics evaluation per waypoint (the default robot).
+/// kinematics evaluation per waypoint (the default robot, the Panda).
 pub fn inspect(cell: &Workcell, raw: &[Waypoint]) -> Result<Inspection, InvalidTrajectory> {
     inspect_with(default_panda(), cell, raw)
 }
@@ -189,7 +190,8 @@ thread_local! {
     static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
 }
 
-/// [`inspect`] with a given robot. One pass of the forward kinematics gives every
+/// [`inspect`] with a given robot: validated against its limits, the rules applied to its
+/// tool frame. One pass of the forward kinematics gives every
 /// waypoint's pen-tip position and tool axes; the positions are those
 /// [`crate::preprocess::preprocess_with`] uses, summed the same way, so the model input is
 /// identical. With the specialised FK ([`PositionFk`]) the pass and the rules run block by
@@ -197,11 +199,11 @@ thread_local! {
 /// [`check_poses`]. Uses per-thread buffers: after the longest trajectory has been seen
 /// once, nothing is allocated.
 pub fn inspect_with(
-    panda: &Panda,
+    panda: &Robot,
     cell: &Workcell,
     raw: &[Waypoint],
 ) -> Result<Inspection, InvalidTrajectory> {
-    trajectory::validate(raw)?;
+    trajectory::validate(raw, panda.limits())?;
     let n = raw.len();
     let run = |s: &mut Scratch| {
         if s.positions.len() < n {
@@ -398,13 +400,11 @@ mod tests {
             let step = [0.002, 0.01, 0.03][round % 3];
             let mut ws = Vec::with_capacity(len);
             for _ in 0..len {
-                for (j, v) in q.iter_mut().enumerate() {
-                    *v = (*v + rng.random_range(-step..step)).clamp(
-                        guardian_shared::trajectory::Q_MIN[j] + 0.01,
-                        guardian_shared::trajectory::Q_MAX[j] - 0.01,
-                    );
+                for (j, v) in q.iter_mut().take(panda.joints()).enumerate() {
+                    *v = (*v + rng.random_range(-step..step))
+                        .clamp(panda.q_min()[j] + 0.01, panda.q_max()[j] - 0.01);
                 }
-                let mut w = [0.0f32; 8];
+                let mut w = [0.0f32; guardian_shared::trajectory::SLOTS];
                 for (j, v) in q.iter().enumerate() {
                     w[j] = *v as f32;
                 }
@@ -439,7 +439,7 @@ mod tests {
         // but the resampled input must still equal preprocess's).
         let mut ws = Vec::new();
         for k in 0..50 {
-            let mut w = [0.0f32; 8];
+            let mut w = [0.0f32; guardian_shared::trajectory::SLOTS];
             for (j, v) in crate::kinematics::READY_POSE.iter().enumerate() {
                 w[j] = *v as f32;
             }

@@ -1,15 +1,22 @@
-//! The trajectory contract: raw planner waypoints (7 joint positions + 1 tool channel),
-//! their validation against the Panda limits, and resampling to the model's fixed input of
-//! [`STEPS`] x [`CHANNELS`].
+//! The trajectory contract: raw planner waypoints (the joint positions of a serial arm of 1 to
+//! [`MAX_JOINTS`] joints + 1 tool channel), their validation against the served robot's
+//! joint limits ([`JointLimits`]), and resampling to the model's fixed input of [`STEPS`]
+//! waypoints.
+//!
+//! In memory a waypoint has a fixed capacity ([`Waypoint`], [`MAX_JOINTS`] joint slots and
+//! the tool at [`TOOL`]): a robot of `n` joints uses slots `0..n`, the others stay 0. Rows
+//! stay `Copy` and the request path allocates per plan, not per waypoint, whatever the arm.
+//! On the wire and on disk a waypoint is `n + 1` floats, `q1..qn, tool` ([`from_flat`],
+//! [`to_flat`]).
 
 use serde::{Deserialize, Serialize};
 
-/// Number of joints of the serial arm (Franka Emika Panda).
-pub const JOINTS: usize = 7;
-/// Channels per waypoint: the 7 joint positions (rad) followed by the tool state (0 or 1).
-pub const CHANNELS: usize = JOINTS + 1;
-/// Index of the tool channel inside a waypoint.
-pub const TOOL: usize = JOINTS;
+/// Most joints a served robot may have.
+pub const MAX_JOINTS: usize = 16;
+/// Slots of an in-memory [`Waypoint`]: [`MAX_JOINTS`] joints, then the tool.
+pub const SLOTS: usize = MAX_JOINTS + 1;
+/// Index of the tool channel inside an in-memory [`Waypoint`].
+pub const TOOL: usize = MAX_JOINTS;
 /// Number of samples the model sees, uniform in path length.
 pub const STEPS: usize = 128;
 /// Fewest waypoints a trajectory may have.
@@ -17,15 +24,85 @@ pub const MIN_WAYPOINTS: usize = 2;
 /// Most waypoints a trajectory may have.
 pub const MAX_WAYPOINTS: usize = 4096;
 
-/// Lower joint limits of the Panda (rad), from the published kinematics.
-pub const Q_MIN: [f64; JOINTS] = [
-    -2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973,
-];
-/// Upper joint limits of the Panda (rad), from the published kinematics.
-pub const Q_MAX: [f64; JOINTS] = [2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973];
+/// The joint limits of the served robot (rad for revolute joints, m for prismatic ones):
+/// its joint count and the range every waypoint must stay in.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JointLimits {
+    lower: Vec<f64>,
+    upper: Vec<f64>,
+}
 
-/// One raw waypoint: `q1..q7` in radians, then the tool channel (1 = pen down, 0 = up).
-pub type Waypoint = [f32; CHANNELS];
+/// [`JointLimits::new`] refused its input.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum LimitsError {
+    /// Not 1..=[`MAX_JOINTS`] joints, or lower and upper of different lengths.
+    #[error(
+        "joint limits for {lower} lower / {upper} upper values; 1..={MAX_JOINTS} joints expected"
+    )]
+    Count {
+        /// Lower limits given.
+        lower: usize,
+        /// Upper limits given.
+        upper: usize,
+    },
+    /// A limit is not finite or lower > upper.
+    #[error("joint {joint}: limits [{lower}, {upper}] are not a finite range")]
+    Range {
+        /// Joint index (0-based).
+        joint: usize,
+        /// Lower limit.
+        lower: f64,
+        /// Upper limit.
+        upper: f64,
+    },
+}
+
+impl JointLimits {
+    /// Limits of `lower.len()` joints (1..=[`MAX_JOINTS`]), each a finite `lower <= upper`.
+    pub fn new(lower: Vec<f64>, upper: Vec<f64>) -> Result<Self, LimitsError> {
+        if lower.len() != upper.len() || lower.is_empty() || lower.len() > MAX_JOINTS {
+            return Err(LimitsError::Count {
+                lower: lower.len(),
+                upper: upper.len(),
+            });
+        }
+        for (joint, (&lo, &hi)) in lower.iter().zip(&upper).enumerate() {
+            if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
+                return Err(LimitsError::Range {
+                    joint,
+                    lower: lo,
+                    upper: hi,
+                });
+            }
+        }
+        Ok(Self { lower, upper })
+    }
+
+    /// Number of joints.
+    pub fn joints(&self) -> usize {
+        self.lower.len()
+    }
+
+    /// Floats per waypoint on the wire: the joints, then the tool.
+    pub fn channels(&self) -> usize {
+        self.lower.len() + 1
+    }
+
+    /// Lower limits, one per joint.
+    pub fn lower(&self) -> &[f64] {
+        &self.lower
+    }
+
+    /// Upper limits, one per joint.
+    pub fn upper(&self) -> &[f64] {
+        &self.upper
+    }
+}
+
+/// One raw waypoint in memory: joint positions in slots `0..n` (unused slots 0), the tool
+/// channel (1 = pen down, 0 = up) at [`TOOL`].
+pub type Waypoint = [f32; SLOTS];
 /// The resampled model input: [`STEPS`] waypoints.
 pub type Resampled = [Waypoint; STEPS];
 
@@ -36,7 +113,7 @@ pub type Resampled = [Waypoint; STEPS];
 pub enum InvalidKind {
     /// A value is NaN or infinite.
     NonFinite = 1,
-    /// The waypoints do not have [`CHANNELS`] channels.
+    /// The waypoints do not have the served robot's channel count (joints + 1).
     WrongChannelCount = 2,
     /// Fewer than [`MIN_WAYPOINTS`] waypoints.
     TooFewWaypoints = 3,
@@ -85,37 +162,67 @@ impl InvalidTrajectory {
     }
 }
 
-/// Split a flat row-major buffer of `channels`-wide waypoints into [`Waypoint`]s and
-/// validate them (see [`validate`]).
-pub fn from_flat(data: &[f32], channels: usize) -> Result<Vec<Waypoint>, InvalidTrajectory> {
-    if channels != CHANNELS {
+/// A waypoint of `joints.len()` joints (at most [`MAX_JOINTS`]) and a tool value.
+pub fn waypoint(joints: &[f32], tool: f32) -> Waypoint {
+    let mut w = [0.0; SLOTS];
+    w[..joints.len()].copy_from_slice(joints);
+    w[TOOL] = tool;
+    w
+}
+
+/// Split a flat row-major buffer of `channels`-wide waypoints (`q1..qn, tool`) into
+/// [`Waypoint`]s and validate them against `limits` (see [`validate`]); `channels` must be
+/// `limits.joints() + 1`.
+pub fn from_flat(
+    data: &[f32],
+    channels: usize,
+    limits: &JointLimits,
+) -> Result<Vec<Waypoint>, InvalidTrajectory> {
+    let waypoints = split_flat(data, channels, limits.joints())?;
+    validate(&waypoints, limits)?;
+    Ok(waypoints)
+}
+
+/// [`from_flat`] without the validation (shape only): for callers that validate later or
+/// report the values' problems themselves.
+pub fn split_flat(
+    data: &[f32],
+    channels: usize,
+    joints: usize,
+) -> Result<Vec<Waypoint>, InvalidTrajectory> {
+    if channels != joints + 1 {
         return Err(InvalidTrajectory::new(
             InvalidKind::WrongChannelCount,
             channels,
         ));
     }
-    if !data.len().is_multiple_of(CHANNELS) {
+    if !data.len().is_multiple_of(channels) {
         return Err(InvalidTrajectory::new(
             InvalidKind::WrongChannelCount,
-            data.len() % CHANNELS,
+            data.len() % channels,
         ));
     }
-    let waypoints: Vec<Waypoint> = data
-        .chunks_exact(CHANNELS)
-        .map(|c| {
-            let mut w = [0.0; CHANNELS];
-            w.copy_from_slice(c);
-            w
-        })
-        .collect();
-    validate(&waypoints)?;
-    Ok(waypoints)
+    Ok(data
+        .chunks_exact(channels)
+        .map(|c| waypoint(&c[..joints], c[joints]))
+        .collect())
+}
+
+/// The flat row-major form of `waypoints` for a robot of `joints` joints: `joints + 1`
+/// floats per waypoint, `q1..qn, tool` (what the wire and the data files carry).
+pub fn to_flat(waypoints: &[Waypoint], joints: usize) -> Vec<f32> {
+    let mut out = Vec::with_capacity(waypoints.len() * (joints + 1));
+    for w in waypoints {
+        out.extend_from_slice(&w[..joints]);
+        out.push(w[TOOL]);
+    }
+    out
 }
 
 /// Check a trajectory: waypoint count within [`MIN_WAYPOINTS`]..=[`MAX_WAYPOINTS`], every
-/// value finite, joints inside [`Q_MIN`]..=[`Q_MAX`], tool exactly 0 or 1. The first problem
-/// found is reported, count problems before per-waypoint ones.
-pub fn validate(waypoints: &[Waypoint]) -> Result<(), InvalidTrajectory> {
+/// value finite, joints inside `limits`, the unused joint slots 0, tool exactly 0 or 1. The
+/// first problem found is reported, count problems before per-waypoint ones.
+pub fn validate(waypoints: &[Waypoint], limits: &JointLimits) -> Result<(), InvalidTrajectory> {
     if waypoints.len() < MIN_WAYPOINTS {
         return Err(InvalidTrajectory::new(
             InvalidKind::TooFewWaypoints,
@@ -128,14 +235,19 @@ pub fn validate(waypoints: &[Waypoint]) -> Result<(), InvalidTrajectory> {
             waypoints.len(),
         ));
     }
+    let joints = limits.joints();
+    let (lower, upper) = (limits.lower(), limits.upper());
     // Branch-free pass first (vectorisable): the common case, a valid plan, needs nothing
     // else; otherwise the loop below finds and reports the first problem.
     let all_valid = waypoints.iter().fold(true, |ok, w| {
         let mut good = w[TOOL] == 0.0 || w[TOOL] == 1.0;
-        for j in 0..JOINTS {
+        for j in 0..joints {
             // NaN fails both comparisons; infinities fail the limits.
             let q = f64::from(w[j]);
-            good &= q >= Q_MIN[j] && q <= Q_MAX[j];
+            good &= q >= lower[j] && q <= upper[j];
+        }
+        for &unused in &w[joints..TOOL] {
+            good &= unused == 0.0;
         }
         ok & good
     });
@@ -146,9 +258,15 @@ pub fn validate(waypoints: &[Waypoint]) -> Result<(), InvalidTrajectory> {
         if w.iter().any(|v| !v.is_finite()) {
             return Err(InvalidTrajectory::new(InvalidKind::NonFinite, i));
         }
-        for j in 0..JOINTS {
+        if w[joints..TOOL].iter().any(|&v| v != 0.0) {
+            return Err(InvalidTrajectory::new(
+                InvalidKind::WrongChannelCount,
+                joints + 1,
+            ));
+        }
+        for j in 0..joints {
             let q = f64::from(w[j]);
-            if q < Q_MIN[j] || q > Q_MAX[j] {
+            if q < lower[j] || q > upper[j] {
                 return Err(InvalidTrajectory::new(InvalidKind::JointOutOfLimits, i));
             }
         }
@@ -185,7 +303,7 @@ pub fn resample(waypoints: &[Waypoint], cumulative: &[f64]) -> Resampled {
     };
     let start = cum[0];
     let total = cum[n - 1] - start;
-    let mut out = [[0.0f32; CHANNELS]; STEPS];
+    let mut out = [[0.0f32; SLOTS]; STEPS];
     let mut positions = [0.0f64; STEPS];
     // The sample positions increase with k, so the segment index (the first cumulative
     // length above the position, what `sample_at`'s binary search finds) only moves forward:
@@ -253,8 +371,9 @@ fn sample_in(waypoints: &[Waypoint], cum: &[f64], s: f64, above: usize) -> Waypo
     } else {
         0.0
     };
-    let mut w = [0.0f32; CHANNELS];
-    for j in 0..JOINTS {
+    let mut w = [0.0f32; SLOTS];
+    // Unused joint slots are 0 at both ends and stay 0.
+    for j in 0..MAX_JOINTS {
         let a = f64::from(waypoints[lo][j]);
         let b = f64::from(waypoints[hi][j]);
         w[j] = (a + (b - a) * t) as f32;
@@ -275,7 +394,18 @@ mod tests {
     use super::*;
 
     fn wp(q: f32, tool: f32) -> Waypoint {
-        [q, 0.0, 0.0, -1.5, 0.0, 1.5, 0.0, tool]
+        waypoint(&[q, 0.0, 0.0, -1.5, 0.0, 1.5, 0.0], tool)
+    }
+
+    /// The Panda's limits (the published numbers; the models crate owns the robot).
+    fn panda() -> JointLimits {
+        JointLimits::new(
+            vec![
+                -2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973,
+            ],
+            vec![2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973],
+        )
+        .unwrap()
     }
 
     /// The forward walk finds the segments the binary search of `sample_at` finds,
@@ -306,6 +436,8 @@ mod tests {
     #[test]
     fn validation_reports_each_kind_with_index() {
         let good = vec![wp(0.0, 0.0), wp(0.1, 1.0), wp(0.2, 0.0)];
+        let limits = panda();
+        let validate = |w: &[Waypoint]| validate(w, &limits);
         assert_eq!(validate(&good), Ok(()));
         let e = |kind, index| Err(InvalidTrajectory { kind, index });
         assert_eq!(validate(&good[..1]), e(InvalidKind::TooFewWaypoints, 1));
@@ -322,17 +454,34 @@ mod tests {
         let mut bad = good.clone();
         bad[0][TOOL] = 0.5;
         assert_eq!(validate(&bad), e(InvalidKind::ToolOutOfRange, 0));
+        // A value in a slot past the robot's joints: the plan has more joints than the robot.
+        let mut bad = good.clone();
+        bad[1][7] = 0.1;
+        assert_eq!(validate(&bad), e(InvalidKind::WrongChannelCount, 8));
         assert_eq!(
-            from_flat(&[0.0; 14], 7).unwrap_err(),
+            from_flat(&[0.0; 14], 7, &limits).unwrap_err(),
             InvalidTrajectory {
                 kind: InvalidKind::WrongChannelCount,
                 index: 7
             }
         );
         assert_eq!(
-            from_flat(&[0.0; 17], 8).unwrap_err().kind,
+            from_flat(&[0.0; 17], 8, &limits).unwrap_err().kind,
             InvalidKind::WrongChannelCount
         );
+        // The flat form round-trips, and a 6-joint robot takes 7 channels.
+        let flat = to_flat(&good, 7);
+        assert_eq!(flat.len(), 3 * 8);
+        assert_eq!(from_flat(&flat, 8, &limits), Ok(good.clone()));
+        let six = JointLimits::new(vec![-6.3; 6], vec![6.3; 6]).unwrap();
+        let ws = from_flat(&[0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 1.0].repeat(2), 7, &six).unwrap();
+        assert_eq!(ws[1][5], 0.6);
+        assert_eq!(ws[1][6], 0.0);
+        assert_eq!(ws[1][TOOL], 1.0);
+        assert!(JointLimits::new(vec![], vec![]).is_err());
+        assert!(JointLimits::new(vec![0.0; 17], vec![1.0; 17]).is_err());
+        assert!(JointLimits::new(vec![1.0], vec![0.0]).is_err());
+        assert!(JointLimits::new(vec![f64::NAN], vec![0.0]).is_err());
         for k in 1..=6u8 {
             assert_eq!(InvalidKind::from_u8(k).map(|k| k as u8), Some(k));
         }

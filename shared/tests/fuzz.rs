@@ -4,8 +4,8 @@
 //! nothing may panic. Case counts are per property (see `docs/reliability.md`).
 
 use guardian_shared::trajectory::{
-    CHANNELS, InvalidKind, JOINTS, MAX_WAYPOINTS, MIN_WAYPOINTS, Q_MAX, Q_MIN, STEPS, TOOL,
-    Waypoint, from_flat, resample, validate,
+    InvalidKind, JointLimits, MAX_WAYPOINTS, MIN_WAYPOINTS, STEPS, TOOL, Waypoint, from_flat,
+    resample, split_flat, to_flat, validate,
 };
 use guardian_shared::wire::{
     ClassNameError, MAX_CLASS_NAME, NAME_BYTES, Op, ReasonCode, ResponseHeader, Status,
@@ -15,6 +15,19 @@ use guardian_shared::wire::{
 use proptest::prelude::*;
 
 const CASES: u32 = 10_000;
+
+/// The Panda's joints and published limits (the models crate owns the robot; the contract is
+/// robot-independent, so any limits exercise it).
+const JOINTS: usize = 7;
+const CHANNELS: usize = JOINTS + 1;
+const Q_MIN: [f64; JOINTS] = [
+    -2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973,
+];
+const Q_MAX: [f64; JOINTS] = [2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973];
+
+fn limits() -> JointLimits {
+    JointLimits::new(Q_MIN.to_vec(), Q_MAX.to_vec()).unwrap()
+}
 
 /// Any f32 bit pattern (NaN payloads, infinities, subnormals) half of the time, otherwise a
 /// value near the joint ranges so that valid trajectories are generated too.
@@ -38,11 +51,9 @@ fn waypoint() -> impl Strategy<Value = Waypoint> {
         prop::option::weighted(0.05, (0..CHANNELS, value())),
     )
         .prop_map(|(q, pen, broken)| {
-            let mut w = [0.0f32; CHANNELS];
-            w[..JOINTS].copy_from_slice(&q);
-            w[TOOL] = if pen { 1.0 } else { 0.0 };
+            let mut w = guardian_shared::trajectory::waypoint(&q, if pen { 1.0 } else { 0.0 });
             if let Some((c, v)) = broken {
-                w[c] = v;
+                w[if c == JOINTS { TOOL } else { c }] = v;
             }
             w
         })
@@ -165,19 +176,19 @@ proptest! {
         data in prop::collection::vec(value(), 0..200),
         channels in prop_oneof![Just(CHANNELS), any::<usize>(), 0usize..16],
     ) {
-        match from_flat(&data, channels) {
+        match from_flat(&data, channels, &limits()) {
             Ok(w) => {
                 prop_assert_eq!(channels, CHANNELS);
                 prop_assert_eq!(w.len() * CHANNELS, data.len());
-                prop_assert!(w.iter().flatten().zip(&data).all(|(a, b)| a.to_bits() == b.to_bits()));
+                let flat = to_flat(&w, JOINTS);
+                prop_assert!(flat.iter().zip(&data).all(|(a, b)| a.to_bits() == b.to_bits()));
                 prop_assert_eq!(oracle(&w), None);
             }
             Err(e) => {
                 if channels != CHANNELS || data.len() % CHANNELS != 0 {
                     prop_assert_eq!(e.kind, InvalidKind::WrongChannelCount);
                 } else {
-                    let w: Vec<Waypoint> = data.chunks_exact(CHANNELS)
-                        .map(|c| c.try_into().unwrap()).collect();
+                    let w = split_flat(&data, CHANNELS, JOINTS).unwrap();
                     prop_assert_eq!(oracle(&w), Some((e.kind, e.index as usize)));
                 }
             }
@@ -191,7 +202,7 @@ proptest! {
         w in prop::collection::vec(waypoint(), 0..300),
         steps in prop::collection::vec(0.0f64..0.05, 300),
     ) {
-        let got = validate(&w).err().map(|e| (e.kind, e.index as usize));
+        let got = validate(&w, &limits()).err().map(|e| (e.kind, e.index as usize));
         prop_assert_eq!(got, oracle(&w));
         if got.is_none() {
             let mut cum = Vec::with_capacity(w.len());
@@ -217,10 +228,12 @@ proptest! {
 /// Counts at and around the limits, including sizes far beyond any buffer.
 #[test]
 fn waypoint_counts_at_and_beyond_the_limits() {
-    let ok = [0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.0, 0.0];
+    let ok = guardian_shared::trajectory::waypoint(&[0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.0], 0.0);
     for n in [0, 1, 2, MAX_WAYPOINTS, MAX_WAYPOINTS + 1, 3 * MAX_WAYPOINTS] {
         let w = vec![ok; n];
-        let got = validate(&w).err().map(|e| (e.kind, e.index as usize));
+        let got = validate(&w, &limits())
+            .err()
+            .map(|e| (e.kind, e.index as usize));
         assert_eq!(got, oracle(&w), "{n} waypoints");
     }
 }

@@ -20,7 +20,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Result, bail};
 use guardian_client::Trajectory;
-use guardian_shared::trajectory::{MAX_WAYPOINTS, Waypoint};
+use guardian_models::kinematics::PANDA_JOINTS;
+use guardian_shared::trajectory::{MAX_WAYPOINTS, Waypoint, to_flat};
 use guardian_shared::wire::{MAX_EXAMPLES, Op, RequestHeader, encode_class_name};
 use guardian_tests::harness::{Daemon, Setup, task, traj};
 
@@ -52,7 +53,7 @@ fn long_plan(n: usize) -> Vec<Waypoint> {
 fn flood(s: &Setup, kind: Flood, stop: Arc<AtomicBool>, answered: Arc<AtomicU64>) {
     let planner = s.raw_planner();
     let port = planner.client_port();
-    let plan: Vec<f32> = long_plan(MAX_WAYPOINTS).into_iter().flatten().collect();
+    let plan: Vec<f32> = to_flat(&long_plan(MAX_WAYPOINTS), PANDA_JOINTS);
     let (examples, payload) = match kind {
         Flood::Check => (1, plan),
         _ => (MAX_EXAMPLES, plan.repeat(MAX_EXAMPLES)),
@@ -65,6 +66,7 @@ fn flood(s: &Setup, kind: Flood, stop: Arc<AtomicBool>, answered: Arc<AtomicU64>
             Op::Enroll
         },
     );
+    header.channels = (PANDA_JOINTS + 1) as u32;
     header.examples = examples as u32;
     for w in header.waypoints.iter_mut().take(examples) {
         *w = MAX_WAYPOINTS as u32;

@@ -19,6 +19,7 @@
 //! The bench builds `guardiand` with the bench's own profile before spawning it
 //! (`GUARDIAND_BIN` overrides the binary).
 
+use guardian_models::kinematics::PANDA_JOINTS;
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::{Path, PathBuf};
@@ -30,7 +31,7 @@ use anyhow::{Context, Result, bail};
 use guardian_client::{Client, ClientConfig, Trajectory, Verdict};
 use guardian_daemon::config::Config;
 use guardian_daemon::screen::Screen;
-use guardian_daemon::state::{load_bank, load_engine};
+use guardian_daemon::state::{load_bank, load_engine, load_workcell};
 use guardian_lab::dataset::convert_strokes;
 use guardian_lab::path::{Geometry, PathSolver};
 use guardian_lab::strokes::read_strokes;
@@ -180,7 +181,7 @@ fn load_drawings(strokes: &Path) -> Result<Drawings> {
     for c in 1..=CLASSES {
         let name = format!("latin{c:02}");
         let ex = ENROLL_DRAWERS
-            .map(|d| conv(c, d).map(|w| Trajectory::from_waypoints(&w)))
+            .map(|d| conv(c, d).map(|w| Trajectory::from_waypoints(&w, PANDA_JOINTS)))
             .collect::<Result<Vec<_>>>()?;
         enroll.push((name.clone(), ex));
         for d in CHECK_DRAWERS {
@@ -393,8 +394,7 @@ fn request(op: Op, class: &str, examples: &[&[Waypoint]]) -> Result<(RequestHead
         h,
         examples
             .iter()
-            .flat_map(|t| t.iter().flatten())
-            .copied()
+            .flat_map(|t| guardian_shared::trajectory::to_flat(t, PANDA_JOINTS))
             .collect(),
     ))
 }
@@ -411,15 +411,16 @@ fn compute_breakdown(
     use guardian_models::workcell::inspect;
     let config = Config::from_file(&dep.write_config("event", 16)?)?;
     let engine = load_engine(&config)?;
+    let panda = engine.robot().clone();
     let (bank, _) = load_bank(&config, &engine)?;
     let state = dep.dir.join("in-process");
     std::fs::create_dir_all(&state)?;
     let mut screen = Screen::new(engine, bank, state.join("bank.gcb"), config.k_nearest);
-    screen.set_workcell(config.workcell);
+    screen.set_workcell(load_workcell(&config)?);
     for (class, ex) in &drawings.enroll {
         let ws: Vec<Vec<Waypoint>> = ex
             .iter()
-            .map(|t| guardian_shared::trajectory::from_flat(t.as_flat(), 8))
+            .map(|t| guardian_shared::trajectory::from_flat(t.as_flat(), 8, panda.limits()))
             .collect::<Result<_, _>>()?;
         let refs: Vec<&[Waypoint]> = ws.iter().map(Vec::as_slice).collect();
         let (h, p) = request(Op::Enroll, class, &refs)?;
@@ -443,7 +444,7 @@ fn compute_breakdown(
     // Each stage's input, computed once so each stage is timed alone.
     let waypoints: Vec<Vec<Waypoint>> = reqs
         .iter()
-        .map(|(_, p)| guardian_shared::trajectory::from_flat(p, 8))
+        .map(|(_, p)| guardian_shared::trajectory::from_flat(p, 8, panda.limits()))
         .collect::<Result<_, _>>()?;
     let resampled: Vec<_> = waypoints
         .iter()
@@ -529,7 +530,8 @@ fn compute_breakdown(
 struct JsonRequest {
     op: String,
     class: String,
-    waypoints: Vec<Waypoint>,
+    /// One row per waypoint: q1..q7, tool.
+    waypoints: Vec<Vec<f32>>,
 }
 
 #[derive(Serialize, Deserialize, Debug, PartialEq)]
@@ -556,7 +558,7 @@ fn uds_server(socket: &Path, config: &Path) -> Result<()> {
     let engine = load_engine(&config)?;
     let (bank, _) = load_bank(&config, &engine)?;
     let mut screen = Screen::new(engine, bank, config.bank_path(), config.k_nearest);
-    screen.set_workcell(config.workcell);
+    screen.set_workcell(load_workcell(&config)?);
     let listener = UnixListener::bind(socket)?;
     // One connection at a time, served until it closes; "quit" ends the server.
     for stream in listener.incoming() {
@@ -643,7 +645,12 @@ impl UdsClient {
         let req = JsonRequest {
             op: "check".into(),
             class: class.into(),
-            waypoints: waypoints.to_vec(),
+            waypoints: waypoints
+                .iter()
+                .map(|w| {
+                    guardian_shared::trajectory::to_flat(std::slice::from_ref(w), PANDA_JOINTS)
+                })
+                .collect(),
         };
         let mut out = serde_json::to_vec(&req)?;
         out.push(b'\n');
@@ -854,7 +861,7 @@ fn run(o: Opts) -> Result<()> {
         drawings
             .checks
             .iter()
-            .map(|(c, w)| (c.clone(), Trajectory::from_waypoints(w)))
+            .map(|(c, w)| (c.clone(), Trajectory::from_waypoints(w, PANDA_JOINTS)))
             .collect(),
     );
     let daemon = Daemon::start(&bin, &dep, "event", 16)?;

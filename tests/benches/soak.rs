@@ -11,6 +11,7 @@
 //! (default `models/embedder.safetensors`), `--strokes DIR` (default
 //! `../shared/omniglot/strokes`).
 
+use guardian_models::kinematics::PANDA_JOINTS;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -157,7 +158,7 @@ fn main() -> Result<()> {
     for c in 1..=CLASSES {
         let name = format!("latin{c:02}");
         let examples = ENROLL_DRAWERS
-            .map(|d| conv(c, d).map(|w| Trajectory::from_waypoints(&w)))
+            .map(|d| conv(c, d).map(|w| Trajectory::from_waypoints(&w, PANDA_JOINTS)))
             .collect::<Result<Vec<_>>>()?;
         client.enroll(&name, &examples)?;
         for d in CHECK_DRAWERS {
@@ -174,7 +175,7 @@ fn main() -> Result<()> {
             format!("latin{next:02}"),
             "not-enrolled".into(),
         ] {
-            let plan = Trajectory::from_waypoints(w);
+            let plan = Trajectory::from_waypoints(w, PANDA_JOINTS);
             let v = client.check(&plan, &claim)?;
             requests.push(Request {
                 claim,
@@ -185,7 +186,7 @@ fn main() -> Result<()> {
         let mut bad = w.clone();
         let at = (i * 7) % bad.len();
         bad[at][2] = f32::NAN;
-        let plan = Trajectory::from_waypoints(&bad);
+        let plan = Trajectory::from_waypoints(&bad, PANDA_JOINTS);
         let v = client.check(&plan, &format!("latin{c:02}"))?;
         if !matches!(
             &v.decision,

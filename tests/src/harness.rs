@@ -1,6 +1,7 @@
 //! Test harness for end-to-end tests: a real `guardiand` process with its own service name, iceoryx2 prefix,
 //! state directory, model file and `NOTIFY_SOCKET`, killed on drop.
 
+use guardian_models::kinematics::PANDA_JOINTS;
 use std::io::Read;
 use std::os::unix::net::UnixDatagram;
 use std::path::{Path, PathBuf};
@@ -424,7 +425,7 @@ pub fn run_as_nobody(child: &str, env: &[(&str, &std::ffi::OsStr)]) -> std::proc
 }
 
 pub fn traj(class: u32, drawer: u32) -> Trajectory {
-    Trajectory::from_waypoints(&task(class, drawer))
+    Trajectory::from_waypoints(&task(class, drawer), PANDA_JOINTS)
 }
 
 pub fn workspace_root() -> PathBuf {

@@ -10,7 +10,11 @@ use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
 use guardian_client::{CheckError, EnrollError};
-use guardian_shared::trajectory::{CHANNELS, MAX_WAYPOINTS, from_flat};
+use guardian_models::kinematics::{PANDA_JOINTS, Robot};
+use guardian_shared::trajectory::{MAX_WAYPOINTS, from_flat, to_flat};
+
+/// The daemon under test serves the Panda: 7 joints and the tool.
+const CHANNELS: usize = PANDA_JOINTS + 1;
 use guardian_shared::wire::{
     self, ClassEntry, ClassNameError, MAX_EXAMPLES, MAX_REQUEST_FLOATS, NAME_BYTES, Op, ReasonCode,
     RequestHeader, ResponseHeader, Status, VerdictCode, decode_class_name, encode_class_name,
@@ -62,11 +66,12 @@ impl Raw {
 }
 
 fn flat(class: u32, drawer: u32) -> Vec<f32> {
-    task(class, drawer).iter().flatten().copied().collect()
+    to_flat(&task(class, drawer), PANDA_JOINTS)
 }
 
 fn header(id: u64, op: Op, class: &[u8], waypoints: &[u32]) -> RequestHeader {
     let mut h = RequestHeader::new(id, op);
+    h.channels = CHANNELS as u32;
     h.examples = waypoints.len() as u32;
     h.waypoints[..waypoints.len()].copy_from_slice(waypoints);
     h.class_name[..class.len()].copy_from_slice(class);
@@ -80,7 +85,7 @@ fn genuine_check(enrolled: &BTreeSet<String>, h: &RequestHeader, payload: &[f32]
         && h.examples == 1
         && u64::from(h.waypoints[0]) * CHANNELS as u64 == payload.len() as u64
         && decode_class_name(&h.class_name).is_ok_and(|n| enrolled.contains(n))
-        && from_flat(payload, CHANNELS).is_ok()
+        && from_flat(payload, CHANNELS, Robot::panda().limits()).is_ok()
 }
 
 /// The invariants of every answer; keeps `enrolled` up to date.

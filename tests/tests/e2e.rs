@@ -1,5 +1,7 @@
 //! End-to-end tests across real processes: the `guardiand` binary and `guardian-client`.
 
+use guardian_models::kinematics::PANDA_JOINTS;
+use guardian_shared::trajectory::to_flat;
 use std::time::Duration;
 
 use guardian_client::{
@@ -119,10 +121,18 @@ fn every_invalid_input_is_answered_with_its_reason_and_serving_continues() {
 
     let mut w = good.clone();
     w[5][2] = f32::NAN;
-    expect(Trajectory::from_waypoints(&w), InvalidKind::NonFinite, 5);
+    expect(
+        Trajectory::from_waypoints(&w, PANDA_JOINTS),
+        InvalidKind::NonFinite,
+        5,
+    );
     let mut w = good.clone();
     w[6][0] = f32::INFINITY;
-    expect(Trajectory::from_waypoints(&w), InvalidKind::NonFinite, 6);
+    expect(
+        Trajectory::from_waypoints(&w, PANDA_JOINTS),
+        InvalidKind::NonFinite,
+        6,
+    );
     let seven: Vec<f32> = good.iter().flat_map(|w| w[..7].to_vec()).collect();
     expect(
         Trajectory::from_flat(seven, 7),
@@ -130,12 +140,12 @@ fn every_invalid_input_is_answered_with_its_reason_and_serving_continues() {
         7,
     );
     expect(
-        Trajectory::from_waypoints(&good[..1]),
+        Trajectory::from_waypoints(&good[..1], PANDA_JOINTS),
         InvalidKind::TooFewWaypoints,
         1,
     );
     expect(
-        Trajectory::from_waypoints(&[]),
+        Trajectory::from_waypoints(&[], PANDA_JOINTS),
         InvalidKind::TooFewWaypoints,
         0,
     );
@@ -143,28 +153,28 @@ fn every_invalid_input_is_answered_with_its_reason_and_serving_continues() {
         .map(|i| good[i % good.len()])
         .collect();
     expect(
-        Trajectory::from_waypoints(&many),
+        Trajectory::from_waypoints(&many, PANDA_JOINTS),
         InvalidKind::TooManyWaypoints,
         (MAX_WAYPOINTS + 1) as u32,
     );
     let mut w = good.clone();
     w[9][3] = 0.0; // joint 4 must stay below -0.0698
     expect(
-        Trajectory::from_waypoints(&w),
+        Trajectory::from_waypoints(&w, PANDA_JOINTS),
         InvalidKind::JointOutOfLimits,
         9,
     );
     let mut w = good.clone();
     w[2][0] = 3.0; // joint 1 limit is 2.8973
     expect(
-        Trajectory::from_waypoints(&w),
+        Trajectory::from_waypoints(&w, PANDA_JOINTS),
         InvalidKind::JointOutOfLimits,
         2,
     );
     let mut w = good.clone();
     w[4][7] = 0.5;
     expect(
-        Trajectory::from_waypoints(&w),
+        Trajectory::from_waypoints(&w, PANDA_JOINTS),
         InvalidKind::ToolOutOfRange,
         4,
     );
@@ -175,8 +185,8 @@ fn every_invalid_input_is_answered_with_its_reason_and_serving_continues() {
     let r = client.enroll(
         "task9",
         &[
-            Trajectory::from_waypoints(&good),
-            Trajectory::from_waypoints(&bad),
+            Trajectory::from_waypoints(&good, PANDA_JOINTS),
+            Trajectory::from_waypoints(&bad, PANDA_JOINTS),
         ],
     );
     assert_eq!(
@@ -491,9 +501,10 @@ fn raw_wire_requests_are_validated_by_the_daemon() {
             std::thread::sleep(Duration::from_millis(1));
         }
     };
-    let good: Vec<f32> = task(0, 20).iter().flatten().copied().collect();
+    let good: Vec<f32> = to_flat(&task(0, 20), PANDA_JOINTS);
     let check = |id: u64| {
         let mut h = RequestHeader::new(id, Op::Check);
+        h.channels = 8;
         h.examples = 1;
         h.waypoints[0] = (good.len() / 8) as u32;
         h.class_name = wire::encode_class_name("task0").unwrap();
@@ -587,8 +598,9 @@ fn an_answer_wakes_only_its_client_and_legacy_clients_share_the_common_event() {
         .unwrap()
     };
     let (wake_a, wake_b) = (own(a.id().value()), own(b.id().value()));
-    let good: Vec<f32> = task(0, 20).iter().flatten().copied().collect();
+    let good: Vec<f32> = to_flat(&task(0, 20), PANDA_JOINTS);
     let mut h = RequestHeader::new(0, Op::Check);
+    h.channels = 8;
     h.examples = 1;
     h.waypoints[0] = (good.len() / 8) as u32;
     h.class_name = wire::encode_class_name("task0").unwrap();

@@ -3,6 +3,7 @@
 //! per request and each (plan, claim) has a known answer taken before the load — with zero
 //! lost and zero mismatched responses.
 
+use guardian_models::kinematics::PANDA_JOINTS;
 use std::sync::{Arc, Barrier};
 
 use guardian_client::{Client, Decision, NoGoReason, Trajectory};
@@ -26,7 +27,7 @@ fn sixteen_clients_ten_thousand_checks_each_nothing_lost_or_mismatched() {
     let client = s.client();
     for c in 0..CLASSES {
         let ex: Vec<Trajectory> = (0..4)
-            .map(|dr| Trajectory::from_waypoints(&task(c, dr)))
+            .map(|dr| Trajectory::from_waypoints(&task(c, dr), PANDA_JOINTS))
             .collect();
         client.enroll(&format!("task{c}"), &ex).expect("enroll");
     }
@@ -42,7 +43,7 @@ fn sixteen_clients_ten_thousand_checks_each_nothing_lost_or_mismatched() {
                 format!("task{}", (c + 1) % CLASSES),
                 format!("unknown{c}"),
             ] {
-                let plan = Trajectory::from_waypoints(&w);
+                let plan = Trajectory::from_waypoints(&w, PANDA_JOINTS);
                 let v = client.check(&plan, &claim).expect("reference check");
                 requests.push(Request {
                     expected: Expected::of(&v),
@@ -53,7 +54,7 @@ fn sixteen_clients_ten_thousand_checks_each_nothing_lost_or_mismatched() {
             let mut bad = w.clone();
             let at = (c as usize * 5 + drawer as usize) % bad.len();
             bad[at][1] = f32::NAN;
-            let plan = Trajectory::from_waypoints(&bad);
+            let plan = Trajectory::from_waypoints(&bad, PANDA_JOINTS);
             let claim = format!("task{c}");
             let v = client.check(&plan, &claim).expect("reference check");
             assert_eq!(

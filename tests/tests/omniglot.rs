@@ -2,6 +2,7 @@
 //! the dataset library) sent through a real `guardiand`: the daemon must preprocess and
 //! embed them exactly as the lab does.
 
+use guardian_models::kinematics::PANDA_JOINTS;
 use std::path::PathBuf;
 
 use guardian_client::Trajectory;
@@ -41,7 +42,10 @@ fn real_drawings_are_embedded_exactly_as_the_lab_does() {
         for d in 1..=4 {
             let conv = convert_strokes(&solver, &read_strokes(&drawing(c, d)).unwrap()).unwrap();
             embs.push(embedder.embed(&conv.sample).unwrap().to_vec());
-            examples.push(Trajectory::from_waypoints(&conv.dense.waypoints));
+            examples.push(Trajectory::from_waypoints(
+                &conv.dense.waypoints,
+                PANDA_JOINTS,
+            ));
         }
         client
             .enroll(&format!("latin{c}"), &examples)
@@ -58,7 +62,7 @@ fn real_drawings_are_embedded_exactly_as_the_lab_does() {
     for c in 1..=3u32 {
         let conv = convert_strokes(&solver, &read_strokes(&drawing(c, 10)).unwrap()).unwrap();
         let e = embedder.embed(&conv.sample).unwrap();
-        let t = Trajectory::from_waypoints(&conv.dense.waypoints);
+        let t = Trajectory::from_waypoints(&conv.dense.waypoints, PANDA_JOINTS);
         let v = client.check(&t, &format!("latin{c}")).expect("check");
         let expected = distance(&e, &prototypes[c as usize - 1]);
         let got = v.claimed_distance.expect("distance");

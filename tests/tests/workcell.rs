@@ -11,6 +11,7 @@ use guardian_lab::path::{Geometry, PathSolver};
 use guardian_lab::strokes::{character_files, read_strokes};
 use guardian_models::bank::{ClassBank, GeometryCalibration};
 use guardian_models::embedder::{EMBED_DIM, Embedder};
+use guardian_models::kinematics::PANDA_JOINTS;
 use guardian_shared::trajectory::Waypoint;
 use guardian_tests::harness::{self, Daemon, Setup};
 
@@ -37,13 +38,16 @@ fn a_joint_offset_plan_gets_the_workcell_no_go_and_the_genuine_plan_goes() {
     let _d = Daemon::start(&s);
     let client = s.client();
     let examples: Vec<Trajectory> = (0..4)
-        .map(|d| Trajectory::from_waypoints(&drawing(2, d)))
+        .map(|d| Trajectory::from_waypoints(&drawing(2, d), PANDA_JOINTS))
         .collect();
     client.enroll("latin2", &examples).expect("enroll");
 
     let genuine = drawing(2, 9);
     let v = client
-        .check(&Trajectory::from_waypoints(&genuine), "latin2")
+        .check(
+            &Trajectory::from_waypoints(&genuine, PANDA_JOINTS),
+            "latin2",
+        )
         .expect("check");
     assert_eq!(v.decision, Decision::Go, "{v:?}");
 
@@ -54,7 +58,7 @@ fn a_joint_offset_plan_gets_the_workcell_no_go_and_the_genuine_plan_goes() {
         w[3] -= 0.05;
     }
     let v = client
-        .check(&Trajectory::from_waypoints(&offset), "latin2")
+        .check(&Trajectory::from_waypoints(&offset, PANDA_JOINTS), "latin2")
         .expect("check");
     assert_eq!(
         v.decision,
@@ -92,12 +96,15 @@ fn a_drawing_moved_on_the_canvas_gets_the_geometry_no_go() {
     let _d = Daemon::start(&s);
     let client = s.client();
     let examples: Vec<Trajectory> = (0..5)
-        .map(|d| Trajectory::from_waypoints(&drawing(2, d)))
+        .map(|d| Trajectory::from_waypoints(&drawing(2, d), PANDA_JOINTS))
         .collect();
     client.enroll("latin2", &examples).expect("enroll");
 
     let v = client
-        .check(&Trajectory::from_waypoints(&drawing(2, 9)), "latin2")
+        .check(
+            &Trajectory::from_waypoints(&drawing(2, 9), PANDA_JOINTS),
+            "latin2",
+        )
         .expect("check");
     assert_eq!(v.decision, Decision::Go, "{v:?}");
     let genuine_score = v.geometry_score.expect("geometry applies");
@@ -112,7 +119,7 @@ fn a_drawing_moved_on_the_canvas_gets_the_geometry_no_go() {
     };
     let v = client
         .check(
-            &Trajectory::from_waypoints(&drawing_on(&moved, 2, 9)),
+            &Trajectory::from_waypoints(&drawing_on(&moved, 2, 9), PANDA_JOINTS),
             "latin2",
         )
         .expect("check");

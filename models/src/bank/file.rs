@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use sha2::{Digest, Sha256};
 
-use super::{ClassBank, FORMAT_VERSION, OLDEST_FORMAT_VERSION};
+use super::{ClassBank, FORMAT_VERSION, FORMAT_VERSION_WITHOUT_ROBOT, OLDEST_FORMAT_VERSION};
 
 const MAGIC: &str = "guardian-class-bank";
 
@@ -86,7 +86,12 @@ impl ClassBank {
     pub fn to_bytes(&self) -> Result<Vec<u8>, serde_json::Error> {
         let body = serde_json::to_vec(self)?;
         let sum = hex(&Sha256::digest(&body));
-        let mut out = format!("{MAGIC} {FORMAT_VERSION} sha256:{sum}\n").into_bytes();
+        let version = if self.robot.is_some() {
+            FORMAT_VERSION
+        } else {
+            FORMAT_VERSION_WITHOUT_ROBOT
+        };
+        let mut out = format!("{MAGIC} {version} sha256:{sum}\n").into_bytes();
         out.extend_from_slice(&body);
         Ok(out)
     }

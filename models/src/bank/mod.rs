@@ -28,6 +28,10 @@
 //! (positive = the claimed class is the nearest).
 //!
 //! ## File format (version [`FORMAT_VERSION`])
+//! Version 3 adds the bank's `robot` (name, joints, SHA-256 of its URDF): the arm whose plans
+//! were enrolled, so a daemon serving another arm refuses the bank. Versions 1 and 2 have no
+//! `robot`: they were made with the Panda ([`ClassBank::robot`] says so), and a bank without
+//! a robot is still written as version 2.
 //! Version 2 adds the per-class plan-geometry descriptors (`geometry`, one per enrolled
 //! example) and the bank's `geometry-calibration`; version 1 files still load (their
 //! classes have no descriptors, so the geometry check is off for them).
@@ -36,6 +40,8 @@
 //! temporary file in the target directory, `fsync`, `rename`, `fsync` of the directory.
 //! Between snapshots, each enroll or forget is appended to the bank's journal
 //! (`journal.rs`: one checksummed record per change, replayed at load).
+
+use crate::kinematics::RobotRecord;
 
 mod calibrate;
 mod decide;
@@ -61,7 +67,9 @@ pub use journal::{Replay, journal_path};
 pub use limits::BankLimits;
 
 /// Version of the on-disk format written by [`ClassBank::to_bytes`].
-pub const FORMAT_VERSION: u32 = 2;
+pub const FORMAT_VERSION: u32 = 3;
+/// The version written for a bank that records no robot (read by builds before version 3).
+pub const FORMAT_VERSION_WITHOUT_ROBOT: u32 = 2;
 /// Oldest on-disk format [`ClassBank::from_bytes`] still reads.
 pub const OLDEST_FORMAT_VERSION: u32 = 1;
 /// Global default decision threshold (Euclidean embedding distance) used until per-class
@@ -149,6 +157,9 @@ pub struct ClassBank {
     wrong_task_tolerance: f32,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     geometry_calibration: Option<GeometryCalibration>,
+    /// The arm whose plans the bank holds; `None` in banks made before version 3 (the Panda).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    robot: Option<RobotRecord>,
     classes: BTreeMap<String, Class>,
 }
 
@@ -163,8 +174,21 @@ impl ClassBank {
             calibration: None,
             wrong_task_tolerance: 0.0,
             geometry_calibration: None,
+            robot: None,
             classes: BTreeMap::new(),
         }
+    }
+
+    /// The robot the bank's classes were enrolled on, if recorded (banks before format 3
+    /// record none: they were made with the Panda).
+    pub fn robot(&self) -> Option<&RobotRecord> {
+        self.robot.as_ref()
+    }
+
+    /// Record the robot the bank's classes are enrolled on (not a change of the classes:
+    /// the generation stays).
+    pub fn set_robot(&mut self, robot: RobotRecord) {
+        self.robot = Some(robot);
     }
 
     /// Embedding length.
@@ -565,20 +589,34 @@ mod tests {
         ));
         let newer = String::from_utf8(bytes.clone()).unwrap().replacen(
             "guardian-class-bank 2 ",
-            "guardian-class-bank 3 ",
+            "guardian-class-bank 4 ",
             1,
         );
         assert!(matches!(
             ClassBank::from_bytes(newer.as_bytes()),
             Err(LoadBankError::UnsupportedFormat {
-                found: 3,
-                supported: 2
+                found: 4,
+                supported: 3
             })
         ));
         assert!(matches!(
             ClassBank::from_bytes(b"hello\n{}"),
             Err(LoadBankError::BadHeader { .. })
         ));
+        // Without a robot record the bank is written as format 2 (the Panda's, readable
+        // by older builds); with one as format 3, and the record round-trips.
+        assert!(bytes.starts_with(b"guardian-class-bank 2 "));
+        assert_eq!(b.robot(), None);
+        let mut ur = b.clone();
+        let ur5e = crate::kinematics::RobotDescription::named("ur5e")
+            .unwrap()
+            .robot;
+        ur.set_robot(RobotRecord::of(&ur5e));
+        assert_eq!(ur.generation(), b.generation());
+        let ur_bytes = ur.to_bytes().unwrap();
+        assert!(ur_bytes.starts_with(b"guardian-class-bank 3 "));
+        let back = ClassBank::from_bytes(&ur_bytes).unwrap();
+        assert!(back.robot().is_some_and(|r| r.matches(&ur5e) && !r.matches(&crate::kinematics::Robot::panda())));
         assert!(matches!(
             ClassBank::load(&dir.path().join("missing")),
             Err(LoadBankError::Io { .. })

@@ -5,22 +5,40 @@
 use guardian_shared::trajectory::Waypoint;
 use nalgebra::{Matrix3, Vector3};
 
-use super::{Frame, JointVector, Panda};
+use super::{Frame, Joint, JointKind, JointVector, Robot};
 
-impl Panda {
-    /// Frame of link 7 (after joint 7, before the flange offset).
+impl Joint {
+    /// `t * origin * motion(q)`: the frame after this joint at position `q`.
     #[inline]
-    fn link7(&self, q: &JointVector) -> Frame {
+    pub(crate) fn apply(&self, t: &Frame, q: f64) -> Frame {
+        let t = t.compose(&self.origin);
+        if self.about_z() {
+            return t.rotate_z(q);
+        }
+        match self.kind {
+            JointKind::Revolute => t.compose(&Frame::rotation_about(&self.axis, q)),
+            JointKind::Prismatic => Frame {
+                rotation: t.rotation,
+                translation: t.translation + t.rotation * (self.axis * q),
+            },
+        }
+    }
+}
+
+impl Robot {
+    /// Frame after the last movable joint (before the flange offset).
+    #[inline]
+    fn last_link(&self, q: &JointVector) -> Frame {
         let mut t = Frame::identity();
-        for (origin, &qi) in self.joints.iter().zip(q.iter()) {
-            t = t.compose(origin).rotate_z(qi);
+        for (joint, &qi) in self.joints.iter().zip(q.iter()) {
+            t = joint.apply(&t, qi);
         }
         t
     }
 
-    /// Forward kinematics of the flange (panda_link8) in the base frame.
+    /// Forward kinematics of the flange (the description's tip link) in the base frame.
     pub fn flange(&self, q: &JointVector) -> Frame {
-        self.link7(q).compose(&self.flange)
+        self.last_link(q).compose(&self.flange)
     }
 
     /// Forward kinematics of the pen tip (tool frame) in the base frame.
@@ -30,7 +48,7 @@ impl Panda {
 
     /// Pen-tip position only (m), the fast path for path lengths and features: the
     /// specialised [`PositionFk`] when the joint origins allow it, else the general chain
-    /// ([`Panda::pen_tip`]).
+    /// ([`Robot::pen_tip`]).
     #[inline]
     pub fn pen_tip_position(&self, q: &JointVector) -> Vector3<f64> {
         match &self.position_fk {
@@ -40,10 +58,20 @@ impl Panda {
     }
 
     /// Pen-tip position through the general chain (full frames), the reference
-    /// [`Panda::pen_tip_position`] is tested against (feature `test-support`).
+    /// [`Robot::pen_tip_position`] is tested against (feature `test-support`).
     #[cfg(any(test, feature = "test-support"))]
     pub fn pen_tip_position_general(&self, q: &JointVector) -> Vector3<f64> {
         self.pen_tip(q).translation
+    }
+
+    /// The joint part of a waypoint as f64 (slots past the robot's joints 0).
+    #[inline]
+    pub fn joints_of(&self, w: &Waypoint) -> JointVector {
+        let mut q = [0.0; super::MAX_JOINTS];
+        for j in 0..self.joints() {
+            q[j] = f64::from(w[j]);
+        }
+        q
     }
 
     /// Pen-tip positions (m, base frame) of the joint parts of `waypoints` into `out`
@@ -54,8 +82,7 @@ impl Panda {
             Some(fk) => fk.positions_into(waypoints, out),
             None => {
                 for (o, w) in out.iter_mut().zip(waypoints) {
-                    let q: JointVector = std::array::from_fn(|j| f64::from(w[j]));
-                    *o = self.pen_tip(&q).translation.into();
+                    *o = self.pen_tip(&self.joints_of(w)).translation.into();
                 }
             }
         }
@@ -63,7 +90,7 @@ impl Panda {
 
     /// Pen-tip positions and tool rotations (base frame) of the joint parts of `waypoints`
     /// (pairs up to the shortest of the three): [`PositionFk::poses_into`] when available,
-    /// else the general chain. The positions equal [`Panda::pen_tip_positions_into`]'s bit for
+    /// else the general chain. The positions equal [`Robot::pen_tip_positions_into`]'s bit for
     /// bit. Allocates nothing.
     pub fn pen_tip_poses_into(
         &self,
@@ -75,8 +102,7 @@ impl Panda {
             Some(fk) => fk.poses_into(waypoints, positions, rotations),
             None => {
                 for ((p, r), w) in positions.iter_mut().zip(rotations).zip(waypoints) {
-                    let q: JointVector = std::array::from_fn(|j| f64::from(w[j]));
-                    let f = self.pen_tip(&q);
+                    let f = self.pen_tip(&self.joints_of(w));
                     *p = f.translation.into();
                     *r = f.rotation;
                 }
@@ -92,7 +118,7 @@ mod tests {
 
     #[test]
     fn flange_at_the_check_pose() {
-        let panda = Panda::default();
+        let panda = Robot::panda();
         let f = panda.flange(&READY_POSE);
         let expected = Vector3::new(0.3069, 0.0, 0.5903);
         assert!(

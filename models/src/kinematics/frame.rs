@@ -36,6 +36,15 @@ impl Frame {
         }
     }
 
+    /// A rotation by `angle` about the unit `axis` (Rodrigues), no translation.
+    pub fn rotation_about(axis: &Vector3<f64>, angle: f64) -> Frame {
+        let r = Rotation3::from_axis_angle(&nalgebra::Unit::new_unchecked(*axis), angle);
+        Frame {
+            rotation: r.into_inner(),
+            translation: Vector3::zeros(),
+        }
+    }
+
     /// `self * Rz(q)`: the frame after a revolute joint about its z axis.
     #[inline]
     pub(super) fn rotate_z(&self, q: f64) -> Frame {

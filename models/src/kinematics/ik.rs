@@ -1,9 +1,8 @@
 //! The geometric Jacobian of the pen tip and the damped-least-squares inverse kinematics.
 
-use guardian_shared::trajectory::JOINTS;
 use nalgebra::{Matrix3, Matrix6, Matrix6x1, Vector3, Vector6};
 
-use super::{Frame, Jacobian, JointVector, Panda};
+use super::{Frame, Jacobian, JointKind, JointVector, MAX_JOINTS, Robot};
 
 /// Inverse kinematics did not find a solution.
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
@@ -65,23 +64,33 @@ pub struct IkState {
     pub jacobian: Jacobian,
 }
 
-impl Panda {
-    /// Pen-tip frame and its geometric Jacobian (base frame).
+impl Robot {
+    /// Pen-tip frame and its geometric Jacobian (base frame); the columns past the robot's
+    /// joints are zero.
     pub fn jacobian(&self, q: &JointVector) -> (Frame, Jacobian) {
-        let mut axes = [Vector3::zeros(); JOINTS];
-        let mut origins = [Vector3::zeros(); JOINTS];
+        let n = self.joints();
+        let mut axes = [Vector3::zeros(); MAX_JOINTS];
+        let mut origins = [Vector3::zeros(); MAX_JOINTS];
         let mut t = Frame::identity();
-        for j in 0..JOINTS {
-            t = t.compose(&self.joints[j]).rotate_z(q[j]);
-            axes[j] = t.rotation.column(2).into_owned();
+        for j in 0..n {
+            let joint = &self.joints[j];
+            t = joint.apply(&t, q[j]);
+            axes[j] = if joint.about_z() {
+                t.rotation.column(2).into_owned()
+            } else {
+                t.rotation * joint.axis
+            };
             origins[j] = t.translation;
         }
         let tip = t.compose(&self.flange).compose(&self.tool);
         let mut jac = Jacobian::zeros();
-        for j in 0..JOINTS {
-            let lin = axes[j].cross(&(tip.translation - origins[j]));
+        for j in 0..n {
+            let (lin, ang) = match self.joints[j].kind {
+                JointKind::Revolute => (axes[j].cross(&(tip.translation - origins[j])), axes[j]),
+                JointKind::Prismatic => (axes[j], Vector3::zeros()),
+            };
             jac.fixed_view_mut::<3, 1>(0, j).copy_from(&lin);
-            jac.fixed_view_mut::<3, 1>(3, j).copy_from(&axes[j]);
+            jac.fixed_view_mut::<3, 1>(3, j).copy_from(&ang);
         }
         (tip, jac)
     }
@@ -108,15 +117,12 @@ impl Panda {
 
     /// The IK state at `q` (clamped to the limits): pen-tip frame and Jacobian.
     pub fn ik_state(&self, q: &JointVector) -> IkState {
-        let mut q = *q;
-        for j in 0..JOINTS {
-            q[j] = q[j].clamp(self.q_min[j], self.q_max[j]);
-        }
+        let q = self.clamp(q);
         let (tip, jacobian) = self.jacobian(&q);
         IkState { q, tip, jacobian }
     }
 
-    /// [`Panda::ik`] from a state whose frame and Jacobian are already known, updated in
+    /// [`Robot::ik`] from a state whose frame and Jacobian are already known, updated in
     /// place to the solution (on error it holds the last iterate), so a path solver seeding
     /// each point with the previous solution evaluates the Jacobian once per converged step
     /// instead of twice.
@@ -133,6 +139,7 @@ impl Panda {
             return Err(IkError::NonFinite);
         }
         let lambda2 = options.damping * options.damping;
+        let (n, lo, hi) = (self.joints(), self.q_min(), self.q_max());
         let mut position_error = f64::INFINITY;
         let mut orientation_error = f64::INFINITY;
         for iteration in 0..=options.max_iterations {
@@ -170,8 +177,8 @@ impl Panda {
             } else {
                 1.0
             };
-            for j in 0..JOINTS {
-                state.q[j] = (state.q[j] + dq[j] * scale).clamp(self.q_min[j], self.q_max[j]);
+            for j in 0..n {
+                state.q[j] = (state.q[j] + dq[j] * scale).clamp(lo[j], hi[j]);
             }
         }
         Err(IkError::NoConvergence {
@@ -221,36 +228,48 @@ mod tests {
     use crate::kinematics::READY_POSE;
     use rand::{Rng, SeedableRng, rngs::StdRng};
 
-    fn random_q(rng: &mut StdRng, panda: &Panda) -> JointVector {
-        std::array::from_fn(|j| {
-            let (lo, hi) = (panda.q_min[j], panda.q_max[j]);
+    fn random_q(rng: &mut StdRng, robot: &Robot) -> JointVector {
+        let mut q = [0.0; MAX_JOINTS];
+        for j in 0..robot.joints() {
+            let (lo, hi) = (robot.q_min()[j], robot.q_max()[j]);
             let pad = 0.1 * (hi - lo);
-            rng.random_range(lo + pad..hi - pad)
-        })
+            q[j] = rng.random_range(lo + pad..hi - pad);
+        }
+        q
+    }
+
+    fn robots() -> Vec<Robot> {
+        vec![
+            Robot::panda(),
+            crate::kinematics::RobotDescription::named("ur5e")
+                .unwrap()
+                .robot,
+        ]
     }
 
     #[test]
     fn jacobian_matches_finite_differences() {
-        let panda = Panda::default();
-        let mut rng = StdRng::seed_from_u64(7);
-        for _ in 0..50 {
-            let q = random_q(&mut rng, &panda);
-            let (tip, jac) = panda.jacobian(&q);
-            let h = 1e-6;
-            for j in 0..JOINTS {
-                let mut qp = q;
-                qp[j] += h;
-                let mut qm = q;
-                qm[j] -= h;
-                let (fp, fm) = (panda.pen_tip(&qp), panda.pen_tip(&qm));
-                let lin = (fp.translation - fm.translation) / (2.0 * h);
-                // Angular: (R+ - R-) R^T / 2h is skew([w]).
-                let s = (fp.rotation - fm.rotation) * tip.rotation.transpose() / (2.0 * h);
-                let w = Vector3::new(s[(2, 1)], s[(0, 2)], s[(1, 0)]);
-                let col = jac.column(j);
-                for k in 0..3 {
-                    assert!((col[k] - lin[k]).abs() < 1e-6, "lin j{j} k{k}");
-                    assert!((col[3 + k] - w[k]).abs() < 1e-6, "ang j{j} k{k}");
+        for panda in robots() {
+            let mut rng = StdRng::seed_from_u64(7);
+            for _ in 0..50 {
+                let q = random_q(&mut rng, &panda);
+                let (tip, jac) = panda.jacobian(&q);
+                let h = 1e-6;
+                for j in 0..MAX_JOINTS {
+                    let mut qp = q;
+                    qp[j] += h;
+                    let mut qm = q;
+                    qm[j] -= h;
+                    let (fp, fm) = (panda.pen_tip(&qp), panda.pen_tip(&qm));
+                    let lin = (fp.translation - fm.translation) / (2.0 * h);
+                    // Angular: (R+ - R-) R^T / 2h is skew([w]).
+                    let s = (fp.rotation - fm.rotation) * tip.rotation.transpose() / (2.0 * h);
+                    let w = Vector3::new(s[(2, 1)], s[(0, 2)], s[(1, 0)]);
+                    let col = jac.column(j);
+                    for k in 0..3 {
+                        assert!((col[k] - lin[k]).abs() < 1e-6, "lin j{j} k{k}");
+                        assert!((col[3 + k] - w[k]).abs() < 1e-6, "ang j{j} k{k}");
+                    }
                 }
             }
         }
@@ -258,34 +277,37 @@ mod tests {
 
     #[test]
     fn ik_round_trip_on_random_reachable_poses() {
-        let panda = Panda::default();
-        let mut rng = StdRng::seed_from_u64(11);
-        let opts = IkOptions::default();
-        let mut solved = 0;
-        for _ in 0..200 {
-            let q_true = random_q(&mut rng, &panda);
-            let target = panda.pen_tip(&q_true);
-            // Seed near the true solution, as the generator does (previous solution).
-            let seed: JointVector =
-                std::array::from_fn(|j| q_true[j] + rng.random_range(-0.05..0.05));
-            let q = panda
-                .ik(&target, &seed, &opts)
-                .expect("reachable pose near the seed");
-            let got = panda.pen_tip(&q);
-            assert!((got.translation - target.translation).norm() <= opts.position_tolerance);
-            assert!(
-                orientation_error_vector(&target.rotation, &got.rotation).norm()
-                    <= opts.orientation_tolerance
-            );
-            assert!(panda.limit_margin(&q) >= 0.0);
-            solved += 1;
+        for panda in robots() {
+            let mut rng = StdRng::seed_from_u64(11);
+            let opts = IkOptions::default();
+            let mut solved = 0;
+            for _ in 0..200 {
+                let q_true = random_q(&mut rng, &panda);
+                let target = panda.pen_tip(&q_true);
+                // Seed near the true solution, as the generator does (previous solution).
+                let mut seed = q_true;
+                for q in &mut seed[..panda.joints()] {
+                    *q += rng.random_range(-0.05..0.05);
+                }
+                let q = panda
+                    .ik(&target, &seed, &opts)
+                    .expect("reachable pose near the seed");
+                let got = panda.pen_tip(&q);
+                assert!((got.translation - target.translation).norm() <= opts.position_tolerance);
+                assert!(
+                    orientation_error_vector(&target.rotation, &got.rotation).norm()
+                        <= opts.orientation_tolerance
+                );
+                assert!(panda.limit_margin(&q) >= 0.0);
+                solved += 1;
+            }
+            assert_eq!(solved, 200, "{}", panda.name());
         }
-        assert_eq!(solved, 200);
     }
 
     #[test]
     fn no_solution_outside_the_limits() {
-        let panda = Panda::default();
+        let panda = Robot::panda();
         let opts = IkOptions::default();
         // Out of reach: 2 m in front of the robot.
         let mut far = panda.pen_tip(&READY_POSE);
@@ -309,7 +331,7 @@ mod tests {
             assert!(panda.limit_margin(&q) >= 0.0);
         }
         assert_eq!(
-            panda.ik(&far, &[f64::NAN; JOINTS], &opts),
+            panda.ik(&far, &[f64::NAN; MAX_JOINTS], &opts),
             Err(IkError::NonFinite)
         );
     }

@@ -3,10 +3,10 @@
 //! widest SIMD instruction set of the CPU (runtime dispatch), checked against the general
 //! chain when built.
 
-use guardian_shared::trajectory::{JOINTS, Waypoint};
+use guardian_shared::trajectory::Waypoint;
 use nalgebra::{Matrix3, Vector3};
 
-use super::{JointVector, Panda, READY_POSE};
+use super::{JointVector, MAX_JOINTS, Robot};
 
 /// A rotation that is a signed permutation of the axes: `(R v)[i] = sign[i] * v[src[i]]`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -48,28 +48,31 @@ impl AxisMap {
 }
 
 /// Largest distance (m) between [`PositionFk`] and the general chain accepted when the
-/// specialised FK is built; above it [`Panda`] keeps using the general chain.
+/// specialised FK is built; above it [`Robot`] keeps using the general chain.
 pub const POSITION_FK_TOLERANCE: f64 = 1e-12;
 
-/// Pen-tip position forward kinematics specialised to a chain whose joint origin rotations
-/// are signed axis permutations (the Panda's are the identity or +-pi/2 about x).
+/// Pen-tip position forward kinematics specialised to a chain of revolute joints about z
+/// whose joint origin rotations are signed axis permutations (the Panda's and the UR5e's are
+/// the identity or +-pi/2 about x).
 ///
 /// Evaluated from the pen tip back to the base: per joint one rotation about z (4
 /// multiplies), a signed axis permutation (no arithmetic) and the origin offset; f64, no
-/// allocation, no 4x4 or 3x3 products. It is built by [`Panda`] from the numbers of the
+/// allocation, no 4x4 or 3x3 products. It is built by [`Robot`] from the numbers of the
 /// loaded chain (URDF or built-in) and checked at construction against the general chain
-/// ([`Panda::pen_tip`]) at several joint vectors; if the origins are not
-/// signed permutations (to 1e-12 per entry) or the check misses [`POSITION_FK_TOLERANCE`],
-/// there is no `PositionFk` and [`Panda`] uses the general chain, so another URDF cannot be
-/// silently mis-computed. The general chain stays the source of truth and serves IK and
+/// ([`Robot::pen_tip`]) at several joint vectors; if a joint is not revolute about z, the
+/// origins are not signed permutations (to 1e-12 per entry) or the check misses
+/// [`POSITION_FK_TOLERANCE`], there is no `PositionFk` and [`Robot`] uses the general chain,
+/// so another URDF cannot be silently mis-computed. The general chain stays the source of truth and serves IK and
 /// Jacobians.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PositionFk {
-    rotations: [AxisMap; JOINTS],
-    offsets: [[f64; 3]; JOINTS],
-    /// The pen tip in the frame of link 7 (flange offset and tool composed).
+    /// Joints of the chain.
+    joints: usize,
+    rotations: [AxisMap; MAX_JOINTS],
+    offsets: [[f64; 3]; MAX_JOINTS],
+    /// The pen tip in the frame after the last joint (flange offset and tool composed).
     tip: [f64; 3],
-    /// The tool's x and z axes in the frame of link 7.
+    /// The tool's x and z axes in the frame after the last joint.
     tool_axes: [[f64; 3]; 2],
 }
 
@@ -78,34 +81,41 @@ pub struct PositionFk {
 pub const FK_LANES: usize = 8;
 
 impl PositionFk {
-    pub(super) fn from_panda(panda: &Panda) -> Option<Self> {
+    pub(super) fn from_robot(panda: &Robot) -> Option<Self> {
         let mut rotations = [AxisMap {
             src: [0, 1, 2],
             sign: [1.0; 3],
-        }; JOINTS];
-        let mut offsets = [[0.0; 3]; JOINTS];
-        for j in 0..JOINTS {
-            rotations[j] = AxisMap::from_matrix(&panda.joints[j].rotation, 1e-12)?;
-            offsets[j] = panda.joints[j].translation.into();
+        }; MAX_JOINTS];
+        let mut offsets = [[0.0; 3]; MAX_JOINTS];
+        let n = panda.joints();
+        for j in 0..n {
+            let joint = &panda.joints[j];
+            if !joint.about_z() {
+                return None;
+            }
+            rotations[j] = AxisMap::from_matrix(&joint.origin.rotation, 1e-12)?;
+            offsets[j] = joint.origin.translation.into();
         }
         let tip = panda.flange.translation + panda.flange.rotation * panda.tool.translation;
         let tool = panda.flange.rotation * panda.tool.rotation;
         let fk = Self {
+            joints: n,
             rotations,
             offsets,
             tip: tip.into(),
             tool_axes: [tool.column(0).into(), tool.column(2).into()],
         };
-        // Verify against the general chain at the limits, their middle and the ready pose.
-        let mid: JointVector = std::array::from_fn(|j| 0.5 * (panda.q_min[j] + panda.q_max[j]));
-        let mixed: JointVector = std::array::from_fn(|j| {
-            if j % 2 == 0 {
-                panda.q_min[j]
-            } else {
-                panda.q_max[j]
-            }
-        });
-        let probes = [READY_POSE, mid, panda.q_min, panda.q_max, mixed];
+        // Verify against the general chain at the limits, their middle, a mix of both and
+        // an arbitrary pose.
+        let (lo, hi) = (panda.q_min(), panda.q_max());
+        let mut probes = [[0.0; MAX_JOINTS]; 5];
+        for j in 0..n {
+            probes[0][j] = (0.3 + 0.1 * j as f64).clamp(lo[j], hi[j]);
+            probes[1][j] = 0.5 * (lo[j] + hi[j]);
+            probes[2][j] = lo[j];
+            probes[3][j] = hi[j];
+            probes[4][j] = if j % 2 == 0 { lo[j] } else { hi[j] };
+        }
         for q in &probes {
             let general = panda.pen_tip(q);
             let fast = Vector3::from(fk.position(q));
@@ -115,9 +125,9 @@ impl PositionFk {
             }
             let mut p = [[0.0; 3]];
             let mut r = [Matrix3::zeros()];
-            let w: Waypoint = std::array::from_fn(|j| if j < JOINTS { q[j] as f32 } else { 0.0 });
+            let w: Waypoint = std::array::from_fn(|j| if j < n { q[j] as f32 } else { 0.0 });
             fk.poses_into(&[w], &mut p, &mut r);
-            let qf: JointVector = std::array::from_fn(|j| f64::from(w[j]));
+            let qf = panda.joints_of(&w);
             let e = (panda.pen_tip(&qf).rotation - r[0]).norm();
             if e.is_nan() || e > POSITION_FK_TOLERANCE {
                 return None;
@@ -164,7 +174,7 @@ impl PositionFk {
     #[inline(always)]
     fn block_positions(&self, s: &LaneTable, c: &LaneTable) -> Lanes {
         let mut v = self.tip.map(|x| [x; FK_LANES]);
-        for j in (0..JOINTS).rev() {
+        for j in (0..self.joints).rev() {
             v = self.joint_lanes(j, &s[j], &c[j], &v, true);
         }
         v
@@ -176,7 +186,7 @@ impl PositionFk {
         let mut p = self.tip.map(|x| [x; FK_LANES]);
         let mut x = self.tool_axes[0].map(|v| [v; FK_LANES]);
         let mut z = self.tool_axes[1].map(|v| [v; FK_LANES]);
-        for j in (0..JOINTS).rev() {
+        for j in (0..self.joints).rev() {
             p = self.joint_lanes(j, &s[j], &c[j], &p, true);
             x = self.joint_lanes(j, &s[j], &c[j], &x, false);
             z = self.joint_lanes(j, &s[j], &c[j], &z, false);
@@ -188,7 +198,7 @@ impl PositionFk {
     #[inline]
     pub fn position(&self, q: &JointVector) -> [f64; 3] {
         let mut v = self.tip;
-        for j in (0..JOINTS).rev() {
+        for j in (0..self.joints).rev() {
             let (s, c) = q[j].sin_cos();
             let r = [c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]];
             let m = &self.rotations[j];
@@ -204,7 +214,7 @@ impl PositionFk {
     /// [`pulp::Arch::dispatch`]) gets the block vectorised with it.
     #[inline(always)]
     pub fn pose_lanes(&self, ws: &[Waypoint]) -> PoseLanes {
-        let (s, c) = joint_sin_cos(ws);
+        let (s, c) = joint_sin_cos(ws, self.joints);
         self.block_poses(&s, &c)
     }
 
@@ -258,7 +268,7 @@ impl pulp::WithSimd for PositionsOp<'_> {
             .zip(self.out.chunks_mut(FK_LANES))
         {
             let n = ws.len().min(os.len());
-            let (s, c) = joint_sin_cos(&ws[..n]);
+            let (s, c) = joint_sin_cos(&ws[..n], self.fk.joints);
             let v = self.fk.block_positions(&s, &c);
             for (l, o) in os[..n].iter_mut().enumerate() {
                 *o = [v[0][l], v[1][l], v[2][l]];
@@ -323,7 +333,7 @@ fn permute_lanes<const A: usize, const B: usize, const C: usize>(
 }
 
 /// Sines and cosines of every joint of a block of at most [`FK_LANES`] waypoints, per joint.
-type LaneTable = [[f64; FK_LANES]; JOINTS];
+type LaneTable = [[f64; FK_LANES]; MAX_JOINTS];
 
 /// A 3-vector per lane of a block: `v[axis][lane]`.
 pub type Lanes = [[f64; FK_LANES]; 3];
@@ -340,10 +350,10 @@ pub struct PoseLanes {
 }
 
 #[inline(always)]
-fn joint_sin_cos(ws: &[Waypoint]) -> (LaneTable, LaneTable) {
-    let mut s = [[0.0f64; FK_LANES]; JOINTS];
-    let mut c = [[0.0f64; FK_LANES]; JOINTS];
-    for j in 0..JOINTS {
+fn joint_sin_cos(ws: &[Waypoint], joints: usize) -> (LaneTable, LaneTable) {
+    let mut s = [[0.0f64; FK_LANES]; MAX_JOINTS];
+    let mut c = [[0.0f64; FK_LANES]; MAX_JOINTS];
+    for j in 0..joints {
         let mut x = [0.0f64; FK_LANES];
         for (l, w) in ws.iter().take(FK_LANES).enumerate() {
             x[l] = f64::from(w[j]);
@@ -410,7 +420,7 @@ fn sin_cos_block(x: &[f64; FK_LANES], s: &mut [f64; FK_LANES], c: &mut [f64; FK_
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kinematics::PANDA_URDF;
+    use crate::kinematics::{PANDA_URDF, READY_POSE, RobotDescription};
     use rand::{Rng, SeedableRng, rngs::StdRng};
 
     #[test]
@@ -449,9 +459,10 @@ mod tests {
     #[test]
     fn specialised_fk_equals_the_general_chain() {
         for panda in [
-            Panda::default(),
-            Panda::from_embedded_urdf().expect("shipped URDF parses"),
-            Panda::default().with_tool(0.2, 0.3),
+            Robot::panda(),
+            Robot::from_embedded_urdf().expect("shipped URDF parses"),
+            Robot::panda().with_tool(0.2, 0.3),
+            RobotDescription::named("ur5e").unwrap().robot,
         ] {
             let fk = *panda
                 .position_fk()
@@ -461,13 +472,15 @@ mod tests {
             let mut worst = 0.0f64;
             for _ in 0..2000 {
                 // Anywhere within the limits, the limits included.
-                let q: JointVector =
-                    std::array::from_fn(|j| rng.random_range(panda.q_min[j]..=panda.q_max[j]));
+                let mut q: JointVector = [0.0; MAX_JOINTS];
+                for j in 0..panda.joints() {
+                    q[j] = rng.random_range(panda.q_min()[j]..=panda.q_max()[j]);
+                }
                 let general = panda.pen_tip(&q).translation;
                 worst = worst.max((Vector3::from(fk.position(&q)) - general).norm());
                 worst = worst.max((panda.pen_tip_position(&q) - general).norm());
-                let mut w = [0.0f32; 8];
-                for j in 0..JOINTS {
+                let mut w = [0.0f32; guardian_shared::trajectory::SLOTS];
+                for j in 0..panda.joints() {
                     w[j] = q[j] as f32;
                 }
                 ws.push(w);
@@ -477,7 +490,7 @@ mod tests {
             let mut out = vec![[0.0; 3]; ws.len()];
             panda.pen_tip_positions_into(ws, &mut out);
             for (w, o) in ws.iter().zip(&out) {
-                let q: JointVector = std::array::from_fn(|j| f64::from(w[j]));
+                let q = panda.joints_of(w);
                 let general = panda.pen_tip_position_general(&q);
                 worst = worst.max((Vector3::from(*o) - general).norm());
             }
@@ -490,7 +503,7 @@ mod tests {
             assert_eq!(pos, out);
             let mut worst_r = 0.0f64;
             for (w, r) in ws.iter().zip(&rot) {
-                let q: JointVector = std::array::from_fn(|j| f64::from(w[j]));
+                let q = panda.joints_of(w);
                 worst_r = worst_r.max((panda.pen_tip(&q).rotation - r).norm());
             }
             assert!(worst_r <= 1e-12, "worst rotation {worst_r:e}");
@@ -507,17 +520,18 @@ mod tests {
             1,
         );
         assert_ne!(tilted, PANDA_URDF, "the URDF spells the origin as expected");
-        let panda = Panda::from_urdf_str(&tilted).expect("still a valid chain");
+        let panda = Robot::from_urdf_str(&tilted).expect("still a valid chain");
         assert!(panda.position_fk().is_none());
         let q = READY_POSE;
         assert_eq!(panda.pen_tip_position(&q), panda.pen_tip(&q).translation);
-        let w = [0.1f32, -0.7, 0.2, -2.3, 0.1, 1.6, 0.8, 1.0];
+        let w =
+            guardian_shared::trajectory::waypoint(&[0.1f32, -0.7, 0.2, -2.3, 0.1, 1.6, 0.8], 1.0);
         let mut out = [[0.0; 3]; 1];
         panda.pen_tip_positions_into(&[w], &mut out);
-        let q: JointVector = std::array::from_fn(|j| f64::from(w[j]));
+        let q = panda.joints_of(&w);
         assert_eq!(Vector3::from(out[0]), panda.pen_tip(&q).translation);
         // A permutation with the wrong numbers would be caught by the construction check;
         // the default Panda has its specialised FK.
-        assert!(Panda::default().position_fk().is_some());
+        assert!(Robot::panda().position_fk().is_some());
     }
 }

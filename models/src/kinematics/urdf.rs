@@ -1,15 +1,20 @@
-//! A serial chain read from a URDF with urdf-rs: revolute joints about z, then the fixed
-//! flange, then fixed joints composed into the tool frame.
+//! A serial chain read from a URDF with urdf-rs: the movable (revolute, prismatic) joints
+//! from a base link to a tip link, fixed joints composed into the next joint's origin or
+//! into the flange.
 
-use guardian_shared::trajectory::JOINTS;
+use guardian_shared::trajectory::{JointLimits, MAX_JOINTS};
+use nalgebra::Vector3;
 
-use super::{Frame, Panda};
+use super::{Frame, Joint, JointKind, Robot, sha256};
 
-/// The robot model shipped with guardian (kinematic only).
-pub const PANDA_URDF: &str = include_str!("../../panda.urdf");
+/// The Panda's URDF shipped with guardian (kinematic only), `models/robots/panda.urdf`.
+pub const PANDA_URDF: &str = include_str!("../../robots/panda.urdf");
+/// The UR5e's URDF shipped with guardian (kinematic only, from UR's standard DH table),
+/// `models/robots/ur5e.urdf`.
+pub const UR5E_URDF: &str = include_str!("../../robots/ur5e.urdf");
 
-/// Building a [`Panda`] from a URDF failed.
-#[derive(Debug, thiserror::Error)]
+/// Building a [`Robot`] from a URDF failed. Every variant names the URDF element at fault.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[non_exhaustive]
 pub enum UrdfLoadError {
     /// urdf-rs could not parse the text.
@@ -21,192 +26,460 @@ pub enum UrdfLoadError {
         /// Number of root links found.
         roots: usize,
     },
-    /// A link has more than one child joint: not a serial chain.
-    #[error("link {link} has {children} child joints; a serial chain is expected")]
+    /// A link named in the description (base or tip) is not in the URDF.
+    #[error("link {link:?} ({role} link) is not in the URDF")]
+    UnknownLink {
+        /// The link name.
+        link: String,
+        /// `base` or `tip`.
+        role: &'static str,
+    },
+    /// The tip link is not below the base link.
+    #[error("link {tip:?} is not below link {base:?}: no chain between them")]
+    NoChain {
+        /// The base link.
+        base: String,
+        /// The tip link.
+        tip: String,
+    },
+    /// Walking from the root without a tip link, a link has more than one child joint.
+    #[error(
+        "link {link:?} has {children} child joints; a serial chain is expected (name a tip-link)"
+    )]
     Branching {
         /// The link name.
         link: String,
         /// Number of child joints.
         children: usize,
     },
-    /// The chain does not have 7 revolute joints.
-    #[error("expected {expected} revolute joints, got {got}")]
+    /// The chain has no movable joint, or more than [`MAX_JOINTS`].
+    #[error("the chain has {got} movable joints, expected 1..={max}")]
     JointCount {
-        /// Revolute joints expected.
-        expected: usize,
-        /// Revolute joints found.
+        /// Most joints supported.
+        max: usize,
+        /// Movable joints found.
         got: usize,
     },
-    /// A joint type other than revolute or fixed, or a fixed joint between revolute ones.
-    #[error("joint {joint}: unsupported {kind} here")]
+    /// A joint type the chain cannot hold (floating, planar, spherical).
+    #[error("joint {joint:?}: unsupported {kind} joint")]
     Unsupported {
         /// The joint name.
         joint: String,
         /// What was found.
         kind: String,
     },
-    /// A revolute joint does not rotate about its z axis.
-    #[error("joint {joint}: axis {axis:?} is not +z")]
+    /// A continuous joint: it has no limits, and trajectories are validated against limits.
+    #[error(
+        "joint {joint:?}: continuous joint without limits; make it revolute with <limit lower upper>"
+    )]
+    Unlimited {
+        /// The joint name.
+        joint: String,
+    },
+    /// A joint's limits are not a finite range (`lower <= upper`).
+    #[error("joint {joint:?}: <limit lower={lower} upper={upper}> is not a finite range")]
+    Limits {
+        /// The joint name.
+        joint: String,
+        /// Lower limit.
+        lower: f64,
+        /// Upper limit.
+        upper: f64,
+    },
+    /// A number of a joint's element is not finite.
+    #[error("joint {joint:?}: <{element}> has a non-finite value")]
+    NonFinite {
+        /// The joint name.
+        joint: String,
+        /// `origin` or `axis`.
+        element: &'static str,
+    },
+    /// A joint axis of (near) zero length.
+    #[error("joint {joint:?}: <axis xyz={axis:?}> has no direction")]
     Axis {
         /// The joint name.
         joint: String,
         /// The axis in the URDF.
         axis: [f64; 3],
     },
-    /// No fixed joint after the last revolute joint (the flange).
-    #[error("no fixed flange joint after the last revolute joint")]
-    NoFlange,
 }
 
-impl Panda {
-    /// Parse the shipped `panda.urdf` ([`PANDA_URDF`]).
+impl Robot {
+    /// Parse the shipped Panda URDF with the shipped description's links and tool
+    /// ([`Robot::panda`] builds the same chain without parsing).
     pub fn from_embedded_urdf() -> Result<Self, UrdfLoadError> {
-        Self::from_urdf_str(PANDA_URDF)
+        Ok(
+            Self::from_urdf_chain(PANDA_URDF, "panda", None, Some("panda_link8"))?
+                .with_tool(super::PEN_LENGTH, super::PEN_YAW),
+        )
     }
 
-    /// Parse a URDF: a serial chain of 7 revolute joints about z, then one fixed joint (the
-    /// flange), then optionally more fixed joints composed into the tool frame (identity if
-    /// none).
+    /// Parse a URDF as a serial chain from its root to its one leaf; the first fixed joint
+    /// after the last movable one is the flange, the fixed joints after it make up the tool
+    /// (identity if none). The robot is named after the URDF's `<robot name>`.
     pub fn from_urdf_str(text: &str) -> Result<Self, UrdfLoadError> {
-        let robot =
-            urdf_rs::read_from_string(text).map_err(|e| UrdfLoadError::Parse(e.to_string()))?;
-        let roots: Vec<&str> = robot
-            .links
-            .iter()
-            .map(|l| l.name.as_str())
-            .filter(|name| !robot.joints.iter().any(|j| j.child.link == *name))
-            .collect();
-        if roots.len() != 1 {
-            return Err(UrdfLoadError::Root { roots: roots.len() });
-        }
-        let mut link = roots[0].to_string();
-        let mut revolute: Vec<(Frame, f64, f64)> = Vec::new();
-        let mut fixed_after: Vec<Frame> = Vec::new();
-        loop {
-            let children: Vec<&urdf_rs::Joint> = robot
-                .joints
-                .iter()
-                .filter(|j| j.parent.link == link)
-                .collect();
-            let joint = match children.as_slice() {
-                [] => break,
-                [j] => *j,
-                _ => {
-                    return Err(UrdfLoadError::Branching {
-                        link,
-                        children: children.len(),
+        let robot = parse(text)?;
+        let chain = walk_down(&robot, &root(&robot)?)?;
+        let name = robot.name.clone();
+        build(text, name, &chain, true)
+    }
+
+    /// Parse the serial chain of `text` from `base` (the root link if `None`) to `tip` (the
+    /// one leaf if `None`; branches off the chain are allowed when a tip is named). Every
+    /// fixed joint after the last movable one is composed into the flange; the tool is the
+    /// identity until [`Robot::with_tool_frame`] sets it.
+    pub fn from_urdf_chain(
+        text: &str,
+        name: &str,
+        base: Option<&str>,
+        tip: Option<&str>,
+    ) -> Result<Self, UrdfLoadError> {
+        let robot = parse(text)?;
+        let base = match base {
+            Some(b) => {
+                if !robot.links.iter().any(|l| l.name == b) {
+                    return Err(UrdfLoadError::UnknownLink {
+                        link: b.to_string(),
+                        role: "base",
                     });
                 }
-            };
-            let origin = Frame::from_xyz_rpy(*joint.origin.xyz, *joint.origin.rpy);
-            match joint.joint_type {
-                urdf_rs::JointType::Revolute => {
-                    if !fixed_after.is_empty() {
-                        return Err(UrdfLoadError::Unsupported {
-                            joint: joint.name.clone(),
-                            kind: "revolute joint after a fixed joint".into(),
-                        });
-                    }
-                    let axis = *joint.axis.xyz;
-                    if axis != [0.0, 0.0, 1.0] {
-                        return Err(UrdfLoadError::Axis {
-                            joint: joint.name.clone(),
-                            axis,
-                        });
-                    }
-                    revolute.push((origin, joint.limit.lower, joint.limit.upper));
-                }
-                urdf_rs::JointType::Fixed => {
-                    if revolute.is_empty() {
-                        return Err(UrdfLoadError::Unsupported {
-                            joint: joint.name.clone(),
-                            kind: "fixed joint before the first revolute joint".into(),
-                        });
-                    }
-                    fixed_after.push(origin);
-                }
-                ref other => {
-                    return Err(UrdfLoadError::Unsupported {
-                        joint: joint.name.clone(),
-                        kind: format!("{other:?} joint"),
-                    });
-                }
+                b.to_string()
             }
-            link = joint.child.link.clone();
+            None => root(&robot)?,
+        };
+        let chain = match tip {
+            None => walk_down(&robot, &base)?,
+            Some(tip) => walk_up(&robot, &base, tip)?,
+        };
+        build(text, name.to_string(), &chain, false)
+    }
+}
+
+fn parse(text: &str) -> Result<urdf_rs::Robot, UrdfLoadError> {
+    urdf_rs::read_from_string(text).map_err(|e| UrdfLoadError::Parse(e.to_string()))
+}
+
+fn root(robot: &urdf_rs::Robot) -> Result<String, UrdfLoadError> {
+    let roots: Vec<&str> = robot
+        .links
+        .iter()
+        .map(|l| l.name.as_str())
+        .filter(|name| !robot.joints.iter().any(|j| j.child.link == *name))
+        .collect();
+    match roots.as_slice() {
+        [r] => Ok((*r).to_string()),
+        _ => Err(UrdfLoadError::Root { roots: roots.len() }),
+    }
+}
+
+/// The joints from `link` down to the one leaf.
+fn walk_down<'a>(
+    robot: &'a urdf_rs::Robot,
+    link: &str,
+) -> Result<Vec<&'a urdf_rs::Joint>, UrdfLoadError> {
+    let mut link = link.to_string();
+    let mut chain = Vec::new();
+    loop {
+        let children: Vec<&urdf_rs::Joint> = robot
+            .joints
+            .iter()
+            .filter(|j| j.parent.link == link)
+            .collect();
+        match children.as_slice() {
+            [] => return Ok(chain),
+            [j] => {
+                chain.push(*j);
+                link = j.child.link.clone();
+            }
+            _ => {
+                return Err(UrdfLoadError::Branching {
+                    link,
+                    children: children.len(),
+                });
+            }
         }
-        if revolute.len() != JOINTS {
-            return Err(UrdfLoadError::JointCount {
-                expected: JOINTS,
-                got: revolute.len(),
+        if chain.len() > robot.joints.len() {
+            // A cycle; urdf-rs does not reject them.
+            return Err(UrdfLoadError::Root { roots: 0 });
+        }
+    }
+}
+
+/// The joints from `base` to `tip`, found by walking up from the tip (a tree has one path).
+fn walk_up<'a>(
+    robot: &'a urdf_rs::Robot,
+    base: &str,
+    tip: &str,
+) -> Result<Vec<&'a urdf_rs::Joint>, UrdfLoadError> {
+    if !robot.links.iter().any(|l| l.name == tip) {
+        return Err(UrdfLoadError::UnknownLink {
+            link: tip.to_string(),
+            role: "tip",
+        });
+    }
+    let mut chain = Vec::new();
+    let mut link = tip.to_string();
+    while link != base {
+        let Some(joint) = robot.joints.iter().find(|j| j.child.link == link) else {
+            return Err(UrdfLoadError::NoChain {
+                base: base.to_string(),
+                tip: tip.to_string(),
+            });
+        };
+        chain.push(joint);
+        link = joint.parent.link.clone();
+        if chain.len() > robot.joints.len() {
+            return Err(UrdfLoadError::NoChain {
+                base: base.to_string(),
+                tip: tip.to_string(),
             });
         }
-        let flange = *fixed_after.first().ok_or(UrdfLoadError::NoFlange)?;
-        let tool = fixed_after[1..]
-            .iter()
-            .fold(Frame::identity(), |acc, f| acc.compose(f));
-        let mut joints = [Frame::identity(); JOINTS];
-        let mut q_min = [0.0; JOINTS];
-        let mut q_max = [0.0; JOINTS];
-        for (i, (origin, lo, hi)) in revolute.into_iter().enumerate() {
-            joints[i] = origin;
-            q_min[i] = lo;
-            q_max[i] = hi;
-        }
-        Ok(Self {
-            joints,
-            flange,
-            tool,
-            q_min,
-            q_max,
-            position_fk: None,
-        }
-        .with_position_fk())
     }
+    chain.reverse();
+    Ok(chain)
+}
+
+/// The robot of a chain of URDF joints. With `split_tool`, the first fixed joint after the
+/// last movable one is the flange and the rest the tool; otherwise they are all the flange.
+fn build(
+    text: &str,
+    name: String,
+    chain: &[&urdf_rs::Joint],
+    split_tool: bool,
+) -> Result<Robot, UrdfLoadError> {
+    let mut joints: Vec<Joint> = Vec::new();
+    let (mut lower, mut upper) = (Vec::new(), Vec::new());
+    // Fixed joints seen since the last movable one, composed.
+    let mut pending = Frame::identity();
+    let mut after_last: Vec<Frame> = Vec::new();
+    for joint in chain {
+        let xyz = *joint.origin.xyz;
+        let rpy = *joint.origin.rpy;
+        if xyz.iter().chain(&rpy).any(|v| !v.is_finite()) {
+            return Err(UrdfLoadError::NonFinite {
+                joint: joint.name.clone(),
+                element: "origin",
+            });
+        }
+        let origin = Frame::from_xyz_rpy(xyz, rpy);
+        let kind = match joint.joint_type {
+            urdf_rs::JointType::Revolute => JointKind::Revolute,
+            urdf_rs::JointType::Prismatic => JointKind::Prismatic,
+            urdf_rs::JointType::Continuous => {
+                return Err(UrdfLoadError::Unlimited {
+                    joint: joint.name.clone(),
+                });
+            }
+            urdf_rs::JointType::Fixed => {
+                pending = pending.compose(&origin);
+                after_last.push(origin);
+                continue;
+            }
+            ref other => {
+                return Err(UrdfLoadError::Unsupported {
+                    joint: joint.name.clone(),
+                    kind: format!("{other:?}").to_lowercase(),
+                });
+            }
+        };
+        let axis = *joint.axis.xyz;
+        if axis.iter().any(|v| !v.is_finite()) {
+            return Err(UrdfLoadError::NonFinite {
+                joint: joint.name.clone(),
+                element: "axis",
+            });
+        }
+        let a = Vector3::from(axis);
+        if a.norm() < 1e-9 {
+            return Err(UrdfLoadError::Axis {
+                joint: joint.name.clone(),
+                axis,
+            });
+        }
+        let (lo, hi) = (joint.limit.lower, joint.limit.upper);
+        if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
+            return Err(UrdfLoadError::Limits {
+                joint: joint.name.clone(),
+                lower: lo,
+                upper: hi,
+            });
+        }
+        // A unit axis exactly +z stays exactly +z (the bit-stable fast path).
+        let axis = if axis == [0.0, 0.0, 1.0] {
+            Vector3::z()
+        } else {
+            a.normalize()
+        };
+        let velocity = joint.limit.velocity;
+        joints.push(Joint {
+            name: joint.name.clone(),
+            kind,
+            // Bit-identical to `origin` when no fixed joint came before it.
+            origin: if after_last.is_empty() {
+                origin
+            } else {
+                pending.compose(&origin)
+            },
+            axis,
+            velocity: (velocity.is_finite() && velocity > 0.0).then_some(velocity),
+        });
+        lower.push(lo);
+        upper.push(hi);
+        pending = Frame::identity();
+        after_last.clear();
+    }
+    if joints.is_empty() || joints.len() > MAX_JOINTS {
+        return Err(UrdfLoadError::JointCount {
+            max: MAX_JOINTS,
+            got: joints.len(),
+        });
+    }
+    let (flange, tool) = if split_tool {
+        let flange = after_last.first().copied().unwrap_or_else(Frame::identity);
+        let tool = after_last
+            .iter()
+            .skip(1)
+            .fold(Frame::identity(), |acc, f| acc.compose(f));
+        (flange, tool)
+    } else {
+        // One fixed joint is taken as is (bit-identical to the published numbers).
+        let flange = match after_last.as_slice() {
+            [] => Frame::identity(),
+            [one] => *one,
+            _ => pending,
+        };
+        (flange, Frame::identity())
+    };
+    let limits = JointLimits::new(lower, upper).map_err(|_| UrdfLoadError::JointCount {
+        max: MAX_JOINTS,
+        got: joints.len(),
+    })?;
+    Ok(Robot {
+        name,
+        joints,
+        flange,
+        tool,
+        limits,
+        urdf_sha256: sha256(text.as_bytes()),
+        position_fk: None,
+    }
+    .with_position_fk())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::kinematics::READY_POSE;
-    use nalgebra::Vector3;
 
     #[test]
     fn urdf_parse_matches_the_published_numbers() {
-        let parsed = Panda::from_embedded_urdf().expect("shipped URDF parses");
-        let builtin = Panda::default();
-        assert_eq!(parsed.q_min, builtin.q_min);
-        assert_eq!(parsed.q_max, builtin.q_max);
+        let parsed = Robot::from_embedded_urdf().expect("shipped URDF parses");
+        let builtin = Robot::panda();
+        assert_eq!(parsed.limits, builtin.limits);
+        assert_eq!(parsed.joints.len(), 7);
         for (a, b) in parsed.joints.iter().zip(builtin.joints.iter()) {
-            assert!((a.rotation - b.rotation).amax() < 1e-15);
-            assert!((a.translation - b.translation).amax() < 1e-15);
+            assert_eq!(a.name, b.name);
+            assert_eq!(a.kind, b.kind);
+            assert_eq!(a.axis, b.axis);
+            assert_eq!(a.velocity, b.velocity);
+            assert!((a.origin.rotation - b.origin.rotation).amax() < 1e-15);
+            assert!((a.origin.translation - b.origin.translation).amax() < 1e-15);
         }
         assert!((parsed.tool.rotation - builtin.tool.rotation).amax() < 1e-15);
         assert!((parsed.tool.translation - builtin.tool.translation).amax() < 1e-15);
+        assert_eq!(parsed.urdf_sha256, builtin.urdf_sha256);
         let f = parsed.flange(&READY_POSE);
         assert!((f.translation - Vector3::new(0.3069, 0.0, 0.5903)).norm() < 1e-4);
+        // Root to leaf: the URDF's own pen joint becomes the tool.
+        let whole = Robot::from_urdf_str(PANDA_URDF).expect("root to leaf");
+        assert!((whole.tool.translation - builtin.tool.translation).amax() < 1e-15);
+        assert!((whole.tool.rotation - builtin.tool.rotation).amax() < 1e-15);
     }
 
     #[test]
-    fn malformed_urdf_is_a_typed_error() {
+    fn malformed_urdf_is_a_typed_error_naming_the_element() {
         assert!(matches!(
-            Panda::from_urdf_str("<robot"),
+            Robot::from_urdf_str("<robot"),
             Err(UrdfLoadError::Parse(_))
         ));
-        let six = PANDA_URDF.replace(
-            r#"<joint name="panda_joint7" type="revolute">"#,
-            r#"<joint name="panda_joint7" type="fixed">"#,
+        let chain = |text: &str, tip: &str| Robot::from_urdf_chain(text, "t", None, Some(tip));
+        assert_eq!(
+            chain(PANDA_URDF, "nope"),
+            Err(UrdfLoadError::UnknownLink {
+                link: "nope".into(),
+                role: "tip"
+            })
         );
         assert!(matches!(
-            Panda::from_urdf_str(&six),
-            Err(UrdfLoadError::JointCount {
-                expected: 7,
-                got: 6
-            })
+            Robot::from_urdf_chain(PANDA_URDF, "t", Some("panda_link8"), Some("panda_link2")),
+            Err(UrdfLoadError::NoChain { .. })
         ));
-        let tilted = PANDA_URDF.replacen(r#"<axis xyz="0 0 1"/>"#, r#"<axis xyz="1 0 0"/>"#, 1);
+        let continuous = PANDA_URDF.replacen(
+            r#"<joint name="panda_joint3" type="revolute">"#,
+            r#"<joint name="panda_joint3" type="continuous">"#,
+            1,
+        );
+        assert_eq!(
+            chain(&continuous, "panda_link8"),
+            Err(UrdfLoadError::Unlimited {
+                joint: "panda_joint3".into()
+            })
+        );
+        let nan = PANDA_URDF.replacen(r#"xyz="0 -0.316 0""#, r#"xyz="0 NaN 0""#, 1);
+        assert_eq!(
+            chain(&nan, "panda_link8"),
+            Err(UrdfLoadError::NonFinite {
+                joint: "panda_joint3".into(),
+                element: "origin"
+            })
+        );
+        let zero_axis = PANDA_URDF.replacen(r#"<axis xyz="0 0 1"/>"#, r#"<axis xyz="0 0 0"/>"#, 1);
         assert!(matches!(
-            Panda::from_urdf_str(&tilted),
+            chain(&zero_axis, "panda_link8"),
             Err(UrdfLoadError::Axis { .. })
+        ));
+        let floating = PANDA_URDF.replacen(
+            r#"<joint name="panda_joint3" type="revolute">"#,
+            r#"<joint name="panda_joint3" type="floating">"#,
+            1,
+        );
+        assert!(matches!(
+            chain(&floating, "panda_link8"),
+            Err(UrdfLoadError::Unsupported { .. })
+        ));
+        // A second child of link 3: branching without a tip, fine with one.
+        let branch = PANDA_URDF.replacen(
+            "</robot>",
+            r#"<link name="camera"/><joint name="cam" type="fixed"><parent link="panda_link3"/><child link="camera"/></joint></robot>"#,
+            1,
+        );
+        assert!(matches!(
+            Robot::from_urdf_str(&branch),
+            Err(UrdfLoadError::Branching { .. })
+        ));
+        assert_eq!(chain(&branch, "panda_link8").map(|r| r.joints()), Ok(7));
+        // Seventeen joints: too many.
+        let mut many = String::from(r#"<robot name="m"><link name="l0"/>"#);
+        for i in 1..=17 {
+            many += &format!(
+                r#"<link name="l{i}"/><joint name="j{i}" type="revolute"><parent link="l{}"/><child link="l{i}"/><axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>"#,
+                i - 1
+            );
+        }
+        many += "</robot>";
+        assert_eq!(
+            Robot::from_urdf_str(&many),
+            Err(UrdfLoadError::JointCount { max: 16, got: 17 })
+        );
+        assert_eq!(chain(&many, "l16").map(|r| r.joints()), Ok(16));
+        let bad_limits = PANDA_URDF.replacen(
+            r#"lower="-2.8973" upper="2.8973""#,
+            r#"lower="1" upper="-1""#,
+            1,
+        );
+        assert!(matches!(
+            chain(&bad_limits, "panda_link8"),
+            Err(UrdfLoadError::Limits { .. })
         ));
     }
 }

@@ -14,10 +14,10 @@ use super::{
 /// Size of an encoded [`RequestHeader`].
 pub const REQUEST_HEADER_BYTES: usize = 152;
 /// Size of an encoded [`ResponseHeader`].
-pub const RESPONSE_HEADER_BYTES: usize = 440;
+pub const RESPONSE_HEADER_BYTES: usize = 536;
 /// Size of an encoded [`ClassEntry`].
 pub const CLASS_ENTRY_BYTES: usize = 80;
-/// Longest request frame body: header + the largest legal payload (2 MiB + 152 bytes).
+/// Longest request frame body: header + the largest legal payload (4.25 MiB + 152 bytes).
 pub const MAX_ADMIN_REQUEST_BYTES: usize = REQUEST_HEADER_BYTES + MAX_REQUEST_FLOATS * 4;
 
 /// A frame that is not a valid admin frame.
@@ -200,6 +200,9 @@ pub fn encode_response(r: &ResponseHeader, entries: &[ClassEntry]) -> Vec<u8> {
     o.u32(r.limit_kind);
     o.u64(r.limit_max);
     o.u64(r.limit_requested);
+    o.u32(r.robot_joints);
+    o.bytes(&r.robot_name);
+    o.bytes(&r.robot_urdf_sha256);
     o.bytes(&r.reserved);
     for e in entries {
         o.bytes(&e.name);
@@ -253,7 +256,10 @@ pub fn decode_response(
         limit_kind: i.u32(),
         limit_max: i.u64(),
         limit_requested: i.u64(),
-        reserved: i.take::<24>(),
+        robot_joints: i.u32(),
+        robot_name: i.take::<NAME_BYTES>(),
+        robot_urdf_sha256: i.take::<32>(),
+        reserved: i.take::<20>(),
     };
     let mut entries = Vec::with_capacity((body.len() - RESPONSE_HEADER_BYTES) / CLASS_ENTRY_BYTES);
     while !i.0.is_empty() {
@@ -297,6 +303,9 @@ mod tests {
         r.limit_kind = 2;
         r.limit_max = u64::MAX - 1;
         r.limit_requested = 9;
+        r.robot_joints = 6;
+        r.robot_name[..5].copy_from_slice(b"ur5e\0");
+        r.robot_urdf_sha256[31] = 7;
         r.message = encode_text("limit");
         r.latency_p99_us = 12.5;
         let e = ClassEntry {
@@ -307,7 +316,7 @@ mod tests {
             calibrated: 1,
         };
         let f = encode_response(&r, &[e]);
-        assert_eq!(f.len(), 4 + 440 + 80);
+        assert_eq!(f.len(), 4 + 536 + 80);
         let (r2, e2) = decode_response(&f[4..], 1).unwrap();
         // Bitwise equal (NaN fields included): encoding the decoded header gives the frame.
         assert_eq!(encode_response(&r2, &e2), f);

@@ -29,17 +29,17 @@ mod response;
 
 pub use request::{Request, RequestError};
 pub use response::{
-    CheckAnswer, CheckVerdict, DaemonState, Failure, Limit, NoGo, ProtocolError, decode_check,
-    decode_failure, decode_state, encode_check, encode_failure, encode_state,
+    CheckAnswer, CheckVerdict, DaemonState, Failure, Limit, NoGo, ProtocolError, RobotInfo,
+    decode_check, decode_failure, decode_state, encode_check, encode_failure, encode_state,
 };
 
-use crate::trajectory::{CHANNELS, InvalidKind, MAX_WAYPOINTS};
+use crate::trajectory::{InvalidKind, MAX_JOINTS, MAX_WAYPOINTS};
 use crate::workcell::{GeometryFeature, WorkcellKind};
 
 /// Version of this wire contract; part of the service name.
-pub const PROTOCOL_VERSION: u32 = 3;
+pub const PROTOCOL_VERSION: u32 = 4;
 /// Default name of the request-response service.
-pub const DEFAULT_SERVICE_NAME: &str = "guardian/v3/rpc";
+pub const DEFAULT_SERVICE_NAME: &str = "guardian/v4/rpc";
 /// Where an installed daemon listens for administrative requests (enroll, forget) from
 /// other users: its Unix socket in the runtime directory (`docs/wire-protocol.md` §8).
 pub const DEFAULT_ADMIN_SOCKET: &str = "/run/guardian/admin.sock";
@@ -51,9 +51,12 @@ pub const MAX_CLASS_NAME: usize = NAME_BYTES - 1;
 pub const MAX_EXAMPLES: usize = 16;
 /// Size of the human-readable message in a response, NUL-padded.
 pub const MESSAGE_BYTES: usize = 128;
+/// Most floats per waypoint a robot can have: [`MAX_JOINTS`] joints and the tool.
+pub const MAX_CHANNELS: usize = MAX_JOINTS + 1;
 /// Largest request payload in `f32` values: [`MAX_EXAMPLES`] trajectories of
-/// [`MAX_WAYPOINTS`] waypoints of [`CHANNELS`] channels (2 MiB).
-pub const MAX_REQUEST_FLOATS: usize = MAX_EXAMPLES * MAX_WAYPOINTS * CHANNELS;
+/// [`MAX_WAYPOINTS`] waypoints of [`MAX_CHANNELS`] channels (4.25 MiB); a daemon sizes its
+/// port for its own robot's channels.
+pub const MAX_REQUEST_FLOATS: usize = MAX_EXAMPLES * MAX_WAYPOINTS * MAX_CHANNELS;
 
 /// Name of the event service clients notify after sending a request.
 pub fn request_event_name(service: &str) -> String {
@@ -262,14 +265,15 @@ impl LimitKind {
 
 /// The request user header. 152 bytes, alignment 8; see `docs/wire-protocol.md`.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("guardian_v3_RequestHeader")]
+#[type_name("guardian_v4_RequestHeader")]
 #[repr(C)]
 pub struct RequestHeader {
     /// Chosen by the client, echoed in the response.
     pub request_id: u64,
     /// An [`Op`] value.
     pub op: u32,
-    /// Floats per waypoint in the payload; must be [`CHANNELS`] (8).
+    /// Floats per waypoint in the payload: the served robot's joints + 1 (the Panda: 8,
+    /// the UR5e: 7); the `status` response says which robot is served.
     pub channels: u32,
     /// Number of trajectories in the payload: 1 for check and identify, 1..=16 for
     /// enroll, 0 otherwise.
@@ -294,7 +298,7 @@ impl RequestHeader {
         Self {
             request_id,
             op: op as u32,
-            channels: CHANNELS as u32,
+            channels: 0,
             examples: 0,
             reserved: 0,
             waypoints: [0; MAX_EXAMPLES],
@@ -303,9 +307,9 @@ impl RequestHeader {
     }
 }
 
-/// The response user header. 440 bytes, alignment 8; see `docs/wire-protocol.md`.
+/// The response user header. 536 bytes, alignment 8; see `docs/wire-protocol.md`.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("guardian_v3_ResponseHeader")]
+#[type_name("guardian_v4_ResponseHeader")]
 #[repr(C)]
 pub struct ResponseHeader {
     /// The request's `request_id`.
@@ -380,8 +384,14 @@ pub struct ResponseHeader {
     pub limit_max: u64,
     /// What the bank would have held after the enroll (status `LimitExceeded`).
     pub limit_requested: u64,
+    /// Joints of the served robot (every response); a request's `channels` must be this + 1.
+    pub robot_joints: u32,
+    /// Name of the served robot (every response), UTF-8, NUL-padded.
+    pub robot_name: [u8; NAME_BYTES],
+    /// SHA-256 of the served robot's URDF file (every response).
+    pub robot_urdf_sha256: [u8; 32],
     /// Reserved, zero.
-    pub reserved: [u8; 24],
+    pub reserved: [u8; 20],
 }
 
 impl Default for ResponseHeader {
@@ -428,7 +438,10 @@ impl ResponseHeader {
             limit_kind: 0,
             limit_max: 0,
             limit_requested: 0,
-            reserved: [0; 24],
+            robot_joints: 0,
+            robot_name: [0; NAME_BYTES],
+            robot_urdf_sha256: [0; 32],
+            reserved: [0; 20],
         }
     }
 
@@ -571,7 +584,7 @@ mod tests {
         assert_eq!(offset_of!(RequestHeader, waypoints), 24);
         assert_eq!(offset_of!(RequestHeader, class_name), 88);
 
-        assert_eq!(size_of::<ResponseHeader>(), 440);
+        assert_eq!(size_of::<ResponseHeader>(), 536);
         assert_eq!(align_of::<ResponseHeader>(), 8);
         assert_eq!(offset_of!(ResponseHeader, request_id), 0);
         assert_eq!(offset_of!(ResponseHeader, bank_version), 8);
@@ -607,7 +620,10 @@ mod tests {
         assert_eq!(offset_of!(ResponseHeader, limit_kind), 396);
         assert_eq!(offset_of!(ResponseHeader, limit_max), 400);
         assert_eq!(offset_of!(ResponseHeader, limit_requested), 408);
-        assert_eq!(offset_of!(ResponseHeader, reserved), 416);
+        assert_eq!(offset_of!(ResponseHeader, robot_joints), 416);
+        assert_eq!(offset_of!(ResponseHeader, robot_name), 420);
+        assert_eq!(offset_of!(ResponseHeader, robot_urdf_sha256), 484);
+        assert_eq!(offset_of!(ResponseHeader, reserved), 516);
 
         assert_eq!(size_of::<ClassEntry>(), 80);
         assert_eq!(align_of::<ClassEntry>(), 4);

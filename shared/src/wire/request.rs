@@ -6,10 +6,12 @@
 use super::{
     ClassNameError, MAX_EXAMPLES, Op, RequestHeader, Status, decode_class_name, encode_class_name,
 };
-use crate::trajectory::{CHANNELS, InvalidKind, InvalidTrajectory, Waypoint, validate};
+use crate::trajectory::{
+    InvalidKind, InvalidTrajectory, JointLimits, Waypoint, split_flat, validate,
+};
 
-/// One decoded request. Trajectories and names are borrowed from the header and payload
-/// (a waypoint is 8 consecutive floats, so nothing is copied).
+/// One decoded request. Names are borrowed from the header; each trajectory is copied once
+/// from the payload (`joints + 1` floats per waypoint) into [`Waypoint`]s.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Request<'a> {
     /// Is `trajectory` the class `claimed`? The trajectory's shape (waypoint count zero,
@@ -20,19 +22,19 @@ pub enum Request<'a> {
         /// The claimed class.
         claimed: &'a str,
         /// The trajectory, or why its shape is invalid.
-        trajectory: Result<&'a [Waypoint], InvalidTrajectory>,
+        trajectory: Result<Vec<Waypoint>, InvalidTrajectory>,
     },
     /// Which classes are nearest to `trajectory` (validated)?
     Identify {
         /// The trajectory.
-        trajectory: &'a [Waypoint],
+        trajectory: Vec<Waypoint>,
     },
     /// Add `examples` (validated, 1..=[`MAX_EXAMPLES`]) to `class`.
     Enroll {
         /// The target class.
         class: &'a str,
         /// The examples, in payload order.
-        examples: Vec<&'a [Waypoint]>,
+        examples: Vec<Vec<Waypoint>>,
     },
     /// Remove `class`.
     Forget {
@@ -106,13 +108,19 @@ impl RequestError {
 
 /// A trajectory split from the payload, or the first invalid one (its example index and
 /// what is wrong).
-type Split<'a> = Result<Vec<&'a [Waypoint]>, (u32, InvalidTrajectory)>;
+type Split = Result<Vec<Vec<Waypoint>>, (u32, InvalidTrajectory)>;
 
 impl<'a> Request<'a> {
     /// Decode `header` and `payload`. Errors come in the order a client can act on them:
     /// the op, then the class name (check, enroll, forget), then the example count and
-    /// payload length, then each trajectory in order.
-    pub fn decode(header: &'a RequestHeader, payload: &'a [f32]) -> Result<Self, RequestError> {
+    /// payload length, then each trajectory in order. Trajectories must have the served
+    /// robot's channel count (`limits.joints() + 1`) and are validated against `limits`
+    /// (identify, enroll; a check's values are validated by the check pipeline).
+    pub fn decode(
+        header: &'a RequestHeader,
+        payload: &[f32],
+        limits: &JointLimits,
+    ) -> Result<Self, RequestError> {
         let Some(op) = Op::from_u32(header.op) else {
             return Err(RequestError::UnknownOp { op: header.op });
         };
@@ -120,7 +128,7 @@ impl<'a> Request<'a> {
         Ok(match op {
             Op::Check => {
                 let claimed = class()?;
-                let trajectory = match split(header, payload, 1, false)? {
+                let trajectory = match split(header, payload, limits, 1, false)? {
                     Ok(mut t) => Ok(t.pop().unwrap_or_default()),
                     Err((_, inv)) => Err(inv),
                 };
@@ -130,14 +138,15 @@ impl<'a> Request<'a> {
                 }
             }
             Op::Identify => {
-                let mut t = split(header, payload, 1, true)?.map_err(invalid)?;
+                let mut t = split(header, payload, limits, 1, true)?.map_err(invalid)?;
                 Self::Identify {
                     trajectory: t.pop().unwrap_or_default(),
                 }
             }
             Op::Enroll => {
                 let class = class()?;
-                let examples = split(header, payload, MAX_EXAMPLES, true)?.map_err(invalid)?;
+                let examples =
+                    split(header, payload, limits, MAX_EXAMPLES, true)?.map_err(invalid)?;
                 Self::Enroll { class, examples }
             }
             Op::Forget => Self::Forget { class: class()? },
@@ -163,14 +172,15 @@ fn invalid((example, source): (u32, InvalidTrajectory)) -> RequestError {
     RequestError::InvalidTrajectory { example, source }
 }
 
-/// Split the payload into the header's trajectories, borrowed from it, validating each when
+/// Split the payload into the header's trajectories, validating each against `limits` when
 /// `check` (a caller passing `false` must validate them itself before using them).
-fn split<'a>(
+fn split(
     h: &RequestHeader,
-    payload: &'a [f32],
+    payload: &[f32],
+    limits: &JointLimits,
     max_examples: usize,
     check: bool,
-) -> Result<Split<'a>, RequestError> {
+) -> Result<Split, RequestError> {
     let n = h.examples as usize;
     if n == 0 || n > max_examples {
         return Err(RequestError::ExampleCount {
@@ -202,19 +212,15 @@ fn split<'a>(
         // waypoints, like any other empty one.
         let parsed = if w == 0 {
             Err(InvalidTrajectory::new(InvalidKind::TooFewWaypoints, 0))
-        } else if h.channels as usize != CHANNELS {
-            Err(InvalidTrajectory::new(
-                InvalidKind::WrongChannelCount,
-                h.channels as usize,
-            ))
         } else {
-            // `len` is a multiple of 8 here, so nothing is left over.
-            let (ws, _) = slice.as_chunks::<CHANNELS>();
-            if check {
-                validate(ws).map(|()| ws)
-            } else {
-                Ok(ws)
-            }
+            // `len` is a multiple of `channels`, so only the channel count can be wrong.
+            split_flat(slice, h.channels as usize, limits.joints()).and_then(|ws| {
+                if check {
+                    validate(&ws, limits).map(|()| ws)
+                } else {
+                    Ok(ws)
+                }
+            })
         };
         match parsed {
             Ok(t) => out.push(t),
@@ -254,15 +260,22 @@ impl RequestHeader {
 mod tests {
     use super::*;
 
+    const CHANNELS: usize = 8;
+
     fn header(op: Op, class: &str, waypoints: &[usize]) -> RequestHeader {
         RequestHeader::encode(op, Some(class), CHANNELS, waypoints).unwrap()
+    }
+
+    /// Seven joints with wide limits: the shapes matter here, not the values.
+    fn limits() -> JointLimits {
+        JointLimits::new(vec![-4.0; 7], vec![4.0; 7]).unwrap()
     }
 
     #[test]
     fn requests_decode_into_their_operation() {
         let t = vec![0.0f32; 3 * CHANNELS];
         let h = header(Op::Check, "c1", &[3]);
-        match Request::decode(&h, &t).unwrap() {
+        match Request::decode(&h, &t, &limits()).unwrap() {
             Request::Check {
                 claimed,
                 trajectory,
@@ -274,41 +287,45 @@ mod tests {
         }
         let h = header(Op::Forget, "c1", &[]);
         assert_eq!(
-            Request::decode(&h, &[]),
+            Request::decode(&h, &[], &limits()),
             Ok(Request::Forget { class: "c1" })
         );
         let h = RequestHeader::new(0, Op::Status);
-        assert_eq!(Request::decode(&h, &[]).map(|r| r.op()), Ok(Op::Status));
+        assert_eq!(
+            Request::decode(&h, &[], &limits()).map(|r| r.op()),
+            Ok(Op::Status)
+        );
     }
 
     #[test]
     fn malformed_requests_are_typed_errors_with_the_documented_text() {
         let mut h = RequestHeader::new(0, Op::Status);
         h.op = 9;
-        let e = Request::decode(&h, &[]).unwrap_err();
+        let e = Request::decode(&h, &[], &limits()).unwrap_err();
         assert_eq!(e, RequestError::UnknownOp { op: 9 });
         assert_eq!(e.to_string(), "unknown op 9");
         assert_eq!(e.status(), Status::BadRequest);
 
         let h = header(Op::Check, "c1", &[3]);
-        let e = Request::decode(&h, &[0.0; 5]).unwrap_err();
+        let e = Request::decode(&h, &[0.0; 5], &limits()).unwrap_err();
         assert_eq!(e.to_string(), "payload has 5 floats, header announces 24");
         let mut h = header(Op::Enroll, "c1", &[1; 16]);
         h.channels = u32::MAX;
         h.waypoints = [u32::MAX; MAX_EXAMPLES];
-        let e = Request::decode(&h, &[]).unwrap_err();
+        let e = Request::decode(&h, &[], &limits()).unwrap_err();
         assert_eq!(
             e.to_string(),
             "payload has 0 floats, header announces more than 2^64"
         );
         let h = header(Op::Identify, "c1", &[3, 3]);
-        let e = Request::decode(&h, &[0.0; 48]).unwrap_err();
+        let e = Request::decode(&h, &[0.0; 48], &limits()).unwrap_err();
         assert_eq!(e.to_string(), "examples is 2, expected 1..=1");
 
         // A check carries a shape problem instead of failing; identify fails with it.
         let mut h = header(Op::Check, "c1", &[3]);
         h.channels = 7;
-        let Ok(Request::Check { trajectory, .. }) = Request::decode(&h, &[0.0; 21]) else {
+        let Ok(Request::Check { trajectory, .. }) = Request::decode(&h, &[0.0; 21], &limits())
+        else {
             panic!("a check with a wrong channel count decodes");
         };
         assert_eq!(
@@ -317,7 +334,7 @@ mod tests {
         );
         let mut h = header(Op::Identify, "c1", &[0]);
         h.channels = 7;
-        let e = Request::decode(&h, &[]).unwrap_err();
+        let e = Request::decode(&h, &[], &limits()).unwrap_err();
         assert_eq!(
             e,
             RequestError::InvalidTrajectory {
@@ -329,7 +346,7 @@ mod tests {
 
         let mut h = header(Op::Enroll, "c1", &[3]);
         h.class_name = [0; super::super::NAME_BYTES];
-        let e = Request::decode(&h, &[0.0; 24]).unwrap_err();
+        let e = Request::decode(&h, &[0.0; 24], &limits()).unwrap_err();
         assert_eq!(e, RequestError::InvalidClassName(ClassNameError::Empty));
         assert_eq!(e.status(), Status::InvalidClassName);
     }

@@ -372,6 +372,34 @@ pub struct DaemonState<'a> {
     pub no_go: u64,
     /// Service-time p50, p90, p99 and max in microseconds (NaN before the first request).
     pub latency_us: [f32; 4],
+    /// The served robot: name, joints and the SHA-256 of its URDF.
+    pub robot: RobotInfo<'a>,
+}
+
+/// Which robot a daemon serves (every response carries it).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RobotInfo<'a> {
+    /// The robot's name (its description's `name`).
+    pub name: Cow<'a, str>,
+    /// Joints; a trajectory has `joints + 1` channels.
+    pub joints: u32,
+    /// SHA-256 of the robot's URDF file.
+    pub urdf_sha256: [u8; 32],
+}
+
+impl RobotInfo<'_> {
+    /// Floats per waypoint this robot's trajectories have.
+    pub fn channels(&self) -> usize {
+        self.joints as usize + 1
+    }
+
+    /// The URDF checksum as 64 lower-case hex digits.
+    pub fn urdf_sha256_hex(&self) -> String {
+        self.urdf_sha256
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect()
+    }
 }
 
 /// Write the daemon's state into `r`.
@@ -389,6 +417,9 @@ pub fn encode_state(r: &mut ResponseHeader, s: &DaemonState<'_>) {
     r.latency_p90_us = p90;
     r.latency_p99_us = p99;
     r.latency_max_us = max;
+    r.robot_joints = s.robot.joints;
+    r.robot_name = encode_text::<NAME_BYTES>(&s.robot.name);
+    r.robot_urdf_sha256 = s.robot.urdf_sha256;
 }
 
 /// Read the daemon's state from `r`.
@@ -408,6 +439,11 @@ pub fn decode_state(r: &ResponseHeader) -> DaemonState<'static> {
             r.latency_p99_us,
             r.latency_max_us,
         ],
+        robot: RobotInfo {
+            name: Cow::Owned(decode_text(&r.robot_name)),
+            joints: r.robot_joints,
+            urdf_sha256: r.robot_urdf_sha256,
+        },
     }
 }
 
