@@ -1,5 +1,5 @@
-//! guardian-lab: the research bench behind guardian — Omniglot strokes to Panda joint
-//! trajectories, training of the embedding network, baselines, few-shot evaluation and reports.
+//! guardian-lab: the research bench behind guardian — Omniglot strokes to joint trajectories
+//! of a robot arm (the Panda by default, the UR5e or any described arm), training of the embedding network, baselines, few-shot evaluation and reports.
 //!
 //! - [`strokes`]: the Omniglot stroke reader.
 //! - [`path`]: canvas geometry, the Cartesian pen path and IK along it.
@@ -16,6 +16,7 @@
 //! - [`outliers`]: go / no-go metrics on faulty and genuine plans.
 //! - [`pool`]: the unlabelled drawing pool: reading, conversion, copies of labelled drawings
 //!   left out, pseudo-labels and self-supervised classes for training.
+//! - [`robot`]: print a robot description and check its kinematics (`guardian-lab robot`).
 //! - [`demo`]: enroll real drawings in a running `guardiand` and check genuine and faulty
 //!   plans through the client (`guardian-lab demo`).
 #![forbid(unsafe_code)]
@@ -32,5 +33,6 @@ pub mod path;
 pub mod plot;
 pub mod pool;
 pub mod report;
+pub mod robot;
 pub mod strokes;
 pub mod train;

@@ -13,7 +13,7 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// Convert Omniglot strokes into Panda joint trajectories (safetensors dataset).
+    /// Convert Omniglot strokes into joint trajectories of a robot (safetensors dataset).
     Dataset(guardian_lab::dataset::Args),
     /// Plot one drawing of a dataset: strokes, FK pen tip, joint curves.
     Plot(guardian_lab::plot::Args),
@@ -30,6 +30,9 @@ enum Command {
     /// Build a fold's unlabelled pool: copies of the excluded alphabets' drawings left out,
     /// the rest converted (a dataset file).
     Pool(guardian_lab::pool::Args),
+    /// Print a robot description (built-in name or file) and check its kinematics: FK fast
+    /// path, Jacobian, IK round trips, home pose and canvas reach (exit status 1 on a failure).
+    Robot(guardian_lab::robot::Args),
     /// Enroll real drawings in a running guardiand, send genuine and faulty plans, print a
     /// go/no-go table (exit status 1 if any case is not as expected).
     Demo(guardian_lab::demo::Args),
@@ -51,5 +54,6 @@ fn main() -> anyhow::Result<()> {
         Command::Outliers(args) => guardian_lab::outliers::run(args),
         Command::Pool(args) => guardian_lab::pool::run(args),
         Command::Demo(args) => guardian_lab::demo::main(args),
+        Command::Robot(args) => guardian_lab::robot::run(args),
     }
 }

@@ -162,27 +162,47 @@ fn a_few_drawings_per_alphabet_convert_deterministically() {
     ));
 }
 
+/// Both shipped robots draw every shared drawing: no IK failure, FK error <= 0.1 mm, no
+/// joint-limit violation, every pen-down sample on the canvas and on the strokes.
 #[test]
-fn the_whole_shared_set_converts_without_ik_failure() {
-    let (ds, report) =
-        generate(&[shared_strokes()], &Geometry::default(), &|| {}).expect("generate");
-    assert_eq!(report.files, 3660);
-    assert_eq!(report.converted, 3660, "skipped: {:?}", report.skipped);
-    assert_eq!(report.ik_failures, 0);
-    assert!(
-        report.max_fk_error <= 1e-4,
-        "max FK error {} m",
-        report.max_fk_error
-    );
-    assert!(
-        report.min_limit_margin > 0.0,
-        "margin {}",
-        report.min_limit_margin
-    );
-    assert_eq!(ds.classes.len(), 183);
-    assert_eq!(ds.classes[0], "Balinese/character01");
+fn the_whole_shared_set_converts_without_ik_failure_for_both_robots() {
     let files = scan(&[shared_strokes()]).expect("scan");
-    check_samples(&ds, &files);
+    for robot in ["panda", "ur5e"] {
+        let g = Geometry::for_robot(robot).expect("geometry");
+        let (ds, report) = generate(&[shared_strokes()], &g, &|| {}).expect("generate");
+        assert_eq!(report.files, 3660);
+        assert_eq!(
+            report.converted, 3660,
+            "{robot}: skipped: {:?}",
+            report.skipped
+        );
+        assert_eq!(report.ik_failures, 0);
+        assert!(
+            report.max_fk_error <= 1e-4,
+            "{robot}: max FK error {} m",
+            report.max_fk_error
+        );
+        assert!(
+            report.min_limit_margin > 0.0,
+            "{robot}: margin {}",
+            report.min_limit_margin
+        );
+        assert_eq!(ds.classes.len(), 183);
+        assert_eq!(ds.classes[0], "Balinese/character01");
+        assert_eq!(ds.robot.name, robot);
+        check_samples(&ds, &files);
+        if robot == "ur5e" {
+            // On disk: 6 joints + the tool; the file round-trips.
+            let bytes = ds.to_bytes().expect("bytes");
+            let st = safetensors::SafeTensors::deserialize(&bytes).expect("safetensors");
+            assert_eq!(
+                st.tensor("trajectories").expect("t").shape(),
+                [3660, STEPS, 7]
+            );
+            assert_eq!(Dataset::from_bytes(&bytes).expect("load"), ds);
+            assert_eq!(ds.robot().expect("robot").joints(), 6);
+        }
+    }
 }
 
 #[test]

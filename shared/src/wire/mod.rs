@@ -465,7 +465,7 @@ impl ResponseHeader {
 
 /// One class in a response payload. 80 bytes, alignment 4.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("guardian_v3_ClassEntry")]
+#[type_name("guardian_v4_ClassEntry")]
 #[repr(C)]
 pub struct ClassEntry {
     /// Class name, UTF-8, NUL-padded.
