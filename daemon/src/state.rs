@@ -159,12 +159,13 @@ pub fn load_bank(
         BankSource::State(p) | BankSource::Default(p) => p.clone(),
         BankSource::Empty => PathBuf::new(),
     };
-    // A bank records the robot its plans came from; one without a record (format <= 2)
-    // was made with the Panda.
+    // A bank records the robot its plans came from; a bank file without a record (format
+    // <= 2) was made with the Panda. A new, empty bank is the served robot's.
     let served = RobotRecord::of(engine.robot());
-    let compatible = match bank.robot() {
-        Some(r) => r == &served,
-        None => served.name == "panda" && served.joints == PANDA_JOINTS,
+    let compatible = match (bank.robot(), &source) {
+        (Some(r), _) => r == &served,
+        (None, BankSource::Empty) => true,
+        (None, _) => served.name == "panda" && served.joints == PANDA_JOINTS,
     };
     if !compatible {
         return Err(LoadStateError::BankRobotMismatch {

@@ -14,7 +14,7 @@ use anyhow::Context as _;
 use guardian_models::bank::{self, Calibration, ClassBank, GenuineScore, GeometryCalibration};
 use guardian_models::embedder::Embedder;
 use guardian_models::geometry::{self, PlanGeometry};
-use guardian_models::kinematics::{Robot, RobotRecord};
+use guardian_models::kinematics::Robot;
 use guardian_shared::trajectory::Resampled;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -439,11 +439,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let (support, _) = split(&pool.labels, args.shots, &mut rng);
     let dim = emb.first().map_or(0, Vec::len);
     let mut b = ClassBank::new(dim, model.version(), bank::DEFAULT_THRESHOLD);
-    // A Panda bank stays in the format every daemon reads (no record means the Panda);
-    // any other robot is recorded so that a daemon serving another arm refuses the bank.
-    if data.robot != RobotRecord::panda() {
-        b.set_robot(data.robot.clone());
-    }
+    // The bank records the robot that drew its plans: a daemon serving another arm
+    // refuses it.
+    b.set_robot(data.robot.clone());
     for (l, idx) in support.iter().enumerate() {
         if idx.is_empty() {
             continue;

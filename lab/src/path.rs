@@ -241,7 +241,7 @@ pub struct DensePath {
 /// IK along Cartesian paths for one geometry: the robot, the home pose and the settings.
 #[derive(Debug, Clone)]
 pub struct PathSolver {
-    panda: Robot,
+    robot: Robot,
     rotation: Matrix3<f64>,
     home: JointVector,
     geometry: Geometry,
@@ -252,7 +252,7 @@ impl PathSolver {
     /// Build the robot for `geometry` and solve the home pose (pen 2 cm above the canvas
     /// centre, from the ready pose, along an unrecorded straight approach).
     pub fn new(geometry: &Geometry) -> Result<Self, SolvePathError> {
-        let panda = geometry.robot()?;
+        let robot = geometry.robot()?;
         let rotation = geometry.tool_rotation();
         let options = IkOptions {
             position_tolerance: geometry.ik_position_tolerance,
@@ -261,7 +261,7 @@ impl PathSolver {
         };
         let seed = joint_vector(&geometry.ready_pose);
         let mut solver = Self {
-            panda,
+            robot,
             rotation,
             home: seed,
             geometry: geometry.clone(),
@@ -279,7 +279,7 @@ impl PathSolver {
 
     /// The robot model used.
     pub fn robot(&self) -> &Robot {
-        &self.panda
+        &self.robot
     }
 
     /// The home pose every drawing starts from.
@@ -305,14 +305,14 @@ impl PathSolver {
         from: &JointVector,
         to: Vector3<f64>,
     ) -> Result<JointVector, SolvePathError> {
-        let start = self.panda.pen_tip_position(from);
+        let start = self.robot.pen_tip_position(from);
         let len = (to - start).norm();
         let n = (len / 0.01).ceil().max(1.0) as usize;
         let mut q = *from;
         for i in 1..=n {
             let p = start + (to - start) * (i as f64 / n as f64);
             q = self
-                .panda
+                .robot
                 .ik(&self.target(p), &q, &self.options)
                 .map_err(|source| SolvePathError::Ik {
                     index: usize::MAX,
@@ -330,13 +330,13 @@ impl PathSolver {
     pub fn solve(&self, path: &[PathPoint]) -> Result<DensePath, SolvePathError> {
         let first = path.first().ok_or(SolvePathError::Empty)?;
         let mut state = self
-            .panda
+            .robot
             .ik_state(&self.approach(&self.home, first.position)?);
         let mut waypoints = Vec::with_capacity(path.len());
         let mut max_fk_error = 0.0f64;
         let mut min_limit_margin = f64::INFINITY;
         for (index, point) in path.iter().enumerate() {
-            self.panda
+            self.robot
                 .ik_from(&self.target(point.position), &mut state, &self.options)
                 .map_err(|source| SolvePathError::Ik {
                     index,
@@ -347,14 +347,14 @@ impl PathSolver {
             let q = &state.q;
             let mut w = [0.0f32; guardian_shared::trajectory::SLOTS];
             let mut stored: JointVector = [0.0f64; guardian_models::kinematics::MAX_JOINTS];
-            for j in 0..self.panda.joints() {
-                w[j] = to_f32_within(q[j], self.panda.q_min()[j], self.panda.q_max()[j]);
+            for j in 0..self.robot.joints() {
+                w[j] = to_f32_within(q[j], self.robot.q_min()[j], self.robot.q_max()[j]);
                 stored[j] = f64::from(w[j]);
             }
             w[TOOL] = if point.pen_down { 1.0 } else { 0.0 };
-            let err = (self.panda.pen_tip_position(&stored) - point.position).norm();
+            let err = (self.robot.pen_tip_position(&stored) - point.position).norm();
             max_fk_error = max_fk_error.max(err);
-            min_limit_margin = min_limit_margin.min(self.panda.limit_margin(&stored));
+            min_limit_margin = min_limit_margin.min(self.robot.limit_margin(&stored));
             waypoints.push(w);
         }
         Ok(DensePath {

@@ -97,12 +97,12 @@ pub fn plot_drawing(
         message: e.to_string(),
     };
     let g = &dataset.geometry;
-    let panda = dataset.robot().map_err(|e| draw_err(&e))?;
-    let joints = panda.joints();
+    let robot = dataset.robot().map_err(|e| draw_err(&e))?;
+    let joints = robot.joints();
     let tips: Vec<(f64, f64, f64, bool)> = sample
         .iter()
         .map(|s| {
-            let p = panda.pen_tip_position(&joints_of(s));
+            let p = robot.pen_tip_position(&joints_of(s));
             let (mx, my) = base_to_motor(g, p.x, p.y);
             (mx, my, p.z - g.canvas_z, s[TOOL] == 1.0)
         })
@@ -220,7 +220,7 @@ pub fn plot_drawing(
         hi = hi.max(1.0) + 0.1;
         let mut chart = ChartBuilder::on(&panels[2])
             .caption(
-                format!("{} joints q1..q{joints} and tool", panda.name()),
+                format!("{} joints q1..q{joints} and tool", robot.name()),
                 ("sans-serif", 16),
             )
             .margin(10)

@@ -45,10 +45,9 @@ impl RobotReport {
 /// Random joint vectors inside `robot`'s limits, 10 % away from each limit.
 fn random_q(rng: &mut StdRng, robot: &Robot) -> JointVector {
     let mut q = [0.0; MAX_JOINTS];
-    for j in 0..robot.joints() {
-        let (lo, hi) = (robot.q_min()[j], robot.q_max()[j]);
+    for ((v, &lo), &hi) in q.iter_mut().zip(robot.q_min()).zip(robot.q_max()) {
         let pad = 0.1 * (hi - lo);
-        q[j] = if hi - lo > 0.0 {
+        *v = if hi - lo > 0.0 {
             rng.random_range(lo + pad..hi - pad)
         } else {
             lo

@@ -84,9 +84,9 @@ pub fn pen_path(x: &Resampled) -> [PenPoint; STEPS] {
 
 /// [`pen_path`] of a trajectory of `robot`: the one place joints become the model's
 /// robot-independent input.
-pub fn pen_path_with(panda: &Robot, x: &Resampled) -> [PenPoint; STEPS] {
+pub fn pen_path_with(robot: &Robot, x: &Resampled) -> [PenPoint; STEPS] {
     let mut positions = [[0.0f64; 3]; STEPS];
-    panda.pen_tip_positions_into(x, &mut positions);
+    robot.pen_tip_positions_into(x, &mut positions);
     let mut out = [[0.0f32; 3]; STEPS];
     for ((o, p), w) in out.iter_mut().zip(positions.iter()).zip(x.iter()) {
         // Base +x is drawing "up", base -y is drawing "right".
@@ -104,10 +104,10 @@ pub fn pen_path_reference(x: &Resampled) -> [PenPoint; STEPS] {
 
 /// [`pen_path_reference`] of a trajectory of `robot` (feature `test-support`).
 #[cfg(any(test, feature = "test-support"))]
-pub fn pen_path_reference_with(panda: &Robot, x: &Resampled) -> [PenPoint; STEPS] {
+pub fn pen_path_reference_with(robot: &Robot, x: &Resampled) -> [PenPoint; STEPS] {
     let mut out = [[0.0f32; 3]; STEPS];
     for (o, w) in out.iter_mut().zip(x.iter()) {
-        let p = panda.pen_tip_position_general(&crate::preprocess::joints_of(w));
+        let p = robot.pen_tip_position_general(&crate::preprocess::joints_of(w));
         *o = [-p[1] as f32, p[0] as f32, w[TOOL]];
     }
     out

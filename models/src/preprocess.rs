@@ -31,9 +31,9 @@ pub fn pen_tip_positions(waypoints: &[Waypoint]) -> Vec<Vector3<f64>> {
 }
 
 /// Pen-tip positions (m, base frame) of each waypoint, with a given robot.
-pub fn pen_tip_positions_with(panda: &Robot, waypoints: &[Waypoint]) -> Vec<Vector3<f64>> {
+pub fn pen_tip_positions_with(robot: &Robot, waypoints: &[Waypoint]) -> Vec<Vector3<f64>> {
     let mut out = vec![[0.0; 3]; waypoints.len()];
-    panda.pen_tip_positions_into(waypoints, &mut out);
+    robot.pen_tip_positions_into(waypoints, &mut out);
     out.into_iter().map(Vector3::from).collect()
 }
 
@@ -44,22 +44,22 @@ pub fn pen_path_lengths(waypoints: &[Waypoint]) -> Vec<f64> {
 }
 
 /// [`pen_path_lengths`] with a given robot.
-pub fn pen_path_lengths_with(panda: &Robot, waypoints: &[Waypoint]) -> Vec<f64> {
+pub fn pen_path_lengths_with(robot: &Robot, waypoints: &[Waypoint]) -> Vec<f64> {
     let mut positions = vec![[0.0; 3]; waypoints.len()];
     let mut out = vec![0.0; waypoints.len()];
-    path_lengths_into(panda, waypoints, &mut positions, &mut out);
+    path_lengths_into(robot, waypoints, &mut positions, &mut out);
     out
 }
 
 /// Pen-tip positions into `positions`, cumulative lengths into `out` (both as long as
 /// `waypoints`).
 fn path_lengths_into(
-    panda: &Robot,
+    robot: &Robot,
     waypoints: &[Waypoint],
     positions: &mut [[f64; 3]],
     out: &mut [f64],
 ) {
-    panda.pen_tip_positions_into(waypoints, positions);
+    robot.pen_tip_positions_into(waypoints, positions);
     cumulative_lengths(positions, out);
 }
 
@@ -81,12 +81,12 @@ pub(crate) fn cumulative_lengths(positions: &[[f64; 3]], out: &mut [f64]) {
 /// full frames per joint): the reference the fast path is tested against (feature
 /// `test-support`).
 #[cfg(any(test, feature = "test-support"))]
-pub fn pen_path_lengths_reference(panda: &Robot, waypoints: &[Waypoint]) -> Vec<f64> {
+pub fn pen_path_lengths_reference(robot: &Robot, waypoints: &[Waypoint]) -> Vec<f64> {
     let mut out = Vec::with_capacity(waypoints.len());
     let mut total = 0.0;
     let mut prev: Option<Vector3<f64>> = None;
     for w in waypoints {
-        let p = panda.pen_tip_position_general(&joints_of(w));
+        let p = robot.pen_tip_position_general(&joints_of(w));
         if let Some(pp) = prev {
             total += (p - pp).norm();
         }
@@ -117,8 +117,8 @@ pub fn preprocess(raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
 /// [`preprocess`] with a given robot (another arm, or another pen length): validated
 /// against its limits, path length by its forward kinematics. Uses per-thread buffers:
 /// after the longest trajectory has been seen once, nothing is allocated.
-pub fn preprocess_with(panda: &Robot, raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
-    trajectory::validate(raw, panda.limits())?;
+pub fn preprocess_with(robot: &Robot, raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
+    trajectory::validate(raw, robot.limits())?;
     let n = raw.len();
     let resample = |s: &mut Scratch| {
         if s.positions.len() < n {
@@ -126,7 +126,7 @@ pub fn preprocess_with(panda: &Robot, raw: &[Waypoint]) -> Result<Resampled, Inv
             s.lengths.resize(n, 0.0);
         }
         let (positions, lengths) = (&mut s.positions[..n], &mut s.lengths[..n]);
-        path_lengths_into(panda, raw, positions, lengths);
+        path_lengths_into(robot, raw, positions, lengths);
         trajectory::resample(raw, lengths)
     };
     Ok(SCRATCH.with(|cell| match cell.try_borrow_mut() {
@@ -140,11 +140,11 @@ pub fn preprocess_with(panda: &Robot, raw: &[Waypoint]) -> Result<Resampled, Inv
 /// (feature `test-support`).
 #[cfg(any(test, feature = "test-support"))]
 pub fn preprocess_reference(
-    panda: &Robot,
+    robot: &Robot,
     raw: &[Waypoint],
 ) -> Result<Resampled, InvalidTrajectory> {
-    trajectory::validate(raw, panda.limits())?;
-    let cumulative = pen_path_lengths_reference(panda, raw);
+    trajectory::validate(raw, robot.limits())?;
+    let cumulative = pen_path_lengths_reference(robot, raw);
     Ok(trajectory::resample(raw, &cumulative))
 }
 

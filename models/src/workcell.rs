@@ -199,11 +199,11 @@ thread_local! {
 /// [`check_poses`]. Uses per-thread buffers: after the longest trajectory has been seen
 /// once, nothing is allocated.
 pub fn inspect_with(
-    panda: &Robot,
+    robot: &Robot,
     cell: &Workcell,
     raw: &[Waypoint],
 ) -> Result<Inspection, InvalidTrajectory> {
-    trajectory::validate(raw, panda.limits())?;
+    trajectory::validate(raw, robot.limits())?;
     let n = raw.len();
     let run = |s: &mut Scratch| {
         if s.positions.len() < n {
@@ -211,7 +211,7 @@ pub fn inspect_with(
             s.lengths.resize(n, 0.0);
         }
         let (positions, lengths) = (&mut s.positions[..n], &mut s.lengths[..n]);
-        let (violation, score) = match panda.position_fk() {
+        let (violation, score) = match robot.position_fk() {
             Some(fk) => pulp::Arch::new().dispatch(InspectOp {
                 fk,
                 cell,
@@ -223,7 +223,7 @@ pub fn inspect_with(
                     s.rotations.resize(n, Matrix3::zeros());
                 }
                 let rotations = &mut s.rotations[..n];
-                panda.pen_tip_poses_into(raw, positions, rotations);
+                robot.pen_tip_poses_into(raw, positions, rotations);
                 let poses = positions
                     .iter()
                     .zip(rotations.iter())
@@ -362,9 +362,9 @@ mod tests {
     #[test]
     fn block_inspection_matches_the_rules_on_general_frames() {
         use rand::{Rng, SeedableRng};
-        let panda = default_panda();
+        let robot = default_panda();
         let base = Workcell::default();
-        let ready = panda.pen_tip(&crate::kinematics::READY_POSE).translation;
+        let ready = robot.pen_tip(&crate::kinematics::READY_POSE).translation;
         let cells = [
             base,
             // Around the ready pose's pen tip, loose: violations appear mid-walk.
@@ -400,9 +400,9 @@ mod tests {
             let step = [0.002, 0.01, 0.03][round % 3];
             let mut ws = Vec::with_capacity(len);
             for _ in 0..len {
-                for (j, v) in q.iter_mut().take(panda.joints()).enumerate() {
+                for (j, v) in q.iter_mut().take(robot.joints()).enumerate() {
                     *v = (*v + rng.random_range(-step..step))
-                        .clamp(panda.q_min()[j] + 0.01, panda.q_max()[j] - 0.01);
+                        .clamp(robot.q_min()[j] + 0.01, robot.q_max()[j] - 0.01);
                 }
                 let mut w = [0.0f32; guardian_shared::trajectory::SLOTS];
                 for (j, v) in q.iter().enumerate() {
@@ -411,10 +411,10 @@ mod tests {
                 w[TOOL] = if rng.random_bool(0.5) { 1.0 } else { 0.0 };
                 ws.push(w);
             }
-            let fast = inspect_with(panda, cell, &ws).unwrap();
+            let fast = inspect_with(robot, cell, &ws).unwrap();
             let frames: Vec<Frame> = ws
                 .iter()
-                .map(|w| panda.pen_tip(&crate::preprocess::joints_of(w)))
+                .map(|w| robot.pen_tip(&crate::preprocess::joints_of(w)))
                 .collect();
             let (violation, score) = check_frames(cell, &frames, ws.iter().map(|w| w[TOOL]));
             assert_eq!(fast.violation, violation, "round {round}");

@@ -1,7 +1,7 @@
 //! End-to-end tests across real processes: the `guardiand` binary and `guardian-client`.
 
 use guardian_models::kinematics::PANDA_JOINTS;
-use guardian_shared::trajectory::to_flat;
+use guardian_shared::trajectory::{TOOL, to_flat};
 use std::time::Duration;
 
 use guardian_client::{
@@ -172,7 +172,7 @@ fn every_invalid_input_is_answered_with_its_reason_and_serving_continues() {
         2,
     );
     let mut w = good.clone();
-    w[4][7] = 0.5;
+    w[4][TOOL] = 0.5;
     expect(
         Trajectory::from_waypoints(&w, PANDA_JOINTS),
         InvalidKind::ToolOutOfRange,
@@ -181,7 +181,7 @@ fn every_invalid_input_is_answered_with_its_reason_and_serving_continues() {
 
     // Enrollment with one bad example among good ones names the example.
     let mut bad = good.clone();
-    bad[3][7] = 2.0;
+    bad[3][TOOL] = 2.0;
     let r = client.enroll(
         "task9",
         &[
@@ -272,7 +272,8 @@ fn enrollment_persists_across_restart() {
     }
     let bank = s.state_dir().join("bank.gcb");
     let text = std::fs::read(&bank).expect("bank file");
-    assert!(text.starts_with(b"guardian-class-bank 2 sha256:"));
+    // Format 3: the bank records the robot it was enrolled on.
+    assert!(text.starts_with(b"guardian-class-bank 3 sha256:"));
 
     let d = Daemon::start(&s);
     d.wait_log("persisted bank");

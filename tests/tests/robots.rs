@@ -134,3 +134,61 @@ fn a_ur5e_daemon_refuses_panda_plans() {
         }
     );
 }
+
+/// `guardiand --check` on a config file: whether it succeeded, and its stderr.
+fn check_config(config: &std::path::Path) -> (bool, String) {
+    let out = std::process::Command::new(harness::bin())
+        .arg("--config")
+        .arg(config)
+        .arg("--check")
+        .output()
+        .expect("run guardiand --check");
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// A UR5e daemon refuses a Panda bank at start, in a real process, with both robots named:
+/// the shipped default bank (Panda plans, format 2) and a bank a Panda daemon persisted
+/// (format 3, its robot recorded).
+#[test]
+fn a_ur5e_daemon_refuses_a_panda_bank() {
+    let mut s = Setup::new(64);
+    s.model = harness::workspace_root().join("models/embedder.safetensors");
+    let shipped = harness::workspace_root().join("models/default-bank.gcb");
+    s.extra = "robot = \"ur5e\"".into();
+    // The harness writes `default-bank = ""`; point it at the shipped bank instead.
+    let config = s.write_config();
+    let text = std::fs::read_to_string(&config).unwrap().replacen(
+        "default-bank = \"\"",
+        &format!("default-bank = {:?}", shipped.display().to_string()),
+        1,
+    );
+    std::fs::write(&config, text).unwrap();
+    let (ok, err) = check_config(&config);
+    assert!(!ok);
+    assert!(
+        err.contains("holds plans of robot panda") && err.contains("serves ur5e"),
+        "{err}"
+    );
+
+    // A Panda daemon's persisted bank, then a UR5e daemon on the same state directory.
+    let (mut p, mut d) = serve("panda", 65);
+    p.client()
+        .enroll("latin01", &plans("panda", 1, &[1, 2, 3]))
+        .expect("enroll");
+    d.signal("TERM");
+    assert!(d.wait_exit().success());
+    p.extra = "robot = \"ur5e\"".into();
+    let (ok, err) = check_config(&p.write_config());
+    assert!(!ok);
+    assert!(
+        err.contains("panda (7 joints") && err.contains("serves ur5e (6 joints"),
+        "{err}"
+    );
+    // The Panda daemon still loads it.
+    p.extra = "robot = \"panda\"".into();
+    let (ok, err) = check_config(&p.write_config());
+    assert!(ok, "{err}");
+}

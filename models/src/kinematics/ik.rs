@@ -249,18 +249,18 @@ mod tests {
 
     #[test]
     fn jacobian_matches_finite_differences() {
-        for panda in robots() {
+        for robot in robots() {
             let mut rng = StdRng::seed_from_u64(7);
             for _ in 0..50 {
-                let q = random_q(&mut rng, &panda);
-                let (tip, jac) = panda.jacobian(&q);
+                let q = random_q(&mut rng, &robot);
+                let (tip, jac) = robot.jacobian(&q);
                 let h = 1e-6;
                 for j in 0..MAX_JOINTS {
                     let mut qp = q;
                     qp[j] += h;
                     let mut qm = q;
                     qm[j] -= h;
-                    let (fp, fm) = (panda.pen_tip(&qp), panda.pen_tip(&qm));
+                    let (fp, fm) = (robot.pen_tip(&qp), robot.pen_tip(&qm));
                     let lin = (fp.translation - fm.translation) / (2.0 * h);
                     // Angular: (R+ - R-) R^T / 2h is skew([w]).
                     let s = (fp.rotation - fm.rotation) * tip.rotation.transpose() / (2.0 * h);
@@ -277,61 +277,61 @@ mod tests {
 
     #[test]
     fn ik_round_trip_on_random_reachable_poses() {
-        for panda in robots() {
+        for robot in robots() {
             let mut rng = StdRng::seed_from_u64(11);
             let opts = IkOptions::default();
             let mut solved = 0;
             for _ in 0..200 {
-                let q_true = random_q(&mut rng, &panda);
-                let target = panda.pen_tip(&q_true);
+                let q_true = random_q(&mut rng, &robot);
+                let target = robot.pen_tip(&q_true);
                 // Seed near the true solution, as the generator does (previous solution).
                 let mut seed = q_true;
-                for q in &mut seed[..panda.joints()] {
+                for q in &mut seed[..robot.joints()] {
                     *q += rng.random_range(-0.05..0.05);
                 }
-                let q = panda
+                let q = robot
                     .ik(&target, &seed, &opts)
                     .expect("reachable pose near the seed");
-                let got = panda.pen_tip(&q);
+                let got = robot.pen_tip(&q);
                 assert!((got.translation - target.translation).norm() <= opts.position_tolerance);
                 assert!(
                     orientation_error_vector(&target.rotation, &got.rotation).norm()
                         <= opts.orientation_tolerance
                 );
-                assert!(panda.limit_margin(&q) >= 0.0);
+                assert!(robot.limit_margin(&q) >= 0.0);
                 solved += 1;
             }
-            assert_eq!(solved, 200, "{}", panda.name());
+            assert_eq!(solved, 200, "{}", robot.name());
         }
     }
 
     #[test]
     fn no_solution_outside_the_limits() {
-        let panda = Robot::panda();
+        let robot = Robot::panda();
         let opts = IkOptions::default();
         // Out of reach: 2 m in front of the robot.
-        let mut far = panda.pen_tip(&READY_POSE);
+        let mut far = robot.pen_tip(&READY_POSE);
         far.translation = Vector3::new(2.0, 0.0, 0.3);
         assert!(matches!(
-            panda.ik(&far, &READY_POSE, &opts),
+            robot.ik(&far, &READY_POSE, &opts),
             Err(IkError::NoConvergence { .. })
         ));
         // Reachable only with joint 4 beyond its upper limit: a pose from q4 = +0.5.
         let mut q_bad = READY_POSE;
         q_bad[3] = 0.5;
-        let target = panda.pen_tip(&q_bad);
-        match panda.ik(&target, &READY_POSE, &opts) {
-            Ok(q) => assert!(panda.limit_margin(&q) >= 0.0),
+        let target = robot.pen_tip(&q_bad);
+        match robot.ik(&target, &READY_POSE, &opts) {
+            Ok(q) => assert!(robot.limit_margin(&q) >= 0.0),
             Err(e) => assert!(matches!(e, IkError::NoConvergence { .. })),
         }
         // Whatever the seed, iterates are clamped: a seed outside the limits comes back inside.
         let mut seed = READY_POSE;
         seed[5] = 10.0;
-        if let Ok(q) = panda.ik(&panda.pen_tip(&READY_POSE), &seed, &opts) {
-            assert!(panda.limit_margin(&q) >= 0.0);
+        if let Ok(q) = robot.ik(&robot.pen_tip(&READY_POSE), &seed, &opts) {
+            assert!(robot.limit_margin(&q) >= 0.0);
         }
         assert_eq!(
-            panda.ik(&far, &[f64::NAN; MAX_JOINTS], &opts),
+            robot.ik(&far, &[f64::NAN; MAX_JOINTS], &opts),
             Err(IkError::NonFinite)
         );
     }

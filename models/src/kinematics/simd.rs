@@ -81,23 +81,23 @@ pub struct PositionFk {
 pub const FK_LANES: usize = 8;
 
 impl PositionFk {
-    pub(super) fn from_robot(panda: &Robot) -> Option<Self> {
+    pub(super) fn from_robot(robot: &Robot) -> Option<Self> {
         let mut rotations = [AxisMap {
             src: [0, 1, 2],
             sign: [1.0; 3],
         }; MAX_JOINTS];
         let mut offsets = [[0.0; 3]; MAX_JOINTS];
-        let n = panda.joints();
+        let n = robot.joints();
         for j in 0..n {
-            let joint = &panda.joints[j];
+            let joint = &robot.joints[j];
             if !joint.about_z() {
                 return None;
             }
             rotations[j] = AxisMap::from_matrix(&joint.origin.rotation, 1e-12)?;
             offsets[j] = joint.origin.translation.into();
         }
-        let tip = panda.flange.translation + panda.flange.rotation * panda.tool.translation;
-        let tool = panda.flange.rotation * panda.tool.rotation;
+        let tip = robot.flange.translation + robot.flange.rotation * robot.tool.translation;
+        let tool = robot.flange.rotation * robot.tool.rotation;
         let fk = Self {
             joints: n,
             rotations,
@@ -107,7 +107,7 @@ impl PositionFk {
         };
         // Verify against the general chain at the limits, their middle, a mix of both and
         // an arbitrary pose.
-        let (lo, hi) = (panda.q_min(), panda.q_max());
+        let (lo, hi) = (robot.q_min(), robot.q_max());
         let mut probes = [[0.0; MAX_JOINTS]; 5];
         for j in 0..n {
             probes[0][j] = (0.3 + 0.1 * j as f64).clamp(lo[j], hi[j]);
@@ -117,7 +117,7 @@ impl PositionFk {
             probes[4][j] = if j % 2 == 0 { lo[j] } else { hi[j] };
         }
         for q in &probes {
-            let general = panda.pen_tip(q);
+            let general = robot.pen_tip(q);
             let fast = Vector3::from(fk.position(q));
             let d = (general.translation - fast).norm();
             if d.is_nan() || d > POSITION_FK_TOLERANCE {
@@ -127,8 +127,8 @@ impl PositionFk {
             let mut r = [Matrix3::zeros()];
             let w: Waypoint = std::array::from_fn(|j| if j < n { q[j] as f32 } else { 0.0 });
             fk.poses_into(&[w], &mut p, &mut r);
-            let qf = panda.joints_of(&w);
-            let e = (panda.pen_tip(&qf).rotation - r[0]).norm();
+            let qf = robot.joints_of(&w);
+            let e = (robot.pen_tip(&qf).rotation - r[0]).norm();
             if e.is_nan() || e > POSITION_FK_TOLERANCE {
                 return None;
             }
@@ -458,13 +458,13 @@ mod tests {
 
     #[test]
     fn specialised_fk_equals_the_general_chain() {
-        for panda in [
+        for robot in [
             Robot::panda(),
             Robot::from_embedded_urdf().expect("shipped URDF parses"),
             Robot::panda().with_tool(0.2, 0.3),
             RobotDescription::named("ur5e").unwrap().robot,
         ] {
-            let fk = *panda
+            let fk = *robot
                 .position_fk()
                 .expect("the Panda's origins are permutations");
             let mut rng = StdRng::seed_from_u64(17);
@@ -473,14 +473,14 @@ mod tests {
             for _ in 0..2000 {
                 // Anywhere within the limits, the limits included.
                 let mut q: JointVector = [0.0; MAX_JOINTS];
-                for j in 0..panda.joints() {
-                    q[j] = rng.random_range(panda.q_min()[j]..=panda.q_max()[j]);
+                for j in 0..robot.joints() {
+                    q[j] = rng.random_range(robot.q_min()[j]..=robot.q_max()[j]);
                 }
-                let general = panda.pen_tip(&q).translation;
+                let general = robot.pen_tip(&q).translation;
                 worst = worst.max((Vector3::from(fk.position(&q)) - general).norm());
-                worst = worst.max((panda.pen_tip_position(&q) - general).norm());
+                worst = worst.max((robot.pen_tip_position(&q) - general).norm());
                 let mut w = [0.0f32; guardian_shared::trajectory::SLOTS];
-                for j in 0..panda.joints() {
+                for j in 0..robot.joints() {
                     w[j] = q[j] as f32;
                 }
                 ws.push(w);
@@ -488,10 +488,10 @@ mod tests {
             // The batch path on f32 waypoints, including a partial last block.
             let ws = &ws[..ws.len() - 3];
             let mut out = vec![[0.0; 3]; ws.len()];
-            panda.pen_tip_positions_into(ws, &mut out);
+            robot.pen_tip_positions_into(ws, &mut out);
             for (w, o) in ws.iter().zip(&out) {
-                let q = panda.joints_of(w);
-                let general = panda.pen_tip_position_general(&q);
+                let q = robot.joints_of(w);
+                let general = robot.pen_tip_position_general(&q);
                 worst = worst.max((Vector3::from(*o) - general).norm());
             }
             assert!(worst <= 1e-12, "worst {worst:e} m");
@@ -499,12 +499,12 @@ mod tests {
             // the general chain's.
             let mut pos = vec![[0.0; 3]; ws.len()];
             let mut rot = vec![Matrix3::zeros(); ws.len()];
-            panda.pen_tip_poses_into(ws, &mut pos, &mut rot);
+            robot.pen_tip_poses_into(ws, &mut pos, &mut rot);
             assert_eq!(pos, out);
             let mut worst_r = 0.0f64;
             for (w, r) in ws.iter().zip(&rot) {
-                let q = panda.joints_of(w);
-                worst_r = worst_r.max((panda.pen_tip(&q).rotation - r).norm());
+                let q = robot.joints_of(w);
+                worst_r = worst_r.max((robot.pen_tip(&q).rotation - r).norm());
             }
             assert!(worst_r <= 1e-12, "worst rotation {worst_r:e}");
         }
@@ -520,16 +520,16 @@ mod tests {
             1,
         );
         assert_ne!(tilted, PANDA_URDF, "the URDF spells the origin as expected");
-        let panda = Robot::from_urdf_str(&tilted).expect("still a valid chain");
-        assert!(panda.position_fk().is_none());
+        let robot = Robot::from_urdf_str(&tilted).expect("still a valid chain");
+        assert!(robot.position_fk().is_none());
         let q = READY_POSE;
-        assert_eq!(panda.pen_tip_position(&q), panda.pen_tip(&q).translation);
+        assert_eq!(robot.pen_tip_position(&q), robot.pen_tip(&q).translation);
         let w =
             guardian_shared::trajectory::waypoint(&[0.1f32, -0.7, 0.2, -2.3, 0.1, 1.6, 0.8], 1.0);
         let mut out = [[0.0; 3]; 1];
-        panda.pen_tip_positions_into(&[w], &mut out);
-        let q = panda.joints_of(&w);
-        assert_eq!(Vector3::from(out[0]), panda.pen_tip(&q).translation);
+        robot.pen_tip_positions_into(&[w], &mut out);
+        let q = robot.joints_of(&w);
+        assert_eq!(Vector3::from(out[0]), robot.pen_tip(&q).translation);
         // A permutation with the wrong numbers would be caught by the construction check;
         // the default Panda has its specialised FK.
         assert!(Robot::panda().position_fk().is_some());
