@@ -1,7 +1,7 @@
 //! guardian-shared: everything the daemon, the planner client and the lab must agree on.
 //!
-//! It holds the trajectory contract (shape, bounds, validation and the resampling to the
-//! fixed 128 x 8 model input), written once so that training data and served requests are
+//! It holds the trajectory contract (the served robot's joint count and limits, validation
+//! and the resampling to the model's fixed 128 steps), written once so that training data and served requests are
 //! preprocessed by the same code. The iceoryx2 wire types and service names live here too,
 //! so the thin client never depends on the model crates.
 #![forbid(unsafe_code)]
