@@ -151,6 +151,11 @@ pub struct TrainConfig {
     /// The embedder whose clusters of the pool are the pseudo-classes (`pseudo` mode).
     #[serde(default)]
     pub pseudo_model: Option<PathBuf>,
+    /// Within-alphabet batches: the share of training batches whose P classes all come from
+    /// one alphabet (a character's class-augmented transforms count as its alphabet's), so
+    /// their negatives are the similar characters a new alphabet's episodes hold. 0 = off.
+    #[serde(default)]
+    pub alphabet_share: f64,
     /// Clustering of the pseudo-labels (`pseudo` mode).
     #[serde(default)]
     pub pseudo_clusters: Option<ClusterParams>,
@@ -296,6 +301,9 @@ pub struct Args {
     /// Pseudo-labels: largest cluster kept (larger ones are split, then dropped).
     #[arg(long, default_value_t = ClusterParams::default().max_size)]
     pub pseudo_max_size: usize,
+    /// Share of training batches drawn from one alphabet (harder negatives); 0 = off.
+    #[arg(long, default_value_t = 0.0)]
+    pub alphabet_share: f64,
 }
 
 impl Args {
@@ -365,6 +373,7 @@ impl Args {
                 min_size: self.pseudo_min_size,
                 max_size: self.pseudo_max_size,
             }),
+            alphabet_share: self.alphabet_share,
         }
     }
 }
@@ -506,6 +515,10 @@ pub struct Prepared {
     pool_start: usize,
     /// Fraction of a batch's classes drawn from the pool classes.
     pool_share: f64,
+    /// Alphabet (data set id) of every labelled class, transforms included.
+    class_alphabet: Vec<i64>,
+    /// Share of batches drawn from one alphabet ([`Prepared::set_alphabet_share`]).
+    alphabet_share: f64,
 }
 
 impl Prepared {
@@ -520,6 +533,7 @@ impl Prepared {
             .map_err(|e| TrainError::Setup(e.to_string()))?;
         let mut class_map: BTreeMap<i64, usize> = BTreeMap::new();
         let mut by_class: Vec<Vec<usize>> = Vec::new();
+        let mut class_alphabet: Vec<i64> = Vec::new();
         let mut raw = Vec::new();
         let mut labels = Vec::new();
         let mut data_index = Vec::new();
@@ -531,6 +545,7 @@ impl Prepared {
             let c = *class_map.entry(data.labels[i]).or_insert(next);
             if c == by_class.len() {
                 by_class.push(Vec::new());
+                class_alphabet.push(data.alphabet_ids[i]);
             }
             by_class[c].push(raw.len());
             raw.push(data.trajectories[i]);
@@ -564,7 +579,15 @@ impl Prepared {
             reverse_augment: true,
             pool_start,
             pool_share: 0.0,
+            class_alphabet,
+            alphabet_share: 0.0,
         })
+    }
+
+    /// Draw this share of [`Prepared::sample_pk`]'s batches from the classes of one
+    /// alphabet (labelled classes only; a no-op at 0, the default).
+    pub fn set_alphabet_share(&mut self, share: f64) {
+        self.alphabet_share = share;
     }
 
     /// Add classes of unlabelled pool drawings: one class per group of `pool` indices (a
@@ -726,6 +749,7 @@ impl Prepared {
                     self.data_index.push(self.data_index[i]);
                 }
                 self.by_class.push(members);
+                self.class_alphabet.push(self.class_alphabet[c]);
             }
         }
         self.pool_start = self.by_class.len();
@@ -838,6 +862,12 @@ impl Prepared {
         let classes: Vec<usize> = if self.pool_classes() == 0 {
             let mut classes: Vec<usize> = (0..self.by_class.len()).collect();
             classes.shuffle(rng);
+            if self.alphabet_share > 0.0 && rng.random_bool(self.alphabet_share.min(1.0)) {
+                // The alphabet of a random class (alphabets weighted by their classes):
+                // its classes first, the others after them if it has fewer than P.
+                let alphabet = self.class_alphabet[classes[0]];
+                classes.sort_by_key(|&c| self.class_alphabet[c] != alphabet);
+            }
             classes.truncate(p);
             classes
         } else {
@@ -874,6 +904,12 @@ impl Prepared {
     /// Dense class label per sample.
     pub fn labels(&self) -> &[u32] {
         &self.labels
+    }
+
+    /// The data set index of every sample (a transform's or pool sample's source drawing in
+    /// its own data set).
+    pub fn data_indices(&self) -> &[usize] {
+        &self.data_index
     }
 }
 
@@ -1147,8 +1183,15 @@ pub fn train(
         )));
     }
     std::fs::create_dir_all(out).map_err(io_err(out))?;
+    if !(0.0..=1.0).contains(&cfg.alphabet_share) {
+        return Err(TrainError::Setup(format!(
+            "alphabet share {} must be in [0, 1]",
+            cfg.alphabet_share
+        )));
+    }
     let mut train_set = Prepared::new(data, &cfg.train_alphabets, cfg.net.features)?;
     train_set.set_reverse_augment(cfg.reverse_augment);
+    train_set.set_alphabet_share(cfg.alphabet_share);
     let mut val_set = Prepared::new(data, &cfg.val_alphabets, cfg.net.features)?;
     if cfg.fault_share > 0.0 {
         let root = strokes.ok_or_else(|| {

@@ -101,6 +101,7 @@ fn tiny_config() -> TrainConfig {
         pool_share: 0.0,
         pseudo_model: None,
         pseudo_clusters: None,
+        alphabet_share: 0.0,
     }
 }
 
@@ -558,4 +559,43 @@ fn class_augmentation_adds_transformed_classes_with_their_faults_and_drops_dupli
         plan2.kept[0]
     );
     assert!(plan2.collides >= 1);
+}
+
+/// Within-alphabet batches: with share 1 every batch's classes come from one alphabet (the
+/// whole alphabet when it has fewer than P classes, then the other alphabet's), with share
+/// 0 batches mix the alphabets as before.
+#[test]
+fn alphabet_batches_draw_their_classes_from_one_alphabet() {
+    use rand::{SeedableRng, rngs::StdRng};
+    let data = small_dataset();
+    let names = ["Latin".to_string(), "Greek".to_string()];
+    let mut set = Prepared::new(data, &names, FeatureKind::Pen).expect("prepare");
+    let alphabet_of = |set: &Prepared, i: usize| {
+        let class = &data.classes[data.labels[set.data_indices()[i]] as usize];
+        class.split('/').next().unwrap_or_default().to_string()
+    };
+    let mut rng = StdRng::seed_from_u64(3);
+    let mut mixed = 0;
+    for _ in 0..50 {
+        let (idx, _) = set.sample_pk(4, 2, &mut rng);
+        let first = alphabet_of(&set, idx[0]);
+        mixed += usize::from(idx.iter().any(|&i| alphabet_of(&set, i) != first));
+    }
+    assert!(mixed > 20, "share 0 mixes alphabets: {mixed} of 50 batches");
+    set.set_alphabet_share(1.0);
+    for _ in 0..50 {
+        let (idx, _) = set.sample_pk(4, 2, &mut rng);
+        let first = alphabet_of(&set, idx[0]);
+        assert!(idx.iter().all(|&i| alphabet_of(&set, i) == first));
+        // Five Greek classes, eight Latin ones: P = 6 takes one alphabet whole first.
+        let (idx, labels) = set.sample_pk(6, 2, &mut rng);
+        let first = alphabet_of(&set, idx[0]);
+        let own: std::collections::BTreeSet<u32> = idx
+            .iter()
+            .zip(&labels)
+            .filter(|&(&i, _)| alphabet_of(&set, i) == first)
+            .map(|(_, &l)| l)
+            .collect();
+        assert!(own.len() >= 5, "{first}: {own:?}");
+    }
 }

@@ -332,6 +332,7 @@ fn tiny_config() -> TrainConfig {
         pool_share: 0.0,
         pseudo_model: None,
         pseudo_clusters: None,
+        alphabet_share: 0.0,
     }
 }
 
