@@ -127,7 +127,7 @@ pub fn preprocess_with(robot: &Robot, raw: &[Waypoint]) -> Result<Resampled, Inv
         }
         let (positions, lengths) = (&mut s.positions[..n], &mut s.lengths[..n]);
         path_lengths_into(robot, raw, positions, lengths);
-        trajectory::resample(raw, lengths)
+        trajectory::resample(raw, lengths, robot.joints())
     };
     Ok(SCRATCH.with(|cell| match cell.try_borrow_mut() {
         Ok(mut s) => resample(&mut s),
@@ -145,7 +145,7 @@ pub fn preprocess_reference(
 ) -> Result<Resampled, InvalidTrajectory> {
     trajectory::validate(raw, robot.limits())?;
     let cumulative = pen_path_lengths_reference(robot, raw);
-    Ok(trajectory::resample(raw, &cumulative))
+    Ok(trajectory::resample(raw, &cumulative, robot.joints()))
 }
 
 #[cfg(test)]

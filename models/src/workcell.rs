@@ -22,7 +22,7 @@ use nalgebra::{Matrix3, Vector3};
 
 use crate::features::PenPoint;
 use crate::geometry::PlanGeometry;
-use crate::kinematics::{FK_LANES, Frame, PositionFk, Robot};
+use crate::kinematics::{FK_LANES, Frame, PositionFk, Robot, WithJoints};
 use crate::preprocess::{cumulative_lengths, default_panda};
 
 /// Result of [`inspect`].
@@ -234,7 +234,7 @@ pub fn inspect_with(
         };
         cumulative_lengths(positions, lengths);
         Inspection {
-            resampled: trajectory::resample(raw, lengths),
+            resampled: trajectory::resample(raw, lengths, robot.joints()),
             violation,
             score,
         }
@@ -262,6 +262,16 @@ impl pulp::WithSimd for InspectOp<'_> {
 
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _simd: S) -> Self::Output {
+        let fk = self.fk;
+        fk.with_joints(self)
+    }
+}
+
+impl WithJoints for InspectOp<'_> {
+    type Output = (Option<WorkcellViolation>, f32);
+
+    #[inline(always)]
+    fn with_joints<const N: usize>(self, joints: usize) -> Self::Output {
         let cell = self.cell;
         // The norm at the tolerance, with a little slack so that rounding near the limit is
         // settled by the exact check; `None` (an unusual tolerance): check every waypoint.
@@ -277,7 +287,7 @@ impl pulp::WithSimd for InspectOp<'_> {
             .zip(self.positions.chunks_mut(FK_LANES));
         for (b, (ws, ps)) in blocks.enumerate() {
             let n = ws.len().min(ps.len());
-            let lanes = self.fk.pose_lanes(&ws[..n]);
+            let lanes = self.fk.pose_lanes_sized::<N>(&ws[..n], joints);
             for (l, p) in ps[..n].iter_mut().enumerate() {
                 *p = [lanes.p[0][l], lanes.p[1][l], lanes.p[2][l]];
             }

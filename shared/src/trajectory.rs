@@ -220,8 +220,9 @@ pub fn to_flat(waypoints: &[Waypoint], joints: usize) -> Vec<f32> {
 }
 
 /// Check a trajectory: waypoint count within [`MIN_WAYPOINTS`]..=[`MAX_WAYPOINTS`], every
-/// value finite, joints inside `limits`, the unused joint slots 0, tool exactly 0 or 1. The
-/// first problem found is reported, count problems before per-waypoint ones.
+/// value finite, joints inside `limits`, tool exactly 0 or 1. The first problem found is
+/// reported, count problems before per-waypoint ones. The slots past the robot's joints
+/// are not read here or anywhere else ([`from_flat`] leaves them 0).
 pub fn validate(waypoints: &[Waypoint], limits: &JointLimits) -> Result<(), InvalidTrajectory> {
     if waypoints.len() < MIN_WAYPOINTS {
         return Err(InvalidTrajectory::new(
@@ -238,31 +239,27 @@ pub fn validate(waypoints: &[Waypoint], limits: &JointLimits) -> Result<(), Inva
     let joints = limits.joints();
     let (lower, upper) = (limits.lower(), limits.upper());
     // Branch-free pass first (vectorisable): the common case, a valid plan, needs nothing
-    // else; otherwise the loop below finds and reports the first problem.
-    let all_valid = waypoints.iter().fold(true, |ok, w| {
-        let mut good = w[TOOL] == 0.0 || w[TOOL] == 1.0;
-        for j in 0..joints {
-            // NaN fails both comparisons; infinities fail the limits.
-            let q = f64::from(w[j]);
-            good &= q >= lower[j] && q <= upper[j];
-        }
-        for &unused in &w[joints..TOOL] {
-            good &= unused == 0.0;
-        }
-        ok & good
-    });
+    // else; otherwise the loop below finds and reports the first problem. The shipped arms'
+    // joint counts (6, 7) get a pass with fixed-size limits, fully unrolled.
+    let all_valid = match joints {
+        6 => all_valid::<6>(waypoints, lower, upper),
+        7 => all_valid::<7>(waypoints, lower, upper),
+        _ => waypoints.iter().fold(true, |ok, w| {
+            let mut good = w[TOOL] == 0.0 || w[TOOL] == 1.0;
+            for j in 0..joints {
+                // NaN fails both comparisons; infinities fail the limits.
+                let q = f64::from(w[j]);
+                good &= q >= lower[j] && q <= upper[j];
+            }
+            ok & good
+        }),
+    };
     if all_valid {
         return Ok(());
     }
     for (i, w) in waypoints.iter().enumerate() {
-        if w.iter().any(|v| !v.is_finite()) {
+        if w[..joints].iter().chain([&w[TOOL]]).any(|v| !v.is_finite()) {
             return Err(InvalidTrajectory::new(InvalidKind::NonFinite, i));
-        }
-        if w[joints..TOOL].iter().any(|&v| v != 0.0) {
-            return Err(InvalidTrajectory::new(
-                InvalidKind::WrongChannelCount,
-                joints + 1,
-            ));
         }
         for j in 0..joints {
             let q = f64::from(w[j]);
@@ -277,7 +274,25 @@ pub fn validate(waypoints: &[Waypoint], limits: &JointLimits) -> Result<(), Inva
     Ok(())
 }
 
-/// Resample validated waypoints to [`STEPS`] samples uniform in a path length.
+/// Whether every waypoint of an `N`-joint robot is finite, inside the limits and has a tool
+/// value of 0 or 1 (branch-free; `lower` and `upper` have `N` values).
+#[inline]
+fn all_valid<const N: usize>(waypoints: &[Waypoint], lower: &[f64], upper: &[f64]) -> bool {
+    let lo: [f64; N] = std::array::from_fn(|j| lower[j]);
+    let hi: [f64; N] = std::array::from_fn(|j| upper[j]);
+    waypoints.iter().fold(true, |ok, w| {
+        let mut good = w[TOOL] == 0.0 || w[TOOL] == 1.0;
+        for j in 0..N {
+            // NaN fails both comparisons; infinities fail the limits.
+            let q = f64::from(w[j]);
+            good &= q >= lo[j] && q <= hi[j];
+        }
+        ok & good
+    })
+}
+
+/// Resample validated waypoints of a robot with `joints` joints to [`STEPS`] samples uniform
+/// in a path length (the slots past `joints` are 0 in the result).
 ///
 /// `cumulative[i]` is the path length from waypoint 0 to waypoint `i` (non-decreasing,
 /// same length as `waypoints`); the caller chooses the metric (the lab and the daemon both
@@ -290,7 +305,7 @@ pub fn validate(waypoints: &[Waypoint], limits: &JointLimits) -> Result<(), Inva
 /// # Panics
 /// If `waypoints` is empty or `cumulative` has a different length (a caller bug; validated
 /// input never triggers it).
-pub fn resample(waypoints: &[Waypoint], cumulative: &[f64]) -> Resampled {
+pub fn resample(waypoints: &[Waypoint], cumulative: &[f64], joints: usize) -> Resampled {
     assert!(!waypoints.is_empty() && waypoints.len() == cumulative.len());
     let n = waypoints.len();
     let total = cumulative[n - 1] - cumulative[0];
@@ -315,7 +330,7 @@ pub fn resample(waypoints: &[Waypoint], cumulative: &[f64]) -> Resampled {
         while above < n && cum[above] <= s {
             above += 1;
         }
-        *sample = sample_in(waypoints, cum, s, above);
+        *sample = sample_in(waypoints, cum, s, above, joints);
     }
     // Pen-down runs that received no sample.
     let mut i = 0;
@@ -342,7 +357,7 @@ pub fn resample(waypoints: &[Waypoint], cumulative: &[f64]) -> Resampled {
                 .enumerate()
                 .min_by(|x, y| (x.1 - mid).abs().total_cmp(&(y.1 - mid).abs()))
                 .map_or(0, |(k, _)| k);
-            let mut w = sample_at(waypoints, cum, mid);
+            let mut w = sample_at(waypoints, cum, mid, joints);
             w[TOOL] = 1.0;
             out[k] = w;
             positions[k] = mid;
@@ -351,17 +366,20 @@ pub fn resample(waypoints: &[Waypoint], cumulative: &[f64]) -> Resampled {
     out
 }
 
-fn sample_at(waypoints: &[Waypoint], cum: &[f64], s: f64) -> Waypoint {
+fn sample_at(waypoints: &[Waypoint], cum: &[f64], s: f64, joints: usize) -> Waypoint {
     // First index whose cumulative length exceeds s.
-    sample_in(waypoints, cum, s, cum.partition_point(|&c| c <= s))
+    sample_in(waypoints, cum, s, cum.partition_point(|&c| c <= s), joints)
 }
 
 /// [`sample_at`] given `above`, the number of cumulative lengths `<= s` (the first index
 /// whose cumulative length exceeds `s`).
-fn sample_in(waypoints: &[Waypoint], cum: &[f64], s: f64, above: usize) -> Waypoint {
+fn sample_in(waypoints: &[Waypoint], cum: &[f64], s: f64, above: usize, joints: usize) -> Waypoint {
     let n = waypoints.len();
     if n == 1 {
-        return waypoints[0];
+        let mut w = [0.0f32; SLOTS];
+        w[..joints].copy_from_slice(&waypoints[0][..joints]);
+        w[TOOL] = waypoints[0][TOOL];
+        return w;
     }
     let hi = above.clamp(1, n - 1);
     let lo = hi - 1;
@@ -372,8 +390,7 @@ fn sample_in(waypoints: &[Waypoint], cum: &[f64], s: f64, above: usize) -> Waypo
         0.0
     };
     let mut w = [0.0f32; SLOTS];
-    // Unused joint slots are 0 at both ends and stay 0.
-    for j in 0..MAX_JOINTS {
+    for j in 0..joints.min(MAX_JOINTS) {
         let a = f64::from(waypoints[lo][j]);
         let b = f64::from(waypoints[hi][j]);
         w[j] = (a + (b - a) * t) as f32;
@@ -424,11 +441,11 @@ mod tests {
                 }
                 cum.push(total);
             }
-            let out = resample(&ws, &cum);
+            let out = resample(&ws, &cum, 7);
             let span = cum[n - 1] - cum[0];
             for (k, sample) in out.iter().enumerate() {
                 let s = cum[0] + span * k as f64 / (STEPS - 1) as f64;
-                assert_eq!(*sample, sample_at(&ws, &cum, s), "n {n}, k {k}");
+                assert_eq!(*sample, sample_at(&ws, &cum, s, 7), "n {n}, k {k}");
             }
         }
     }
@@ -454,10 +471,16 @@ mod tests {
         let mut bad = good.clone();
         bad[0][TOOL] = 0.5;
         assert_eq!(validate(&bad), e(InvalidKind::ToolOutOfRange, 0));
-        // A value in a slot past the robot's joints: the plan has more joints than the robot.
-        let mut bad = good.clone();
-        bad[1][7] = 0.1;
-        assert_eq!(validate(&bad), e(InvalidKind::WrongChannelCount, 8));
+        // A slot past the robot's joints is not read (a plan's channel count is checked
+        // where the flat buffer is split), and resampling leaves it 0.
+        let mut extra = good.clone();
+        extra[1][7] = f32::NAN;
+        assert_eq!(validate(&extra), Ok(()));
+        assert!(
+            resample(&extra, &[0.0, 1.0, 2.0], 7)
+                .iter()
+                .all(|w| w[7] == 0.0)
+        );
         assert_eq!(
             from_flat(&[0.0; 14], 7, &limits).unwrap_err(),
             InvalidTrajectory {
@@ -492,7 +515,7 @@ mod tests {
     fn resample_is_uniform_in_the_given_length() {
         let w = vec![wp(0.0, 0.0), wp(1.0, 0.0), wp(2.0, 0.0)];
         // First segment is 3x longer than the second.
-        let out = resample(&w, &[0.0, 3.0, 4.0]);
+        let out = resample(&w, &[0.0, 3.0, 4.0], 7);
         assert_eq!(out[0][0], 0.0);
         assert!((out[STEPS - 1][0] - 2.0).abs() < 1e-6);
         // Three quarters of the samples fall in the first segment.
@@ -504,7 +527,7 @@ mod tests {
     fn a_dot_still_gets_a_pen_down_sample() {
         // A long pen-up travel with a tiny pen-down dot in the middle.
         let w = vec![wp(0.0, 0.0), wp(0.5, 1.0), wp(0.5001, 1.0), wp(1.0, 0.0)];
-        let out = resample(&w, &[0.0, 10.0, 10.0001, 20.0]);
+        let out = resample(&w, &[0.0, 10.0, 10.0001, 20.0], 7);
         let down: Vec<_> = out.iter().filter(|s| s[TOOL] == 1.0).collect();
         assert_eq!(down.len(), 1);
         assert!((down[0][0] - 0.50005).abs() < 1e-4);
@@ -513,7 +536,7 @@ mod tests {
     #[test]
     fn zero_length_falls_back_to_index() {
         let w = vec![wp(0.0, 0.0), wp(0.0, 0.0)];
-        let out = resample(&w, &[0.0, 0.0]);
+        let out = resample(&w, &[0.0, 0.0], 7);
         assert!(out.iter().all(|s| s[0] == 0.0));
     }
 }

@@ -211,7 +211,7 @@ proptest! {
                 cum.push(s);
                 s += d;
             }
-            let x = resample(&w, &cum);
+            let x = resample(&w, &cum, JOINTS);
             prop_assert_eq!(x.len(), STEPS);
             for p in &x {
                 prop_assert!(p[TOOL] == 0.0 || p[TOOL] == 1.0);

@@ -51,7 +51,7 @@ pub use description::{
 };
 pub use frame::Frame;
 pub use ik::{IkError, IkOptions, IkState};
-pub use simd::{FK_LANES, Lanes, POSITION_FK_TOLERANCE, PoseLanes, PositionFk};
+pub use simd::{FK_LANES, Lanes, POSITION_FK_TOLERANCE, PoseLanes, PositionFk, WithJoints};
 pub use urdf::{PANDA_URDF, UR5E_URDF, UrdfLoadError};
 
 /// Joint positions (rad for revolute, m for prismatic joints) in slots `0..joints`; the

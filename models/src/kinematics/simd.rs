@@ -76,6 +76,16 @@ pub struct PositionFk {
     tool_axes: [[f64; 3]; 2],
 }
 
+/// A computation over the blocks of a chain, given its joint count as the constant `N` of
+/// the lane tables (and `joints <= N`, the count the loops run to): see
+/// [`PositionFk::with_joints`].
+pub trait WithJoints {
+    /// What the computation returns.
+    type Output;
+    /// Run with tables of `N` joints, of which the chain uses the first `joints`.
+    fn with_joints<const N: usize>(self, joints: usize) -> Self::Output;
+}
+
 /// Waypoints per block of [`PositionFk::positions_into`] (the sines and cosines of a block
 /// are computed together, which the compiler vectorises).
 pub const FK_LANES: usize = 8;
@@ -170,23 +180,40 @@ impl PositionFk {
         }
     }
 
-    /// Pen-tip positions of a block of waypoints from their joint sines and cosines.
+    /// Run `op` with this chain's joint count as a constant where it is a shipped arm's (6:
+    /// the UR5e, 7: the Panda), so their lane tables and joint loops have fixed sizes; any
+    /// other count runs with tables of [`MAX_JOINTS`]. Inlined, so the SIMD instruction set
+    /// of a caller under [`pulp::Arch::dispatch`] applies.
     #[inline(always)]
-    fn block_positions(&self, s: &LaneTable, c: &LaneTable) -> Lanes {
+    pub fn with_joints<W: WithJoints>(&self, op: W) -> W::Output {
+        match self.joints {
+            6 => op.with_joints::<6>(6),
+            7 => op.with_joints::<7>(7),
+            n => op.with_joints::<MAX_JOINTS>(n),
+        }
+    }
+
+    /// Pen-tip positions of a block of waypoints (tables of `N` joints, the first `joints`
+    /// used; see [`PositionFk::with_joints`]).
+    #[inline(always)]
+    fn block_positions<const N: usize>(&self, ws: &[Waypoint], joints: usize) -> Lanes {
+        let (s, c) = joint_sin_cos::<N>(ws, joints);
         let mut v = self.tip.map(|x| [x; FK_LANES]);
-        for j in (0..self.joints).rev() {
+        for j in (0..joints).rev() {
             v = self.joint_lanes(j, &s[j], &c[j], &v, true);
         }
         v
     }
 
-    /// Pen-tip positions and the tool's x and z axes (base frame) of a block of waypoints.
+    /// Pen-tip positions and the tool's x and z axes (base frame) of a block of waypoints
+    /// (tables of `N` joints, the first `joints` used).
     #[inline(always)]
-    fn block_poses(&self, s: &LaneTable, c: &LaneTable) -> PoseLanes {
+    fn block_poses<const N: usize>(&self, ws: &[Waypoint], joints: usize) -> PoseLanes {
+        let (s, c) = joint_sin_cos::<N>(ws, joints);
         let mut p = self.tip.map(|x| [x; FK_LANES]);
         let mut x = self.tool_axes[0].map(|v| [v; FK_LANES]);
         let mut z = self.tool_axes[1].map(|v| [v; FK_LANES]);
-        for j in (0..self.joints).rev() {
+        for j in (0..joints).rev() {
             p = self.joint_lanes(j, &s[j], &c[j], &p, true);
             x = self.joint_lanes(j, &s[j], &c[j], &x, false);
             z = self.joint_lanes(j, &s[j], &c[j], &z, false);
@@ -214,8 +241,14 @@ impl PositionFk {
     /// [`pulp::Arch::dispatch`]) gets the block vectorised with it.
     #[inline(always)]
     pub fn pose_lanes(&self, ws: &[Waypoint]) -> PoseLanes {
-        let (s, c) = joint_sin_cos(ws, self.joints);
-        self.block_poses(&s, &c)
+        self.block_poses::<MAX_JOINTS>(ws, self.joints)
+    }
+
+    /// [`PositionFk::pose_lanes`] with tables of `N` joints, of which the chain uses the
+    /// first `joints` (the arguments [`PositionFk::with_joints`] passes to an operation).
+    #[inline(always)]
+    pub fn pose_lanes_sized<const N: usize>(&self, ws: &[Waypoint], joints: usize) -> PoseLanes {
+        self.block_poses::<N>(ws, joints)
     }
 
     /// Pen-tip positions (m, base frame) of the joint parts of `waypoints` into `out`
@@ -262,14 +295,23 @@ impl pulp::WithSimd for PositionsOp<'_> {
 
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let fk = self.fk;
+        fk.with_joints(self)
+    }
+}
+
+impl WithJoints for PositionsOp<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_joints<const N: usize>(self, joints: usize) {
         for (ws, os) in self
             .waypoints
             .chunks(FK_LANES)
             .zip(self.out.chunks_mut(FK_LANES))
         {
             let n = ws.len().min(os.len());
-            let (s, c) = joint_sin_cos(&ws[..n], self.fk.joints);
-            let v = self.fk.block_positions(&s, &c);
+            let v = self.fk.block_positions::<N>(&ws[..n], joints);
             for (l, o) in os[..n].iter_mut().enumerate() {
                 *o = [v[0][l], v[1][l], v[2][l]];
             }
@@ -290,6 +332,16 @@ impl pulp::WithSimd for PosesOp<'_> {
 
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let fk = self.fk;
+        fk.with_joints(self)
+    }
+}
+
+impl WithJoints for PosesOp<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_joints<const N: usize>(self, joints: usize) {
         let blocks = self
             .waypoints
             .chunks(FK_LANES)
@@ -297,7 +349,7 @@ impl pulp::WithSimd for PosesOp<'_> {
             .zip(self.rotations.chunks_mut(FK_LANES));
         for ((ws, ps), rs) in blocks {
             let n = ws.len().min(ps.len()).min(rs.len());
-            let b = self.fk.pose_lanes(&ws[..n]);
+            let b = self.fk.pose_lanes_sized::<N>(&ws[..n], joints);
             for l in 0..n {
                 ps[l] = [b.p[0][l], b.p[1][l], b.p[2][l]];
                 let x = Vector3::new(b.x[0][l], b.x[1][l], b.x[2][l]);
@@ -333,7 +385,7 @@ fn permute_lanes<const A: usize, const B: usize, const C: usize>(
 }
 
 /// Sines and cosines of every joint of a block of at most [`FK_LANES`] waypoints, per joint.
-type LaneTable = [[f64; FK_LANES]; MAX_JOINTS];
+type LaneTable<const N: usize> = [[f64; FK_LANES]; N];
 
 /// A 3-vector per lane of a block: `v[axis][lane]`.
 pub type Lanes = [[f64; FK_LANES]; 3];
@@ -350,10 +402,10 @@ pub struct PoseLanes {
 }
 
 #[inline(always)]
-fn joint_sin_cos(ws: &[Waypoint], joints: usize) -> (LaneTable, LaneTable) {
-    let mut s = [[0.0f64; FK_LANES]; MAX_JOINTS];
-    let mut c = [[0.0f64; FK_LANES]; MAX_JOINTS];
-    for j in 0..joints {
+fn joint_sin_cos<const N: usize>(ws: &[Waypoint], joints: usize) -> (LaneTable<N>, LaneTable<N>) {
+    let mut s = [[0.0f64; FK_LANES]; N];
+    let mut c = [[0.0f64; FK_LANES]; N];
+    for j in 0..joints.min(N) {
         let mut x = [0.0f64; FK_LANES];
         for (l, w) in ws.iter().take(FK_LANES).enumerate() {
             x[l] = f64::from(w[j]);
