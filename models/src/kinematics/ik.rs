@@ -238,13 +238,95 @@ mod tests {
         q
     }
 
+    /// A 6-joint arm mixing joint kinds and axes (revolute about z, y, x, a tilted axis, and
+    /// a prismatic joint), with a fixed joint between two movable ones: the general chain.
+    const MIXED_URDF: &str = r#"<robot name="mixed">
+      <link name="l0"/><link name="l1"/><link name="l2"/><link name="l2b"/><link name="l3"/>
+      <link name="l4"/><link name="l5"/><link name="l6"/><link name="tip"/>
+      <joint name="j1" type="revolute"><parent link="l0"/><child link="l1"/>
+        <origin xyz="0 0 0.3" rpy="0 0 0"/><axis xyz="0 0 1"/>
+        <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+      <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/>
+        <origin xyz="0 0 0.1" rpy="0 0 0"/><axis xyz="0 1 0"/>
+        <limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+      <joint name="fixed" type="fixed"><parent link="l2"/><child link="l2b"/>
+        <origin xyz="0.05 0 0.1" rpy="0 0.2 0"/></joint>
+      <joint name="slide" type="prismatic"><parent link="l2b"/><child link="l3"/>
+        <origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="1 0 0"/>
+        <limit lower="0.1" upper="0.5" effort="1" velocity="0.5"/></joint>
+      <joint name="j4" type="revolute"><parent link="l3"/><child link="l4"/>
+        <origin xyz="0.1 0 0" rpy="0 0 0"/><axis xyz="1 0 0"/>
+        <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+      <joint name="j5" type="revolute"><parent link="l4"/><child link="l5"/>
+        <origin xyz="0.05 0 0" rpy="0 0 0"/><axis xyz="0 1 1"/>
+        <limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+      <joint name="j6" type="revolute"><parent link="l5"/><child link="l6"/>
+        <origin xyz="0.05 0 0" rpy="0 0 0"/><axis xyz="0 0 1"/>
+        <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+      <joint name="flange" type="fixed"><parent link="l6"/><child link="tip"/>
+        <origin xyz="0 0 0.08" rpy="0 0 0"/></joint>
+    </robot>"#;
+
+    fn mixed() -> Robot {
+        Robot::from_urdf_chain(MIXED_URDF, "mixed", None, Some("tip"))
+            .expect("a valid mixed chain")
+            .with_tool(0.05, 0.0)
+    }
+
     fn robots() -> Vec<Robot> {
         vec![
             Robot::panda(),
             crate::kinematics::RobotDescription::named("ur5e")
                 .unwrap()
                 .robot,
+            mixed(),
         ]
+    }
+
+    /// The general chain of the mixed arm against the product of its URDF transforms, the
+    /// prismatic joint moving along its axis.
+    #[test]
+    fn a_mixed_chain_is_the_product_of_its_joints() {
+        use nalgebra::{Rotation3, Unit};
+        let robot = mixed();
+        assert_eq!(robot.joints(), 6);
+        assert!(
+            robot.position_fk().is_none(),
+            "not revolute about z: general chain"
+        );
+        assert_eq!(
+            robot.joint_list()[2].kind,
+            crate::kinematics::JointKind::Prismatic
+        );
+        let q = [0.4, -0.3, 0.25, 0.7, -0.5, 1.1];
+        let frame = |xyz: [f64; 3], rpy: [f64; 3]| Frame::from_xyz_rpy(xyz, rpy);
+        let rot = |axis: [f64; 3], a: f64| Frame {
+            rotation: Rotation3::from_axis_angle(&Unit::new_normalize(Vector3::from(axis)), a)
+                .into_inner(),
+            translation: Vector3::zeros(),
+        };
+        let slide = Frame {
+            rotation: Matrix3::identity(),
+            translation: Vector3::new(q[2], 0.0, 0.0),
+        };
+        let want = frame([0.0, 0.0, 0.3], [0.0; 3])
+            .compose(&rot([0.0, 0.0, 1.0], q[0]))
+            .compose(&frame([0.0, 0.0, 0.1], [0.0; 3]))
+            .compose(&rot([0.0, 1.0, 0.0], q[1]))
+            .compose(&frame([0.05, 0.0, 0.1], [0.0, 0.2, 0.0]))
+            .compose(&slide)
+            .compose(&frame([0.1, 0.0, 0.0], [0.0; 3]))
+            .compose(&rot([1.0, 0.0, 0.0], q[3]))
+            .compose(&frame([0.05, 0.0, 0.0], [0.0; 3]))
+            .compose(&rot([0.0, 1.0, 1.0], q[4]))
+            .compose(&frame([0.05, 0.0, 0.0], [0.0; 3]))
+            .compose(&rot([0.0, 0.0, 1.0], q[5]))
+            .compose(&frame([0.0, 0.0, 0.08], [0.0; 3]));
+        let got = robot.flange(&crate::kinematics::joint_vector(&q));
+        assert!((got.translation - want.translation).norm() < 1e-12);
+        assert!((got.rotation - want.rotation).amax() < 1e-12);
+        assert_eq!(robot.q_min()[2], 0.1);
+        assert_eq!(robot.joint_list()[2].velocity, Some(0.5));
     }
 
     #[test]
