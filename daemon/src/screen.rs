@@ -443,6 +443,12 @@ impl Screen {
         self.journal_bytes
     }
 
+    /// Whether a journal file lies next to the snapshot, even an empty one (a daemon killed
+    /// after creating it and before its first record was written).
+    pub fn has_journal(&self) -> bool {
+        journal_path(&self.bank_path).exists()
+    }
+
     /// Save the bank now as a snapshot and remove its journal (at start and shutdown; every
     /// change is already persisted).
     pub fn flush(&mut self) -> Result<(), guardian_models::bank::SaveBankError> {

@@ -127,8 +127,9 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     screen.set_workcell(workcell);
     screen.set_limits(config.limits());
     screen.set_admin_separation(config.admin.separation);
-    // Start from a snapshot alone: fold a journal left by the last run into it.
-    if screen.journal_bytes() > 0 {
+    // Start from a snapshot alone: fold a journal left by the last run into it (an empty
+    // one, left by a kill between its creation and its first record, is removed too).
+    if screen.journal_bytes() > 0 || screen.has_journal() {
         let bytes = screen.journal_bytes();
         screen.flush().map_err(RunError::Compact)?;
         tracing::info!(

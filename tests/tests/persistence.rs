@@ -385,3 +385,24 @@ fn a_reload_of_a_damaged_bank_or_model_keeps_serving_the_old_state() {
         .expect("enroll");
     assert_eq!(load_state(&bank).0.len(), 3);
 }
+
+/// A daemon killed after creating the journal and before writing its first record leaves an
+/// empty journal file: the next start removes it (compaction), and the bank is unchanged.
+#[test]
+fn an_empty_journal_left_by_a_kill_is_removed_at_start() {
+    let s = Setup::new(77);
+    let d = Daemon::start(&s);
+    let client = s.client();
+    let examples: Vec<Trajectory> = (0..3).map(|dr| traj(0, dr)).collect();
+    client.enroll("task0", &examples).expect("enroll");
+    drop(client);
+    drop(d);
+    let bank = s.state_dir().join("bank.gcb");
+    let journal = journal_path(&bank);
+    std::fs::write(&journal, b"").expect("empty journal");
+    let d = Daemon::start(&s);
+    let client = s.client();
+    assert_eq!(client.status().expect("status").classes, 1);
+    assert!(!journal.exists(), "the empty journal was left in place");
+    drop(d);
+}
