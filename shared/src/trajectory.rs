@@ -25,8 +25,9 @@ pub const MIN_WAYPOINTS: usize = 2;
 pub const MAX_WAYPOINTS: usize = 4096;
 
 /// The joint limits of the served robot (rad for revolute joints, m for prismatic ones):
-/// its joint count and the range every waypoint must stay in.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// its joint count and the range every waypoint must stay in. Built only through
+/// [`JointLimits::new`], which checks them.
+#[derive(Debug, Clone, PartialEq)]
 pub struct JointLimits {
     lower: Vec<f64>,
     upper: Vec<f64>,

@@ -151,8 +151,8 @@ impl RobotDescription {
                 .ok_or_else(|| RobotLoadError::Unknown {
                     name: name.to_string(),
                 })?;
-        Self::parse(text, RobotSource::Builtin(builtin), |file| {
-            let _ = file;
+        // The URDF is built in too; errors name it by its path in the repository.
+        Self::parse(text, RobotSource::Builtin(builtin), |_| {
             Ok((
                 PathBuf::from(format!("models/robots/{builtin}.urdf")),
                 (*urdf).to_string(),
