@@ -43,9 +43,8 @@ fn main() -> anyhow::Result<()> {
         None => tracing::info!("no config file; using built-in defaults"),
     }
     if args.check {
-        let engine = guardian_daemon::state::load_engine(&config)?;
+        let (engine, _) = guardian_daemon::state::load_engine(&config)?;
         let (bank, src) = guardian_daemon::state::load_bank(&config, &engine)?;
-        guardian_daemon::state::load_workcell(&config)?;
         println!(
             "ok: model {} ({}), robot {} ({} joints), {} with {} classes",
             engine.version(),

@@ -16,7 +16,7 @@ use crate::admin::{AdminEndpoint, AdminPolicy, WakerFactory};
 use crate::config::{Config, ServingMode};
 use crate::notify::SdNotify;
 use crate::screen::Screen;
-use crate::state::{LoadStateError, load_bank, load_engine, load_workcell};
+use crate::state::{LoadStateError, load_bank, load_engine};
 use crate::wakers::{ClientWakers, Woken};
 
 /// Flags set from signal handlers (or a test harness) to steer the loop.
@@ -107,8 +107,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         Ok(_) => {}
         Err(e) => tracing::warn!(error = %e, "cannot remove stale bank temporaries"),
     }
-    let engine = load_engine(&config)?;
-    let workcell = load_workcell(&config)?;
+    let (engine, workcell) = load_engine(&config)?;
     tracing::info!(
         model = %config.model_path().display(),
         version = engine.version(),
@@ -332,9 +331,9 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
 fn reload(config: &Config, screen: &mut Screen, sd: &SdNotify) {
     tracing::info!("reload requested (SIGHUP)");
     sd.status("reloading");
-    let result = load_engine(config).and_then(|engine| {
+    let result = load_engine(config).and_then(|(engine, workcell)| {
         let (bank, source) = load_bank(config, &engine)?;
-        Ok((engine, bank, source, load_workcell(config)?))
+        Ok((engine, bank, source, workcell))
     });
     match result {
         Ok((engine, bank, source, workcell)) => {

@@ -90,27 +90,22 @@ pub enum LoadStateError {
     },
 }
 
-/// Load the model named by `config` for the robot it names.
-pub fn load_engine(config: &Config) -> Result<Engine, LoadStateError> {
+/// Load the model named by `config` for the robot it names, and that robot's workcell
+/// rules (its description's defaults with the config's `[workcell]` keys applied); the
+/// description is read once for both.
+pub fn load_engine(config: &Config) -> Result<(Engine, Workcell), LoadStateError> {
     let path = config.model_path();
     let robot = config
         .robot_description()
         .map_err(|detail| LoadStateError::Robot { detail })?;
-    Engine::load(&path, robot.robot).map_err(|e| LoadStateError::Model {
+    let workcell = config
+        .workcell_for(&robot)
+        .map_err(|detail| LoadStateError::Robot { detail })?;
+    let engine = Engine::load(&path, robot.robot).map_err(|e| LoadStateError::Model {
         path,
         detail: e.to_string(),
-    })
-}
-
-/// The workcell rules named by `config`: its robot's defaults with the config's
-/// `[workcell]` keys applied.
-pub fn load_workcell(config: &Config) -> Result<Workcell, LoadStateError> {
-    let robot = config
-        .robot_description()
-        .map_err(|detail| LoadStateError::Robot { detail })?;
-    config
-        .workcell_for(&robot)
-        .map_err(|detail| LoadStateError::Robot { detail })
+    })?;
+    Ok((engine, workcell))
 }
 
 /// Load the bank for `engine`: the persisted one, else the default one, else empty.

@@ -12,7 +12,7 @@ fn shipped_default_bank_matches_the_shipped_model_and_is_calibrated() {
         state_dir: Some(state.path().to_owned()),
         ..Config::default()
     };
-    let engine = load_engine(&config).unwrap();
+    let (engine, _) = load_engine(&config).unwrap();
     let (bank, source) = load_bank(&config, &engine).unwrap();
     // The shipped bank predates the robot record: it is the Panda's, and now says so.
     let robot = bank.robot().expect("recorded at load");
@@ -44,7 +44,7 @@ fn a_ur5e_daemon_refuses_the_panda_bank() {
         state_dir: Some(state.path().to_owned()),
         ..Config::default()
     };
-    let engine = load_engine(&config).unwrap();
+    let (engine, _) = load_engine(&config).unwrap();
     assert_eq!(engine.robot().joints(), 6);
     let e = load_bank(&config, &engine).unwrap_err();
     assert!(matches!(e, LoadStateError::BankRobotMismatch { .. }), "{e}");

@@ -109,11 +109,7 @@ pub fn genuine_scores(
 pub fn geometry_of(xs: &[Resampled], robot: &Robot) -> Vec<Option<PlanGeometry>> {
     use rayon::prelude::*;
     xs.par_iter()
-        .map(|x| {
-            guardian_models::workcell::plan_geometry_of_path(
-                &guardian_models::features::pen_path_with(robot, x),
-            )
-        })
+        .map(|x| guardian_models::workcell::plan_geometry(robot, x))
         .collect()
 }
 
@@ -236,9 +232,7 @@ pub fn cross_fit(
     let mut pools = Vec::new();
     let mut names = Vec::new();
     for p in pairs {
-        let model = Embedder::load(&p.model)
-            .with_context(|| format!("loading {}", p.model.display()))?
-            .with_robot(data.robot()?)?;
+        let model = data.embedder(&p.model)?;
         let pool = Pool::new(data, &p.alphabets)?;
         let emb = pool.embed(&model)?;
         scores.extend(genuine_scores(
@@ -405,9 +399,7 @@ fn calibrate_on_alphabets(
 /// Run `guardian-lab bank`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let data = Dataset::load(&args.dataset)?;
-    let model = Embedder::load(&args.model)
-        .with_context(|| format!("loading {}", args.model.display()))?
-        .with_robot(data.robot()?)?;
+    let model = data.embedder(&args.model)?;
     anyhow::ensure!(
         (0.0..=1.0).contains(&args.geometry_share),
         "--geometry-share must be in [0, 1]"

@@ -377,6 +377,15 @@ impl Dataset {
         self.trajectories.is_empty()
     }
 
+    /// The model file at `path`, serving the robot that drew these trajectories (its pen
+    /// paths by that robot's forward kinematics).
+    pub fn embedder(&self, path: &Path) -> anyhow::Result<guardian_models::embedder::Embedder> {
+        use anyhow::Context as _;
+        let model = guardian_models::embedder::Embedder::load(path)
+            .with_context(|| format!("loading {}", path.display()))?;
+        Ok(model.with_robot(self.robot()?)?)
+    }
+
     /// The robot that drew the trajectories, loaded from the geometry's robot and checked
     /// against the file's record (name, joints, URDF checksum), with the geometry's pen.
     pub fn robot(&self) -> Result<Robot, crate::path::SolvePathError> {

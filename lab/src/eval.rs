@@ -435,7 +435,6 @@ pub fn evaluate(
 
 /// Run `guardian-lab eval`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
-    use anyhow::Context as _;
     let data = Dataset::load(&args.dataset)?;
     let pool = Pool::new(&data, &args.alphabets)?;
     let mut model = match (args.baseline, &args.model) {
@@ -447,17 +446,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     anyhow::bail!("--baseline siamese needs --siamese-model or --model")
                 }
             };
-            Some(
-                Embedder::load(&path)
-                    .with_context(|| format!("loading {}", path.display()))?
-                    .with_robot(data.robot()?)?,
-            )
+            Some(data.embedder(&path)?)
         }
-        (None, Some(m)) => Some(
-            Embedder::load(m)
-                .with_context(|| format!("loading {}", m.display()))?
-                .with_robot(data.robot()?)?,
-        ),
+        (None, Some(m)) => Some(data.embedder(m)?),
         (None, None) => anyhow::bail!("--model is required unless --baseline random|knn"),
         (Some(_), _) => None,
     };

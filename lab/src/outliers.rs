@@ -343,9 +343,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let data = Dataset::load(&args.dataset)?;
     // Pen paths by the forward kinematics of the robot that drew the data set.
     let robot = data.robot()?;
-    let model = Embedder::load(&args.model)
-        .with_context(|| format!("loading {}", args.model.display()))?
-        .with_robot(robot.clone())?;
+    let model = data.embedder(&args.model)?;
     if args
         .calib_alphabets
         .iter()
@@ -458,9 +456,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         geometry::pooled_scales(&groups).context("no geometry spread on the calibration data")?
     };
     if let Some(p) = &args.siamese_model {
-        let s = Embedder::load(p)
-            .with_context(|| format!("loading {}", p.display()))?
-            .with_robot(robot.clone())?;
+        let s = data.embedder(p)?;
         methods.push((
             Method::Siamese,
             vectors(&embed(&s, &cpool.xs)?),

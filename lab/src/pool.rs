@@ -1184,7 +1184,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     save_pool(&data, &info, &args.out)?;
     println!("{}", serde_json::to_string_pretty(&report)?);
     if let Some(m) = &args.cluster_model {
-        let model = Embedder::load(m)?.with_robot(data.robot()?)?;
+        let model = data.embedder(m)?;
         let t0 = Instant::now();
         let emb = embed_pool(&model, &data)?;
         let nn = knn(&emb, args.cluster_k)?;

@@ -437,20 +437,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         .with_context(|| format!("creating {}", args.out.display()))?;
     let data = Dataset::load(&args.dataset)?;
     let pool = Pool::new(&data, &args.alphabets)?;
-    let robot = data.robot()?;
-    let model = Embedder::load(&args.model)
-        .with_context(|| format!("loading {}", args.model.display()))?
-        .with_robot(robot.clone())?;
+    let model = data.embedder(&args.model)?;
     let siamese_path = args
         .siamese_model
         .clone()
         .unwrap_or_else(|| args.model.with_file_name("siamese.safetensors"));
     let siamese = if siamese_path.exists() {
-        Some(
-            Embedder::load(&siamese_path)
-                .with_context(|| format!("loading {}", siamese_path.display()))?
-                .with_robot(robot)?,
-        )
+        Some(data.embedder(&siamese_path)?)
     } else {
         None
     };

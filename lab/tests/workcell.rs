@@ -8,6 +8,7 @@ use guardian_lab::dataset::convert_strokes;
 use guardian_lab::path::{Geometry, PathSolver};
 use guardian_lab::strokes::{Stroke, character_files, read_strokes};
 use guardian_models::kinematics::{PANDA_JOINTS, PANDA_Q_MAX, PANDA_Q_MIN};
+use guardian_models::preprocess::default_panda;
 use guardian_models::workcell::{inspect, plan_geometry};
 use guardian_shared::trajectory::Waypoint;
 use guardian_shared::workcell::{GeometryFeature, Workcell, WorkcellKind};
@@ -103,6 +104,7 @@ fn geometry_follows_shift_and_scale() {
     let strokes = drawing(7, 2);
     let base = Geometry::default();
     let g0 = plan_geometry(
+        default_panda(),
         &convert_strokes(&PathSolver::new(&base).unwrap(), &strokes)
             .unwrap()
             .sample,
@@ -114,6 +116,7 @@ fn geometry_follows_shift_and_scale() {
         ..base.clone()
     };
     let g1 = plan_geometry(
+        default_panda(),
         &convert_strokes(&PathSolver::new(&shifted).unwrap(), &strokes)
             .unwrap()
             .sample,
@@ -130,6 +133,7 @@ fn geometry_follows_shift_and_scale() {
         ..base.clone()
     };
     let g2 = plan_geometry(
+        default_panda(),
         &convert_strokes(&PathSolver::new(&scaled).unwrap(), &strokes)
             .unwrap()
             .sample,

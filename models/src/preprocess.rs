@@ -107,15 +107,17 @@ thread_local! {
     static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
 }
 
-/// Validate `raw` against the Panda's limits ([`trajectory::validate`]) and resample it to
-/// [`STEPS`](guardian_shared::trajectory::STEPS) waypoints uniformly in pen-tip path length ([`trajectory::resample`]). The daemon and the dataset generator both call
-/// this, so a trajectory is seen the same way in training and in service.
+/// [`preprocess_with`] the default robot, the Panda: validate `raw` against its limits
+/// ([`trajectory::validate`]) and resample it to [`STEPS`](guardian_shared::trajectory::STEPS)
+/// waypoints uniformly in pen-tip path length ([`trajectory::resample`]).
 pub fn preprocess(raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
     preprocess_with(&PANDA, raw)
 }
 
 /// [`preprocess`] with a given robot (another arm, or another pen length): validated
-/// against its limits, path length by its forward kinematics. Uses per-thread buffers:
+/// against its limits, path length by its forward kinematics. The daemon (its served robot)
+/// and the dataset generator both call this, so a trajectory is seen the same way in
+/// training and in service. Uses per-thread buffers:
 /// after the longest trajectory has been seen once, nothing is allocated.
 pub fn preprocess_with(robot: &Robot, raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
     trajectory::validate(raw, robot.limits())?;

@@ -8,7 +8,8 @@
 //!   [`crate::preprocess::preprocess`] computes, so the resampled model input is identical);
 //! * [`plan_geometry`] describes the drawing of a resampled trajectory (centre, size,
 //!   pen-down length, strokes, start / end, direction; un-normalised, in metres) from the
-//!   pen path [`crate::features::pen_path`] (128 forward-kinematics evaluations).
+//!   pen path of the robot ([`crate::features::pen_path_with`], 128 forward-kinematics
+//!   evaluations).
 //!
 //! Orientation error is the rotation angle between the tool frame and the commanded one
 //! (tool z straight down, tool x along base +x): `θ = 2 asin(‖R − R_cmd‖_F / (2√2))`, exact
@@ -287,7 +288,7 @@ impl WithJoints for InspectOp<'_> {
             .zip(self.positions.chunks_mut(FK_LANES));
         for (b, (ws, ps)) in blocks.enumerate() {
             let n = ws.len().min(ps.len());
-            let lanes = self.fk.pose_lanes_sized::<N>(&ws[..n], joints);
+            let lanes = self.fk.pose_lanes::<N>(&ws[..n], joints);
             for (l, p) in ps[..n].iter_mut().enumerate() {
                 *p = [lanes.p[0][l], lanes.p[1][l], lanes.p[2][l]];
             }
@@ -338,10 +339,10 @@ impl WithJoints for InspectOp<'_> {
     }
 }
 
-/// The plan geometry of a resampled trajectory (see [`PlanGeometry`]); `None` if the pen
-/// never touches the canvas.
-pub fn plan_geometry(x: &Resampled) -> Option<PlanGeometry> {
-    plan_geometry_of_path(&crate::features::pen_path(x))
+/// The plan geometry of a resampled trajectory of `robot` (see [`PlanGeometry`]); `None` if
+/// the pen never touches the canvas.
+pub fn plan_geometry(robot: &Robot, x: &Resampled) -> Option<PlanGeometry> {
+    plan_geometry_of_path(&crate::features::pen_path_with(robot, x))
 }
 
 /// [`plan_geometry`] of an already computed pen path ([`crate::features::pen_path`], e.g.

@@ -31,7 +31,7 @@ use anyhow::{Context, Result, bail};
 use guardian_client::{Client, ClientConfig, Trajectory, Verdict};
 use guardian_daemon::config::Config;
 use guardian_daemon::screen::Screen;
-use guardian_daemon::state::{load_bank, load_engine, load_workcell};
+use guardian_daemon::state::{load_bank, load_engine};
 use guardian_lab::dataset::convert_strokes;
 use guardian_lab::path::{Geometry, PathSolver};
 use guardian_lab::strokes::read_strokes;
@@ -410,13 +410,13 @@ fn compute_breakdown(
     use guardian_models::check::{self, Embedded, Prepared};
     use guardian_models::workcell::inspect;
     let config = Config::from_file(&dep.write_config("event", 16)?)?;
-    let engine = load_engine(&config)?;
+    let (engine, workcell) = load_engine(&config)?;
     let panda = engine.robot().clone();
     let (bank, _) = load_bank(&config, &engine)?;
     let state = dep.dir.join("in-process");
     std::fs::create_dir_all(&state)?;
     let mut screen = Screen::new(engine, bank, state.join("bank.gcb"), config.k_nearest);
-    screen.set_workcell(load_workcell(&config)?);
+    screen.set_workcell(workcell);
     for (class, ex) in &drawings.enroll {
         let ws: Vec<Vec<Waypoint>> = ex
             .iter()
@@ -555,10 +555,10 @@ struct JsonResponse {
 /// check) behind a Unix socket speaking one JSON object per line.
 fn uds_server(socket: &Path, config: &Path) -> Result<()> {
     let config = Config::from_file(config)?;
-    let engine = load_engine(&config)?;
+    let (engine, workcell) = load_engine(&config)?;
     let (bank, _) = load_bank(&config, &engine)?;
     let mut screen = Screen::new(engine, bank, config.bank_path(), config.k_nearest);
-    screen.set_workcell(load_workcell(&config)?);
+    screen.set_workcell(workcell);
     let listener = UnixListener::bind(socket)?;
     // One connection at a time, served until it closes; "quit" ends the server.
     for stream in listener.incoming() {

@@ -236,18 +236,13 @@ impl PositionFk {
     }
 
     /// Pen-tip positions and tool axes of a block of at most [`FK_LANES`] waypoints (lanes
-    /// past `ws.len()` hold the pose at all-zero joints). Inlined into its caller, so a
-    /// caller compiled for a wider SIMD instruction set (a [`pulp::WithSimd`] run under
-    /// [`pulp::Arch::dispatch`]) gets the block vectorised with it.
+    /// past `ws.len()` hold the pose at all-zero joints), with tables of `N` joints of which
+    /// the chain uses the first `joints`: the arguments [`PositionFk::with_joints`] passes to
+    /// an operation. Inlined into its caller, so a caller compiled for a wider SIMD
+    /// instruction set (a [`pulp::WithSimd`] run under [`pulp::Arch::dispatch`]) gets the
+    /// block vectorised with it.
     #[inline(always)]
-    pub fn pose_lanes(&self, ws: &[Waypoint]) -> PoseLanes {
-        self.block_poses::<MAX_JOINTS>(ws, self.joints)
-    }
-
-    /// [`PositionFk::pose_lanes`] with tables of `N` joints, of which the chain uses the
-    /// first `joints` (the arguments [`PositionFk::with_joints`] passes to an operation).
-    #[inline(always)]
-    pub fn pose_lanes_sized<const N: usize>(&self, ws: &[Waypoint], joints: usize) -> PoseLanes {
+    pub fn pose_lanes<const N: usize>(&self, ws: &[Waypoint], joints: usize) -> PoseLanes {
         self.block_poses::<N>(ws, joints)
     }
 
@@ -349,7 +344,7 @@ impl WithJoints for PosesOp<'_> {
             .zip(self.rotations.chunks_mut(FK_LANES));
         for ((ws, ps), rs) in blocks {
             let n = ws.len().min(ps.len()).min(rs.len());
-            let b = self.fk.pose_lanes_sized::<N>(&ws[..n], joints);
+            let b = self.fk.pose_lanes::<N>(&ws[..n], joints);
             for l in 0..n {
                 ps[l] = [b.p[0][l], b.p[1][l], b.p[2][l]];
                 let x = Vector3::new(b.x[0][l], b.x[1][l], b.x[2][l]);
