@@ -16,7 +16,7 @@ use std::time::Instant;
 use candle_core::{Device, Tensor, Var};
 use guardian_models::embedder::Embedder;
 use guardian_models::fast::{FastNet, FastNetError};
-use guardian_models::features::{self, Augment, FeatureKind, PenPoint};
+use guardian_models::features::{self, Augment, FeatureKind, PenPoint, Warp};
 use guardian_models::grad::{Grads, Trainable};
 use guardian_models::loss;
 use guardian_models::net::NetConfig;
@@ -156,6 +156,10 @@ pub struct TrainConfig {
     /// their negatives are the similar characters a new alphabet's episodes hold. 0 = off.
     #[serde(default)]
     pub alphabet_share: f64,
+    /// Largest amplitude of the smooth deformation among the augmentations
+    /// (`features::Warp`, a fraction of the drawing's half-size). 0 = off.
+    #[serde(default)]
+    pub warp: f64,
     /// Clustering of the pseudo-labels (`pseudo` mode).
     #[serde(default)]
     pub pseudo_clusters: Option<ClusterParams>,
@@ -304,6 +308,10 @@ pub struct Args {
     /// Share of training batches drawn from one alphabet (harder negatives); 0 = off.
     #[arg(long, default_value_t = 0.0)]
     pub alphabet_share: f64,
+    /// Largest amplitude of a smooth random deformation among the augmentations (a fraction
+    /// of the drawing's half-size per term); 0 = off.
+    #[arg(long, default_value_t = 0.0)]
+    pub warp: f64,
 }
 
 impl Args {
@@ -374,6 +382,7 @@ impl Args {
                 max_size: self.pseudo_max_size,
             }),
             alphabet_share: self.alphabet_share,
+            warp: self.warp,
         }
     }
 }
@@ -510,6 +519,8 @@ pub struct Prepared {
     faults: Vec<Vec<[PenPoint; STEPS]>>,
     /// Time reversal among the augmentations.
     reverse_augment: bool,
+    /// Largest smooth-deformation amplitude among the augmentations (0 = off).
+    warp: f32,
     /// Classes from here on are pool classes ([`Prepared::add_pool`]); `by_class.len()`
     /// without a pool.
     pool_start: usize,
@@ -577,6 +588,7 @@ impl Prepared {
             data_index,
             faults,
             reverse_augment: true,
+            warp: 0.0,
             pool_start,
             pool_share: 0.0,
             class_alphabet,
@@ -804,6 +816,12 @@ impl Prepared {
         self.reverse_augment = on;
     }
 
+    /// Add a smooth deformation of at most `amplitude` (a fraction of the drawing's
+    /// half-size per term, [`features::Warp`]) to the augmentations (0, the default: none).
+    pub fn set_warp(&mut self, amplitude: f32) {
+        self.warp = amplitude;
+    }
+
     /// Number of classes.
     pub fn classes(&self) -> usize {
         self.by_class.len()
@@ -847,7 +865,7 @@ impl Prepared {
                 candle_core::bail!("batch item {item:?} is not in the prepared set");
             };
             let aug = match rng.as_deref_mut() {
-                Some(r) => random_augment(r, self.reverse_augment),
+                Some(r) => random_augment(r, self.reverse_augment, self.warp),
                 None => Augment::default(),
             };
             features::path_features(self.kind, path, &aug, out);
@@ -914,15 +932,25 @@ impl Prepared {
 }
 
 /// Random augmentation; with `reverse` false the draw for time reversal is made and
-/// ignored, so the other augmentations are the same as with it.
-fn random_augment(rng: &mut StdRng, reverse: bool) -> Augment {
-    Augment {
+/// ignored, so the other augmentations are the same as with it. A deformation is drawn
+/// only when `warp > 0`, so without one the random stream is the same as before it existed.
+fn random_augment(rng: &mut StdRng, reverse: bool, warp: f32) -> Augment {
+    let mut aug = Augment {
         rotation: rng.random_range(-0.2..0.2),
         shear: rng.random_range(-0.2..0.2),
         scale_x: rng.random_range(0.85..1.15),
         scale_y: rng.random_range(0.85..1.15),
         reverse: rng.random_bool(0.5) && reverse,
+        warp: Warp::default(),
+    };
+    if warp > 0.0 {
+        for k in 0..4 {
+            aug.warp.amp[k] = rng.random_range(-warp..warp);
+            aug.warp.freq[k] = rng.random_range(0.5..1.0);
+            aug.warp.phase[k] = rng.random_range(0.0..std::f32::consts::TAU);
+        }
     }
+    aug
 }
 
 /// The loss of one batch of embeddings `e [B, embed_dim]`. Returns `(loss, active
@@ -1192,6 +1220,7 @@ pub fn train(
     let mut train_set = Prepared::new(data, &cfg.train_alphabets, cfg.net.features)?;
     train_set.set_reverse_augment(cfg.reverse_augment);
     train_set.set_alphabet_share(cfg.alphabet_share);
+    train_set.set_warp(cfg.warp as f32);
     let mut val_set = Prepared::new(data, &cfg.val_alphabets, cfg.net.features)?;
     if cfg.fault_share > 0.0 {
         let root = strokes.ok_or_else(|| {

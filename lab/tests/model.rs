@@ -102,6 +102,7 @@ fn tiny_config() -> TrainConfig {
         pseudo_model: None,
         pseudo_clusters: None,
         alphabet_share: 0.0,
+        warp: 0.0,
     }
 }
 

@@ -333,6 +333,7 @@ fn tiny_config() -> TrainConfig {
         pseudo_model: None,
         pseudo_clusters: None,
         alphabet_share: 0.0,
+        warp: 0.0,
     }
 }
 

@@ -62,6 +62,52 @@ pub struct Augment {
     pub scale_y: f32,
     /// Reverse time (every stroke drawn backwards, strokes in reverse order).
     pub reverse: bool,
+    /// A smooth non-linear deformation, as one drawer's hand differs from another's.
+    pub warp: Warp,
+}
+
+/// A smooth displacement field over the drawing: with `u, v` a point's coordinates
+/// relative to the centre of the path's bounding box in half-sizes (`[-1, 1]` on the
+/// longest side), `x += h * (a0 sin(pi f0 u + p0) + a1 sin(pi f1 v + p1))` and
+/// `y += h * (a2 sin(pi f2 u + p2) + a3 sin(pi f3 v + p3))` (`h` the half-size): local
+/// stretches and bends of a few percent of the drawing. Zero amplitudes leave a path as it is.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Warp {
+    /// Amplitudes `a0..a3` (fractions of the half-size).
+    pub amp: [f32; 4],
+    /// Frequencies `f0..f3` (half-cycles over a half-size).
+    pub freq: [f32; 4],
+    /// Phases `p0..p3` (rad).
+    pub phase: [f32; 4],
+}
+
+impl Warp {
+    /// Displace `p` in place (see [`Warp`]).
+    fn apply(&self, p: &mut [PenPoint; STEPS]) {
+        if self.amp == [0.0; 4] {
+            return;
+        }
+        let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
+        for q in p.iter() {
+            for d in 0..2 {
+                lo[d] = lo[d].min(q[d]);
+                hi[d] = hi[d].max(q[d]);
+            }
+        }
+        let c = [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])];
+        let h = 0.5 * (hi[0] - lo[0]).max(hi[1] - lo[1]);
+        if !(h > 0.0) {
+            return;
+        }
+        let term = |k: usize, t: f32| {
+            self.amp[k] * (std::f32::consts::PI * self.freq[k] * t + self.phase[k]).sin()
+        };
+        for q in p.iter_mut() {
+            let (u, v) = ((q[0] - c[0]) / h, (q[1] - c[1]) / h);
+            q[0] += h * (term(0, u) + term(1, v));
+            q[1] += h * (term(2, u) + term(3, v));
+        }
+    }
 }
 
 impl Default for Augment {
@@ -72,6 +118,7 @@ impl Default for Augment {
             scale_x: 1.0,
             scale_y: 1.0,
             reverse: false,
+            warp: Warp::default(),
         }
     }
 }
@@ -139,6 +186,7 @@ fn augmented(path: &[PenPoint; STEPS], aug: &Augment) -> [PenPoint; STEPS] {
     if aug.reverse {
         p.reverse();
     }
+    aug.warp.apply(&mut p);
     let (cr, sr) = (aug.rotation.cos(), aug.rotation.sin());
     for pt in p.iter_mut() {
         let (x, y) = (pt[0], pt[1]);
@@ -317,6 +365,47 @@ mod tests {
             *q = [offset + scale * s, offset + 0.5 * scale * s, 1.0];
         }
         p
+    }
+
+    #[test]
+    fn a_warp_bends_a_path_smoothly_by_at_most_its_amplitude() {
+        let line = straight_line(0.05, 0.1);
+        let mut p = line;
+        Warp::default().apply(&mut p);
+        assert_eq!(p, line, "zero amplitudes leave the path as it is");
+        let warp = Warp {
+            amp: [0.05, -0.05, 0.05, 0.05],
+            freq: [1.0, 0.5, 0.75, 1.0],
+            phase: [0.3, 1.0, 2.0, 4.0],
+        };
+        warp.apply(&mut p);
+        // Half-size of the line's bounding box: half its longest side.
+        let h = 0.5 * 0.05;
+        let mut moved = 0.0f32;
+        for (a, b) in line.iter().zip(&p) {
+            let d = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt();
+            // Two terms per axis, each at most 0.05 h.
+            assert!(d <= 0.1 * h * 2f32.sqrt() + 1e-6, "moved {d}");
+            assert_eq!(a[2], b[2], "the pen state is kept");
+            moved = moved.max(d);
+        }
+        assert!(moved > 0.01 * h, "the path was not deformed ({moved})");
+        // Smooth: neighbouring samples move by nearly the same amount.
+        for w in line.iter().zip(&p).collect::<Vec<_>>().windows(2) {
+            let d0 = [w[0].1[0] - w[0].0[0], w[0].1[1] - w[0].0[1]];
+            let d1 = [w[1].1[0] - w[1].0[0], w[1].1[1] - w[1].0[1]];
+            assert!((d0[0] - d1[0]).abs() + (d0[1] - d1[1]).abs() < 0.01 * h);
+        }
+        // The features see it through `Augment`.
+        let c = PEN_CHANNELS;
+        let (mut a, mut b) = (vec![0.0; STEPS * c], vec![0.0; STEPS * c]);
+        pen_features(&line, &Augment::default(), &mut a);
+        let aug = Augment {
+            warp,
+            ..Augment::default()
+        };
+        pen_features(&line, &aug, &mut b);
+        assert_ne!(a, b);
     }
 
     #[test]
