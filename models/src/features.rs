@@ -96,7 +96,7 @@ impl Warp {
         }
         let c = [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])];
         let h = 0.5 * (hi[0] - lo[0]).max(hi[1] - lo[1]);
-        if !(h > 0.0) {
+        if h.is_nan() || h <= 0.0 {
             return;
         }
         let term = |k: usize, t: f32| {
