@@ -160,6 +160,13 @@ pub struct TrainConfig {
     /// (`features::Warp`, a fraction of the drawing's half-size). 0 = off.
     #[serde(default)]
     pub warp: f64,
+    /// Compound classes (`Prepared::add_compounds`): two labelled characters drawn as one.
+    /// 0 = off.
+    #[serde(default)]
+    pub compounds: usize,
+    /// Fraction of each batch's P classes drawn from the compound classes.
+    #[serde(default)]
+    pub compound_share: f64,
     /// Clustering of the pseudo-labels (`pseudo` mode).
     #[serde(default)]
     pub pseudo_clusters: Option<ClusterParams>,
@@ -312,6 +319,13 @@ pub struct Args {
     /// of the drawing's half-size per term); 0 = off.
     #[arg(long, default_value_t = 0.0)]
     pub warp: f64,
+    /// Compound classes: this many classes of two labelled characters (class-augmented
+    /// transforms included) drawn as one, side by side or one above the other; 0 = off.
+    #[arg(long, default_value_t = 0)]
+    pub compounds: usize,
+    /// Fraction of each batch's P classes drawn from the compound classes.
+    #[arg(long, default_value_t = 0.5)]
+    pub compound_share: f64,
 }
 
 impl Args {
@@ -383,6 +397,12 @@ impl Args {
             }),
             alphabet_share: self.alphabet_share,
             warp: self.warp,
+            compounds: self.compounds,
+            compound_share: if self.compounds > 0 {
+                self.compound_share
+            } else {
+                0.0
+            },
         }
     }
 }
@@ -659,6 +679,74 @@ impl Prepared {
         Ok(added)
     }
 
+    /// Add `n` compound classes, each two labelled classes drawn side by side or one above
+    /// the other (a random layout per class: the second part 0.6–1 times the first's size,
+    /// a gap of 0.05–0.3 of it, offset by up to ±0.2 of it). Sample `i` of a compound
+    /// class is sample `i` of each part (time-subsampled to 60 steps each, joined by 8
+    /// pen-up steps), so its drawers vary as the parts' do. Compounds are made of the
+    /// labelled classes (class-augmented transforms included) and, like pool classes, have
+    /// no corrupted plans and take `share` of each batch's classes; they cannot be combined
+    /// with a pool. Call after [`Prepared::make_faults`] and [`Prepared::augment_classes`].
+    /// Deterministic in `seed`; returns the classes added.
+    pub fn add_compounds(&mut self, n: usize, share: f64, seed: u64) -> Result<usize, TrainError> {
+        if self.kind == FeatureKind::Joints {
+            return Err(TrainError::Setup(
+                "compound classes need pen features".into(),
+            ));
+        }
+        if self.pool_classes() > 0 {
+            return Err(TrainError::Setup(
+                "compound classes cannot be combined with pool classes".into(),
+            ));
+        }
+        if !(0.0..=1.0).contains(&share) {
+            return Err(TrainError::Setup(format!(
+                "compound share {share} must be in [0, 1]"
+            )));
+        }
+        let parts = self.pool_start;
+        if parts < 2 {
+            return Err(TrainError::Setup(
+                "compound classes need two classes".into(),
+            ));
+        }
+        let mut rng = StdRng::seed_from_u64(seed ^ 0xc0_4d_90_0d);
+        for _ in 0..n {
+            let a = rng.random_range(0..parts);
+            let b = loop {
+                let b = rng.random_range(0..parts);
+                if b != a {
+                    break b;
+                }
+            };
+            let layout = CompoundLayout {
+                below: rng.random_bool(0.5),
+                scale: rng.random_range(0.6..1.0),
+                gap: rng.random_range(0.05..0.3),
+                offset: rng.random_range(-0.2..0.2),
+            };
+            let label = self.by_class.len() as u32;
+            let pairs: Vec<(usize, usize)> = self.by_class[a]
+                .iter()
+                .copied()
+                .zip(self.by_class[b].iter().copied())
+                .collect();
+            let mut members = Vec::with_capacity(pairs.len());
+            for (i, j) in pairs {
+                members.push(self.raw.len());
+                self.pen
+                    .push(compound_path(&self.pen[i], &self.pen[j], layout));
+                self.raw.push(self.raw[i]);
+                self.faults.push(Vec::new());
+                self.labels.push(label);
+                self.data_index.push(self.data_index[i]);
+            }
+            self.by_class.push(members);
+        }
+        self.pool_share = share;
+        Ok(n)
+    }
+
     /// Number of pool classes ([`Prepared::add_pool`]).
     pub fn pool_classes(&self) -> usize {
         self.by_class.len() - self.pool_start
@@ -919,6 +1007,11 @@ impl Prepared {
         &self.raw
     }
 
+    /// The pen path of every sample (empty for joint features).
+    pub fn pen_paths(&self) -> &[[PenPoint; STEPS]] {
+        &self.pen
+    }
+
     /// Dense class label per sample.
     pub fn labels(&self) -> &[u32] {
         &self.labels
@@ -929,6 +1022,89 @@ impl Prepared {
     pub fn data_indices(&self) -> &[usize] {
         &self.data_index
     }
+}
+
+/// Where the second part of a compound class goes ([`Prepared::add_compounds`]); lengths
+/// are fractions of the first part's longest side.
+#[derive(Debug, Clone, Copy)]
+struct CompoundLayout {
+    /// Below the first part (else right of it).
+    below: bool,
+    /// Longest side of the second part.
+    scale: f32,
+    /// Gap between the two parts' bounding boxes.
+    gap: f32,
+    /// Offset across the layout direction, between the boxes' centres.
+    offset: f32,
+}
+
+/// Pen-down bounding box `(min, max)` of a path (all points if the pen never touches).
+fn pen_box(p: &[PenPoint]) -> ([f32; 2], [f32; 2]) {
+    let mut lo = [f32::INFINITY; 2];
+    let mut hi = [f32::NEG_INFINITY; 2];
+    let down = p.iter().any(|q| q[2] > 0.5);
+    for q in p.iter().filter(|q| !down || q[2] > 0.5) {
+        for d in 0..2 {
+            lo[d] = lo[d].min(q[d]);
+            hi[d] = hi[d].max(q[d]);
+        }
+    }
+    (lo, hi)
+}
+
+/// Steps of each part of a compound and of the pen-up travel between them.
+const COMPOUND_PART: usize = 60;
+const COMPOUND_TRAVEL: usize = STEPS - 2 * COMPOUND_PART;
+
+/// `a` and `b` drawn as one character (see [`CompoundLayout`]).
+fn compound_path(
+    a: &[PenPoint; STEPS],
+    b: &[PenPoint; STEPS],
+    l: CompoundLayout,
+) -> [PenPoint; STEPS] {
+    let sub = |p: &[PenPoint; STEPS]| -> [PenPoint; COMPOUND_PART] {
+        std::array::from_fn(|k| {
+            p[(k * (STEPS - 1) + (COMPOUND_PART - 1) / 2) / (COMPOUND_PART - 1)]
+        })
+    };
+    let (pa, mut pb) = (sub(a), sub(b));
+    let (alo, ahi) = pen_box(&pa);
+    let (blo, bhi) = pen_box(&pb);
+    let size_a = (ahi[0] - alo[0]).max(ahi[1] - alo[1]).max(1e-6);
+    let size_b = (bhi[0] - blo[0]).max(bhi[1] - blo[1]).max(1e-6);
+    let k = l.scale * size_a / size_b;
+    let bc = [0.5 * (blo[0] + bhi[0]), 0.5 * (blo[1] + bhi[1])];
+    let ac = [0.5 * (alo[0] + ahi[0]), 0.5 * (alo[1] + ahi[1])];
+    let half_b = [0.5 * k * (bhi[0] - blo[0]), 0.5 * k * (bhi[1] - blo[1])];
+    // Centre of the placed second part.
+    let centre = if l.below {
+        [
+            ac[0] + l.offset * size_a,
+            alo[1] - l.gap * size_a - half_b[1],
+        ]
+    } else {
+        [
+            ahi[0] + l.gap * size_a + half_b[0],
+            ac[1] + l.offset * size_a,
+        ]
+    };
+    for q in pb.iter_mut() {
+        q[0] = centre[0] + k * (q[0] - bc[0]);
+        q[1] = centre[1] + k * (q[1] - bc[1]);
+    }
+    let mut out = [[0.0f32; 3]; STEPS];
+    out[..COMPOUND_PART].copy_from_slice(&pa);
+    let (from, to) = (pa[COMPOUND_PART - 1], pb[0]);
+    for t in 0..COMPOUND_TRAVEL {
+        let s = (t + 1) as f32 / (COMPOUND_TRAVEL + 1) as f32;
+        out[COMPOUND_PART + t] = [
+            from[0] + s * (to[0] - from[0]),
+            from[1] + s * (to[1] - from[1]),
+            0.0,
+        ];
+    }
+    out[COMPOUND_PART + COMPOUND_TRAVEL..].copy_from_slice(&pb);
+    out
 }
 
 /// Random augmentation; with `reverse` false the draw for time reversal is made and
@@ -1267,6 +1443,12 @@ pub fn train(
     }
     if cfg.pool_mode != PoolMode::None {
         add_pool_classes(&mut train_set, data, cfg, out, quiet)?;
+    }
+    if cfg.compounds > 0 {
+        let added = train_set.add_compounds(cfg.compounds, cfg.compound_share, cfg.seed)?;
+        if !quiet {
+            eprintln!("compound classes: {added} ({} in all)", train_set.classes());
+        }
     }
     if train_set.classes() < cfg.p_classes.min(2) || val_set.classes() < 5 {
         return Err(TrainError::Setup(format!(

@@ -103,6 +103,8 @@ fn tiny_config() -> TrainConfig {
         pseudo_clusters: None,
         alphabet_share: 0.0,
         warp: 0.0,
+        compounds: 0,
+        compound_share: 0.0,
     }
 }
 
@@ -599,4 +601,66 @@ fn alphabet_batches_draw_their_classes_from_one_alphabet() {
             .collect();
         assert!(own.len() >= 5, "{first}: {own:?}");
     }
+}
+
+/// Compound classes: two real characters drawn as one. Every sample of a compound class is
+/// the (time-subsampled) first part, a pen-up travel, and the second part placed right of
+/// or below the first at 0.6–1 times its size; the classes take their share of batches.
+#[test]
+fn compound_classes_join_two_real_characters_and_take_their_share() {
+    use rand::{SeedableRng, rngs::StdRng};
+    let data = small_dataset();
+    let names = ["Latin".to_string(), "Greek".to_string()];
+    let mut set = Prepared::new(data, &names, FeatureKind::Pen).expect("prepare");
+    let (classes, samples) = (set.classes(), set.len());
+    assert_eq!(set.add_compounds(30, 0.5, 7).expect("compounds"), 30);
+    assert_eq!(set.classes(), classes + 30);
+    assert_eq!(set.pool_classes(), 30);
+    let pen_box = |p: &[[f32; 3]]| {
+        let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
+        for q in p.iter().filter(|q| q[2] > 0.5) {
+            for d in 0..2 {
+                lo[d] = lo[d].min(q[d]);
+                hi[d] = hi[d].max(q[d]);
+            }
+        }
+        (lo, hi)
+    };
+    let mut checked = 0;
+    for i in samples..set.len() {
+        let p = &set.pen_paths()[i];
+        assert!(
+            p[60..68].iter().all(|q| q[2] == 0.0),
+            "the travel is pen-up"
+        );
+        let (alo, ahi) = pen_box(&p[..60]);
+        let (blo, bhi) = pen_box(&p[68..]);
+        let size = |lo: [f32; 2], hi: [f32; 2]| (hi[0] - lo[0]).max(hi[1] - lo[1]);
+        let ratio = size(blo, bhi) / size(alo, ahi);
+        assert!(
+            (0.59..=1.01).contains(&ratio),
+            "second part {ratio} of the first"
+        );
+        let right = blo[0] >= ahi[0] - 1e-6;
+        let below = bhi[1] <= alo[1] + 1e-6;
+        assert!(
+            right || below,
+            "the parts overlap: {alo:?}..{ahi:?} and {blo:?}..{bhi:?}"
+        );
+        // The first part is a real training drawing, subsampled in time.
+        let src = &set.pen_paths()[(0..samples)
+            .find(|&j| set.data_indices()[j] == set.data_indices()[i])
+            .expect("source")];
+        assert_eq!(p[0], src[0]);
+        assert_eq!(p[59], src[127]);
+        checked += 1;
+    }
+    assert!(checked >= 30 * 15, "{checked} compound samples");
+    // Half of a batch's classes are compounds.
+    let mut rng = StdRng::seed_from_u64(1);
+    let (_, labels) = set.sample_pk(8, 2, &mut rng);
+    let compound = labels.iter().filter(|&&l| l as usize >= classes).count();
+    assert_eq!(compound, 8, "4 of 8 classes, 2 samples each");
+    // Not with a pool, and only with pen features.
+    assert!(set.add_compounds(1, 0.5, 7).is_err());
 }

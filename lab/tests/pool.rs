@@ -334,6 +334,8 @@ fn tiny_config() -> TrainConfig {
         pseudo_clusters: None,
         alphabet_share: 0.0,
         warp: 0.0,
+        compounds: 0,
+        compound_share: 0.0,
     }
 }
 
