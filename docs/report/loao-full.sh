@@ -43,6 +43,14 @@ for i in "${!alphabets[@]}"; do
       pool_args+=(--pseudo-model "$PSEUDO_FROM/${test_a//[()]/}/model.safetensors")
     fi
   fi
+  # With TEACHERS_FROM=RUN1,RUN2,...: relational distillation from those runs' models of
+  # this fold (models that never saw the test alphabet either).
+  if [[ -n ${TEACHERS_FROM:-} ]]; then
+    IFS=, read -r -a teacher_runs <<< "$TEACHERS_FROM"
+    teachers=()
+    for t in "${teacher_runs[@]}"; do teachers+=("$t/${test_a//[()]/}/model.safetensors"); done
+    pool_args+=(--teachers "$(IFS=,; echo "${teachers[*]}")")
+  fi
   if [[ ! -f $dir/state.json ]] || ! grep -q '"finished": true' "$dir/state.json"; then
     resume=(); [[ -f $dir/state.json ]] && resume=(--resume)
     mkdir -p "$dir"

@@ -18,7 +18,7 @@ enum Command {
     /// Plot one drawing of a dataset: strokes, FK pen tip, joint curves.
     Plot(guardian_lab::plot::Args),
     /// Train the embedding network.
-    Train(guardian_lab::train::Args),
+    Train(Box<guardian_lab::train::Args>),
     /// Few-shot evaluation of a model or a baseline.
     Eval(guardian_lab::eval::Args),
     /// Markdown + PNG report of a trained model.

@@ -167,6 +167,13 @@ pub struct TrainConfig {
     /// Fraction of each batch's P classes drawn from the compound classes.
     #[serde(default)]
     pub compound_share: f64,
+    /// Teacher models of relational distillation (their embeddings concatenated; none =
+    /// off).
+    #[serde(default)]
+    pub teachers: Vec<PathBuf>,
+    /// Weight of the distillation term (`loss::distance_distillation_loss`).
+    #[serde(default)]
+    pub distill_weight: f64,
     /// Clustering of the pseudo-labels (`pseudo` mode).
     #[serde(default)]
     pub pseudo_clusters: Option<ClusterParams>,
@@ -326,6 +333,13 @@ pub struct Args {
     /// Fraction of each batch's P classes drawn from the compound classes.
     #[arg(long, default_value_t = 0.5)]
     pub compound_share: f64,
+    /// Relational distillation from these models (comma-separated; an ensemble when more
+    /// than one): the batch's pairwise distances are matched to theirs.
+    #[arg(long, value_delimiter = ',')]
+    pub teachers: Vec<PathBuf>,
+    /// Weight of the distillation term (with `--teachers`).
+    #[arg(long, default_value_t = 1.0)]
+    pub distill_weight: f64,
 }
 
 impl Args {
@@ -402,6 +416,12 @@ impl Args {
                 self.compound_share
             } else {
                 0.0
+            },
+            teachers: self.teachers.clone(),
+            distill_weight: if self.teachers.is_empty() {
+                0.0
+            } else {
+                self.distill_weight
             },
         }
     }
@@ -971,17 +991,26 @@ impl Prepared {
             if self.alphabet_share > 0.0 && rng.random_bool(self.alphabet_share.min(1.0)) {
                 // The alphabet of a random class (alphabets weighted by their classes):
                 // its classes first, the others after them if it has fewer than P.
-                let alphabet = self.class_alphabet[classes[0]];
-                classes.sort_by_key(|&c| self.class_alphabet[c] != alphabet);
+                self.one_alphabet_first(&mut classes);
             }
             classes.truncate(p);
             classes
         } else {
             let n_pool = ((p as f64 * self.pool_share).round() as usize).min(self.pool_classes());
             let n_lab = (p - n_pool).min(self.pool_start);
-            let mut classes: Vec<usize> = rand::seq::index::sample(rng, self.pool_start, n_lab)
-                .into_iter()
-                .collect();
+            let mut classes: Vec<usize> =
+                if self.alphabet_share > 0.0 && rng.random_bool(self.alphabet_share.min(1.0)) {
+                    // The labelled classes from one alphabet, as without pool classes.
+                    let mut all: Vec<usize> = (0..self.pool_start).collect();
+                    all.shuffle(rng);
+                    self.one_alphabet_first(&mut all);
+                    all.truncate(n_lab);
+                    all
+                } else {
+                    rand::seq::index::sample(rng, self.pool_start, n_lab)
+                        .into_iter()
+                        .collect()
+                };
             classes.extend(
                 rand::seq::index::sample(rng, self.pool_classes(), n_pool)
                     .into_iter()
@@ -1000,6 +1029,15 @@ impl Prepared {
             }
         }
         (idx, labels)
+    }
+
+    /// Reorder shuffled labelled `classes`: those of the first one's alphabet (alphabets are
+    /// thus weighted by their classes) first, the others after them, in their order.
+    fn one_alphabet_first(&self, classes: &mut [usize]) {
+        if let Some(&first) = classes.first() {
+            let alphabet = self.class_alphabet[first];
+            classes.sort_by_key(|&c| self.class_alphabet[c] != alphabet);
+        }
     }
 
     /// The raw inputs.
@@ -1168,6 +1206,39 @@ pub fn objective(
         total = (total + (lf * cfg.fault_weight)?)?;
     }
     Ok((total, comparable, active, n))
+}
+
+/// The distillation teachers' networks (checked to read the student's features).
+fn load_teachers(paths: &[PathBuf], features: FeatureKind) -> Result<Vec<FastNet>, TrainError> {
+    paths
+        .iter()
+        .map(|p| {
+            let m = Embedder::load(p)?;
+            if m.config().features != features {
+                return Err(TrainError::Setup(format!(
+                    "teacher {} reads {:?} features, the student {features:?}",
+                    p.display(),
+                    m.config().features
+                )));
+            }
+            Ok(m.fast().clone())
+        })
+        .collect()
+}
+
+/// Squared distances `[B, B]` between the teachers' embeddings of the batch `x`, each
+/// teacher's embedding L2-normalised and the ensemble's concatenated (`None` without
+/// teachers).
+fn teacher_distances(teachers: &[FastNet], x: &Tensor) -> Result<Option<Tensor>, TrainError> {
+    if teachers.is_empty() {
+        return Ok(None);
+    }
+    let parts = teachers
+        .iter()
+        .map(|t| embed(t, x))
+        .collect::<Result<Vec<_>, _>>()?;
+    let e = Tensor::cat(&parts, 1)?;
+    Ok(Some(loss::pairwise_sq_dist(&e)?))
 }
 
 /// Embeddings `[B, embed_dim]` of a feature batch `x [B, STEPS, F]` (no gradient).
@@ -1526,6 +1597,7 @@ pub fn train(
         });
     }
     let mut learner = Learner::new(net, cfg.weight_decay);
+    let teachers = load_teachers(&cfg.teachers, cfg.net.features)?;
     if let Some((m, v)) = opt_state {
         let opt = &mut learner.opt;
         let shapes_match = |saved: &[Vec<f32>], own: &[Vec<f32>]| {
@@ -1589,8 +1661,13 @@ pub fn train(
             let (items, labels) = train_set.with_faults(&idx, &labels, cfg.fault_share, &mut rng);
             let x = train_set.batch_items(&items, cfg.augment.then_some(&mut rng))?;
             let sources = train_set.sources(&items);
+            let teacher_d = teacher_distances(&teachers, &x)?;
             let (l, (active, n_trip)) = learner.step(&x, state.lr, |e| {
-                let (l, _, active, n) = objective(e, &labels, &sources, cfg, &mut rng)?;
+                let (mut l, _, active, n) = objective(e, &labels, &sources, cfg, &mut rng)?;
+                if let Some(d) = &teacher_d {
+                    let kd = loss::distance_distillation_loss(e, d)?;
+                    l = (l + (kd * cfg.distill_weight)?)?;
+                }
                 Ok((l, (active, n)))
             })?;
             loss_sum += f64::from(l);

@@ -336,6 +336,8 @@ fn tiny_config() -> TrainConfig {
         warp: 0.0,
         compounds: 0,
         compound_share: 0.0,
+        teachers: Vec::new(),
+        distill_weight: 0.0,
     }
 }
 

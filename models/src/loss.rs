@@ -7,6 +7,8 @@
 //!   hardest positive and hardest negative, or every valid triplet averaged over the active ones.
 //! * [`fault_triplet_loss`] — fault negatives: corrupted plans made from a class's drawings
 //!   pushed farther from the class's anchors than its positives.
+//! * [`distance_distillation_loss`] — relational distillation: the batch's pairwise
+//!   distances, each divided by their mean, matched to a teacher's.
 //! * [`contrastive_loss`] — the Siamese baseline's pair loss:
 //!   `y * d + (1 - y) * max(0, margin - sqrt(d))^2` over all pairs of the batch.
 
@@ -18,6 +20,31 @@ pub fn pairwise_sq_dist(e: &Tensor) -> candle_core::Result<Tensor> {
     let gram = e.matmul(&e.t()?)?; // [B, B]
     let d = sq.broadcast_add(&sq.t()?)?.sub(&(gram * 2.0)?)?;
     d.relu()
+}
+
+/// Relational distillation: `mean((D_s / mean D_s - D_t / mean D_t)^2)` over the pairs
+/// `i != j` of the batch, with `D_s` the squared distances of the student's embeddings
+/// `e [B, E]` and `D_t [B, B]` the teacher's (so only the teacher's geometry, not its
+/// scale, is learned).
+pub fn distance_distillation_loss(e: &Tensor, teacher: &Tensor) -> candle_core::Result<Tensor> {
+    let b = e.dim(0)?;
+    if b < 2 {
+        return Tensor::new(0f32, e.device());
+    }
+    let off: Vec<f32> = (0..b * b)
+        .map(|k| if k / b == k % b { 0.0 } else { 1.0 })
+        .collect();
+    let off = Tensor::from_vec(off, (b, b), e.device())?.to_dtype(e.dtype())?;
+    let pairs = (b * (b - 1)) as f64;
+    let ds = pairwise_sq_dist(e)?.mul(&off)?;
+    let dt = teacher.to_dtype(e.dtype())?.mul(&off)?;
+    let ms = (ds.sum_all()? / pairs)?;
+    let mt = (dt.sum_all()? / pairs)?;
+    let diff = ds
+        .broadcast_div(&(ms + 1e-6)?)?
+        .sub(&dt.broadcast_div(&(mt + 1e-6)?)?)?
+        .mul(&off)?;
+    diff.sqr()?.sum_all()? / pairs
 }
 
 /// The paper's triplet loss on explicit triplets `[B, E]` each.
@@ -262,6 +289,34 @@ mod tests {
 
     /// Value and gradient (with respect to the embeddings) of the enumerated loss equal the
     /// hinge form on random batches, in f64.
+    #[test]
+    fn distillation_matches_the_teachers_geometry_not_its_scale() -> candle_core::Result<()> {
+        let e = t(&[[0.0, 0.0], [1.0, 0.0], [0.0, 2.0], [0.0, 3.0]]);
+        // The same configuration, 3x larger and moved: the same geometry, loss 0.
+        let moved = t(&[[5.0, 5.0], [8.0, 5.0], [5.0, 11.0], [5.0, 14.0]]);
+        let same = distance_distillation_loss(&e, &pairwise_sq_dist(&moved)?)?;
+        assert!(same.to_scalar::<f32>()?.abs() < 1e-6);
+        // Another geometry: a positive loss, by hand. Teacher: every pair at distance 1.
+        let ones = Tensor::ones((4, 4), candle_core::DType::F32, &Device::Cpu)?;
+        let l = distance_distillation_loss(&e, &ones)?.to_scalar::<f32>()?;
+        let d = [1.0f32, 4.0, 9.0, 5.0, 10.0, 1.0]; // the 6 pairs of e
+        let m = d.iter().sum::<f32>() / 6.0;
+        let want = d.iter().map(|x| (x / m - 1.0).powi(2)).sum::<f32>() / 6.0;
+        assert!((l - want).abs() < 1e-4, "{l} vs {want}");
+        // Its gradient moves the student towards the teacher's geometry.
+        let v = candle_core::Var::from_tensor(&e)?;
+        let loss = distance_distillation_loss(v.as_tensor(), &ones)?;
+        let g = loss
+            .backward()?
+            .get(v.as_tensor())
+            .expect("gradient")
+            .clone();
+        let stepped = (v.as_tensor() - (g * 0.05)?)?;
+        let after = distance_distillation_loss(&stepped, &ones)?.to_scalar::<f32>()?;
+        assert!(after < l, "{after} >= {l}");
+        Ok(())
+    }
+
     #[test]
     fn active_triplet_mean_matches_the_hinge_form() -> candle_core::Result<()> {
         use rand::{Rng, SeedableRng};
