@@ -666,3 +666,76 @@ fn compound_classes_join_two_real_characters_and_take_their_share() {
     // Not with a pool, and only with pen features.
     assert!(set.add_compounds(1, 0.5, 7).is_err());
 }
+
+/// Relational distillation: a student trained with a teacher's pairwise distances ends up
+/// with a geometry nearer the teacher's than the same student trained without it; a teacher
+/// that reads other features is refused.
+#[test]
+fn distillation_pulls_the_students_distances_towards_the_teachers() {
+    let data = small_dataset();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let teacher_dir = dir.path().join("teacher");
+    let mut cfg = tiny_config();
+    cfg.max_epochs = 3;
+    train::train(data, &cfg, None, &teacher_dir, false, true).expect("teacher");
+    let teacher_path = teacher_dir.join("last.safetensors");
+    let pool = Pool::new(data, &["Greek".to_string()]).expect("pool");
+    let distances = |path: &Path| -> Vec<f32> {
+        let mut m = Embedder::load(path).expect("load");
+        m.set_reverse_average(false);
+        let e = pool.embed(&m).expect("embed");
+        let mut d = Vec::new();
+        for i in 0..e.len() {
+            for j in i + 1..e.len() {
+                d.push(e[i].iter().zip(&e[j]).map(|(a, b)| (a - b) * (a - b)).sum());
+            }
+        }
+        d
+    };
+    let corr = |a: &[f32], b: &[f32]| -> f64 {
+        let n = a.len() as f64;
+        let (ma, mb) = (
+            a.iter().map(|&x| f64::from(x)).sum::<f64>() / n,
+            b.iter().map(|&x| f64::from(x)).sum::<f64>() / n,
+        );
+        let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+        for (&x, &y) in a.iter().zip(b) {
+            let (x, y) = (f64::from(x) - ma, f64::from(y) - mb);
+            ab += x * y;
+            aa += x * x;
+            bb += y * y;
+        }
+        ab / (aa * bb).sqrt()
+    };
+    let teacher = distances(&teacher_path);
+    cfg.seed = 2;
+    cfg.steps_per_epoch = 20;
+    let plain_dir = dir.path().join("plain");
+    train::train(data, &cfg, None, &plain_dir, false, true).expect("plain student");
+    let plain = corr(&distances(&plain_dir.join("last.safetensors")), &teacher);
+    cfg.teachers = vec![teacher_path.clone()];
+    cfg.distill_weight = 10.0;
+    let kd_dir = dir.path().join("kd");
+    train::train(data, &cfg, None, &kd_dir, false, true).expect("distilled student");
+    let kd = corr(&distances(&kd_dir.join("last.safetensors")), &teacher);
+    assert!(
+        kd > plain + 0.1,
+        "distance correlation with the teacher: {kd} vs {plain}"
+    );
+    // A teacher of other features is refused, naming it.
+    let other = dir.path().join("strokes.safetensors");
+    Embedder::random_with(
+        NetConfig {
+            features: FeatureKind::PenStrokes,
+            ..tiny_net()
+        },
+        3,
+    )
+    .expect("net")
+    .save(&other)
+    .expect("save");
+    cfg.teachers = vec![other];
+    let err = train::train(data, &cfg, None, &dir.path().join("bad"), false, true)
+        .expect_err("a PenStrokes teacher for a Pen student");
+    assert!(err.to_string().contains("strokes.safetensors"), "{err}");
+}
