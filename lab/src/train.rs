@@ -709,16 +709,7 @@ impl Prepared {
     /// with a pool. Call after [`Prepared::make_faults`] and [`Prepared::augment_classes`].
     /// Deterministic in `seed`; returns the classes added.
     pub fn add_compounds(&mut self, n: usize, share: f64, seed: u64) -> Result<usize, TrainError> {
-        if self.kind == FeatureKind::Joints {
-            return Err(TrainError::Setup(
-                "compound classes need pen features".into(),
-            ));
-        }
-        if self.pool_classes() > 0 {
-            return Err(TrainError::Setup(
-                "compound classes cannot be combined with pool classes".into(),
-            ));
-        }
+        self.check_new_classes("compound classes")?;
         if !(0.0..=1.0).contains(&share) {
             return Err(TrainError::Setup(format!(
                 "compound share {share} must be in [0, 1]"
@@ -765,6 +756,20 @@ impl Prepared {
         }
         self.pool_share = share;
         Ok(n)
+    }
+
+    /// Classes made from the labelled ones (`what`) need pen paths, and must come before
+    /// any pool or compound class.
+    fn check_new_classes(&self, what: &str) -> Result<(), TrainError> {
+        if self.kind == FeatureKind::Joints {
+            return Err(TrainError::Setup(format!("{what}: needs pen features")));
+        }
+        if self.pool_classes() > 0 {
+            return Err(TrainError::Setup(format!(
+                "{what}: must come before pool or compound classes are added"
+            )));
+        }
+        Ok(())
     }
 
     /// Number of pool classes ([`Prepared::add_pool`]).
@@ -836,16 +841,7 @@ impl Prepared {
     /// Call after [`Prepared::make_faults`] and before [`Prepared::add_pool`] (pool classes
     /// are not augmented). Returns the plan.
     pub fn augment_classes(&mut self, rule: SymmetryRule) -> Result<AugmentPlan, TrainError> {
-        if self.kind == FeatureKind::Joints {
-            return Err(TrainError::Setup(
-                "class augmentation needs pen features".into(),
-            ));
-        }
-        if self.pool_classes() > 0 {
-            return Err(TrainError::Setup(
-                "class augmentation must come before the pool classes are added".into(),
-            ));
-        }
+        self.check_new_classes("class augmentation")?;
         let groups: Vec<Vec<&[PenPoint; STEPS]>> = self
             .by_class
             .iter()
