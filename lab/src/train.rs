@@ -1105,8 +1105,14 @@ fn compound_path(
     let (alo, ahi) = pen_box(&pa);
     let (blo, bhi) = pen_box(&pb);
     let size_a = (ahi[0] - alo[0]).max(ahi[1] - alo[1]).max(1e-6);
-    let size_b = (bhi[0] - blo[0]).max(bhi[1] - blo[1]).max(1e-6);
-    let k = l.scale * size_a / size_b;
+    let size_b = (bhi[0] - blo[0]).max(bhi[1] - blo[1]);
+    // A second part of (nearly) no extent, a dot, keeps its own size rather than being
+    // blown up to the first part's.
+    let k = if size_b > 1e-3 * size_a {
+        l.scale * size_a / size_b
+    } else {
+        1.0
+    };
     let bc = [0.5 * (blo[0] + bhi[0]), 0.5 * (blo[1] + bhi[1])];
     let ac = [0.5 * (alo[0] + ahi[0]), 0.5 * (alo[1] + ahi[1])];
     let half_b = [0.5 * k * (bhi[0] - blo[0]), 0.5 * k * (bhi[1] - blo[1])];
