@@ -1466,6 +1466,18 @@ pub fn train(
             cfg.alphabet_share
         )));
     }
+    if !(0.0..1.0).contains(&cfg.warp) {
+        return Err(TrainError::Setup(format!(
+            "warp {} must be in [0, 1)",
+            cfg.warp
+        )));
+    }
+    if !(cfg.distill_weight.is_finite() && cfg.distill_weight >= 0.0) {
+        return Err(TrainError::Setup(format!(
+            "distillation weight {} must be finite and >= 0",
+            cfg.distill_weight
+        )));
+    }
     let mut train_set = Prepared::new(data, &cfg.train_alphabets, cfg.net.features)?;
     train_set.set_reverse_augment(cfg.reverse_augment);
     train_set.set_alphabet_share(cfg.alphabet_share);

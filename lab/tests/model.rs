@@ -738,4 +738,16 @@ fn distillation_pulls_the_students_distances_towards_the_teachers() {
     let err = train::train(data, &cfg, None, &dir.path().join("bad"), false, true)
         .expect_err("a PenStrokes teacher for a Pen student");
     assert!(err.to_string().contains("strokes.safetensors"), "{err}");
+    // Out-of-range settings are refused before anything is trained.
+    cfg.teachers = vec![teacher_path];
+    for (weight, warp) in [
+        (f64::NAN, 0.0),
+        (-1.0, 0.0),
+        (1.0, f64::INFINITY),
+        (1.0, -0.1),
+    ] {
+        cfg.distill_weight = weight;
+        cfg.warp = warp;
+        assert!(train::train(data, &cfg, None, &dir.path().join("bad2"), false, true).is_err());
+    }
 }
