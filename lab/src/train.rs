@@ -1072,20 +1072,6 @@ struct CompoundLayout {
     offset: f32,
 }
 
-/// Pen-down bounding box `(min, max)` of a path (all points if the pen never touches).
-fn pen_box(p: &[PenPoint]) -> ([f32; 2], [f32; 2]) {
-    let mut lo = [f32::INFINITY; 2];
-    let mut hi = [f32::NEG_INFINITY; 2];
-    let down = p.iter().any(|q| q[2] > 0.5);
-    for q in p.iter().filter(|q| !down || q[2] > 0.5) {
-        for d in 0..2 {
-            lo[d] = lo[d].min(q[d]);
-            hi[d] = hi[d].max(q[d]);
-        }
-    }
-    (lo, hi)
-}
-
 /// Steps of each part of a compound and of the pen-up travel between them.
 const COMPOUND_PART: usize = 60;
 const COMPOUND_TRAVEL: usize = STEPS - 2 * COMPOUND_PART;
@@ -1102,8 +1088,8 @@ fn compound_path(
         })
     };
     let (pa, mut pb) = (sub(a), sub(b));
-    let (alo, ahi) = pen_box(&pa);
-    let (blo, bhi) = pen_box(&pb);
+    let (alo, ahi) = features::pen_down_box(&pa);
+    let (blo, bhi) = features::pen_down_box(&pb);
     let size_a = (ahi[0] - alo[0]).max(ahi[1] - alo[1]).max(1e-6);
     let size_b = (bhi[0] - blo[0]).max(bhi[1] - blo[1]);
     // A second part of (nearly) no extent, a dot, keeps its own size rather than being

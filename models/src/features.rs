@@ -87,13 +87,7 @@ impl Warp {
         if self.amp == [0.0; 4] {
             return;
         }
-        let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
-        for q in p.iter() {
-            for d in 0..2 {
-                lo[d] = lo[d].min(q[d]);
-                hi[d] = hi[d].max(q[d]);
-            }
-        }
+        let (lo, hi) = bounds(p.iter());
         let c = [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])];
         let h = 0.5 * (hi[0] - lo[0]).max(hi[1] - lo[1]);
         if h.is_nan() || h <= 0.0 {
@@ -318,19 +312,31 @@ fn joint_features(x: &Resampled, out: &mut [f32]) {
     }
 }
 
-/// Pen features of a pen path after an augmentation (see the module docs).
-pub fn pen_features(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
-    let c = PEN_CHANNELS;
-    let p = augmented(path, aug);
-    // Normalise by the bounding box of the pen-down part (all points if never down).
-    let any_down = p.iter().any(|q| q[2] > 0.5);
+/// Bounding box `(min, max)` of the `x, y` of `points` (infinite bounds for none).
+fn bounds<'a>(points: impl Iterator<Item = &'a PenPoint>) -> ([f32; 2], [f32; 2]) {
     let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
-    for q in p.iter().filter(|q| !any_down || q[2] > 0.5) {
+    for q in points {
         for d in 0..2 {
             lo[d] = lo[d].min(q[d]);
             hi[d] = hi[d].max(q[d]);
         }
     }
+    (lo, hi)
+}
+
+/// Bounding box `(min, max)` of a path's pen-down part (all of it if the pen never
+/// touches): what the pen features normalise position and size by.
+pub fn pen_down_box(path: &[PenPoint]) -> ([f32; 2], [f32; 2]) {
+    let any_down = path.iter().any(|q| q[2] > 0.5);
+    bounds(path.iter().filter(|q| !any_down || q[2] > 0.5))
+}
+
+/// Pen features of a pen path after an augmentation (see the module docs).
+pub fn pen_features(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
+    let c = PEN_CHANNELS;
+    let p = augmented(path, aug);
+    // Normalise by the bounding box of the pen-down part (all points if never down).
+    let (lo, hi) = pen_down_box(&p);
     let centre = [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])];
     let half = (0.5 * (hi[0] - lo[0]).max(hi[1] - lo[1])).max(2e-3);
     for t in 0..STEPS {
