@@ -20,6 +20,9 @@ use rand::{Rng, SeedableRng};
 
 use candle_core::Var;
 
+mod common;
+use common::{tiny_config, tiny_net};
+
 /// `<workspace root>/../shared/omniglot/strokes`.
 fn shared_strokes() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/omniglot/strokes")
@@ -51,63 +54,9 @@ fn small_dataset() -> &'static Dataset {
     })
 }
 
-fn tiny_net() -> NetConfig {
-    NetConfig {
-        features: FeatureKind::Pen,
-        channels: vec![16, 32],
-        kernel: 5,
-        embed_dim: guardian_models::embedder::EMBED_DIM,
-        l2_normalize: true,
-        reverse_average: false,
-    }
-}
-
 /// A tiny network (seed 11) in training, with its optimiser.
 fn trainable_tiny_net() -> Learner {
     Learner::new(FastNet::random(tiny_net(), 11).expect("net"), 1e-4)
-}
-
-/// The training configuration of the pipeline tests: a tiny network, Latin / Greek.
-fn tiny_config() -> TrainConfig {
-    TrainConfig {
-        net: tiny_net(),
-        loss: LossKind::BatchHard,
-        margin: 0.2,
-        train_alphabets: vec!["Latin".into()],
-        val_alphabets: vec!["Greek".into()],
-        p_classes: 6,
-        k_samples: 4,
-        steps_per_epoch: 5,
-        max_epochs: 2,
-        lr: 3e-3,
-        weight_decay: 1e-4,
-        plateau_patience: 3,
-        lr_factor: 0.5,
-        min_lr: 1e-5,
-        early_stop_patience: 10,
-        augment: true,
-        reverse_augment: true,
-        seed: 1,
-        val_episodes: 50,
-        fault_share: 0.0,
-        fault_variants: 0,
-        fault_weight: 0.0,
-        fault_margin: 0.0,
-        fault_kinds: Vec::new(),
-        class_augment: false,
-        symmetry_quantile: 0.0,
-        pool_mode: Default::default(),
-        pool: None,
-        pool_share: 0.0,
-        pseudo_model: None,
-        pseudo_clusters: None,
-        alphabet_share: 0.0,
-        warp: 0.0,
-        compounds: 0,
-        compound_share: 0.0,
-        teachers: Vec::new(),
-        distill_weight: 0.0,
-    }
 }
 
 /// Mean same-class and different-class squared distances over all pairs.

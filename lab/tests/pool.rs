@@ -12,9 +12,10 @@ use guardian_lab::strokes::scan;
 use guardian_lab::train::{self, LossKind, Prepared, TrainConfig};
 use guardian_models::embedder::Embedder;
 use guardian_models::features::FeatureKind;
-use guardian_models::net::NetConfig;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
+
+mod common;
 
 fn shared() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/omniglot")
@@ -292,52 +293,15 @@ fn batches_draw_their_share_of_pool_classes_and_pool_samples_get_no_faults() {
     }
 }
 
+/// The pool tests' training: the pipeline tests' tiny configuration with batch-all, one
+/// short epoch and fewer validation episodes.
 fn tiny_config() -> TrainConfig {
     TrainConfig {
-        net: NetConfig {
-            features: FeatureKind::Pen,
-            channels: vec![16, 32],
-            kernel: 5,
-            embed_dim: guardian_models::embedder::EMBED_DIM,
-            l2_normalize: true,
-            reverse_average: false,
-        },
         loss: LossKind::BatchAll,
-        margin: 0.2,
-        train_alphabets: vec!["Latin".into()],
-        val_alphabets: vec!["Greek".into()],
-        p_classes: 6,
-        k_samples: 4,
         steps_per_epoch: 4,
         max_epochs: 1,
-        lr: 3e-3,
-        weight_decay: 1e-4,
-        plateau_patience: 3,
-        lr_factor: 0.5,
-        min_lr: 1e-5,
-        early_stop_patience: 10,
-        augment: true,
-        reverse_augment: true,
-        seed: 1,
         val_episodes: 20,
-        fault_share: 0.0,
-        fault_variants: 0,
-        fault_weight: 0.0,
-        fault_margin: 0.0,
-        fault_kinds: Vec::new(),
-        class_augment: false,
-        symmetry_quantile: 0.0,
-        pool_mode: PoolMode::None,
-        pool: None,
-        pool_share: 0.0,
-        pseudo_model: None,
-        pseudo_clusters: None,
-        alphabet_share: 0.0,
-        warp: 0.0,
-        compounds: 0,
-        compound_share: 0.0,
-        teachers: Vec::new(),
-        distill_weight: 0.0,
+        ..common::tiny_config()
     }
 }
 

@@ -1,0 +1,61 @@
+//! Helpers shared by the training tests of `model.rs` and `pool.rs`.
+#![allow(dead_code)] // each test crate uses its own subset
+
+use guardian_lab::train::{LossKind, TrainConfig};
+use guardian_models::features::FeatureKind;
+use guardian_models::net::NetConfig;
+
+/// A tiny pen-feature network (16-32 channels).
+pub fn tiny_net() -> NetConfig {
+    NetConfig {
+        features: FeatureKind::Pen,
+        channels: vec![16, 32],
+        kernel: 5,
+        embed_dim: guardian_models::embedder::EMBED_DIM,
+        l2_normalize: true,
+        reverse_average: false,
+    }
+}
+
+/// The training configuration of the pipeline tests: a tiny network, Latin / Greek.
+pub fn tiny_config() -> TrainConfig {
+    TrainConfig {
+        net: tiny_net(),
+        loss: LossKind::BatchHard,
+        margin: 0.2,
+        train_alphabets: vec!["Latin".into()],
+        val_alphabets: vec!["Greek".into()],
+        p_classes: 6,
+        k_samples: 4,
+        steps_per_epoch: 5,
+        max_epochs: 2,
+        lr: 3e-3,
+        weight_decay: 1e-4,
+        plateau_patience: 3,
+        lr_factor: 0.5,
+        min_lr: 1e-5,
+        early_stop_patience: 10,
+        augment: true,
+        reverse_augment: true,
+        seed: 1,
+        val_episodes: 50,
+        fault_share: 0.0,
+        fault_variants: 0,
+        fault_weight: 0.0,
+        fault_margin: 0.0,
+        fault_kinds: Vec::new(),
+        class_augment: false,
+        symmetry_quantile: 0.0,
+        pool_mode: Default::default(),
+        pool: None,
+        pool_share: 0.0,
+        pseudo_model: None,
+        pseudo_clusters: None,
+        alphabet_share: 0.0,
+        warp: 0.0,
+        compounds: 0,
+        compound_share: 0.0,
+        teachers: Vec::new(),
+        distill_weight: 0.0,
+    }
+}
