@@ -1,6 +1,6 @@
 """PyTorch reference for `cargo bench -p guardian-lab --bench train_throughput`.
 
-The same network as guardian's embedding net (pen features, "same" convolutions over time
+The same network as guardian's embedding net (`--picture`: the picture network; otherwise pen features, "same" convolutions over time
 with ReLU, max pool of 2 after every layer but the last, global mean and max over time
 concatenated, a linear layer, L2 normalisation), the same batch-all triplet loss on squared
 distances averaged over the active triplets, and AdamW with the same settings, on the
@@ -25,6 +25,28 @@ def load(path):
             y = torch.frombuffer(bytearray(f.read(4 * b)), dtype=torch.int32)
             batches.append((x.reshape(b, l, c).clone(), y.clone().long()))
     return batches, c
+
+
+class PictureNet(torch.nn.Module):
+    """guardian's picture network: per layer a "same" 3x3 convolution, ReLU and a 2x2 max
+    pool; the global mean, a linear layer, L2 normalisation."""
+
+    def __init__(self, channels, kernel, embed_dim):
+        super().__init__()
+        self.convs = torch.nn.ModuleList()
+        c_in = 1
+        for c in channels:
+            self.convs.append(torch.nn.Conv2d(c_in, c, kernel, padding=kernel // 2))
+            c_in = c
+        self.fc = torch.nn.Linear(c_in, embed_dim)
+
+    def forward(self, x):
+        b, pixels, _ = x.shape
+        side = int(round(pixels ** 0.5))
+        h = x.reshape(b, 1, side, side)
+        for conv in self.convs:
+            h = F.max_pool2d(F.relu(conv(h)), 2)
+        return F.normalize(self.fc(h.mean((2, 3))), dim=1, eps=1e-6)
 
 
 class Net(torch.nn.Module):
@@ -68,11 +90,16 @@ def main():
     p.add_argument("--margin", type=float, default=0.2)
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--weight-decay", type=float, default=1e-4)
+    p.add_argument("--picture", action="store_true", help="the picture network")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     torch.manual_seed(1)
     batches, c_in = load(a.data)
-    net = Net(c_in, [int(v) for v in a.channels.split(",")], a.kernel, a.embed_dim)
+    channels = [int(v) for v in a.channels.split(",")]
+    if a.picture:
+        net = PictureNet(channels, a.kernel, a.embed_dim)
+    else:
+        net = Net(c_in, channels, a.kernel, a.embed_dim)
     opt = torch.optim.AdamW(net.parameters(), lr=a.lr, weight_decay=a.weight_decay)
 
     def step(i):

@@ -14,9 +14,12 @@
 //! Rounds alternate between the implementations so that each ratio compares figures taken
 //! under the same load; the median round is reported.
 //!
+//! Both architectures are measured: the sequence network on pen features (32,64,128,
+//! kernel 5) and the picture network (32 x 32 pictures, 32,64,64,128, kernel 3).
+//!
 //! `cargo bench -p guardian-lab --bench train_throughput`
 //! (`BENCH_STEPS` steps per round, default 40; `BENCH_ROUNDS`, default 3;
-//! `BENCH_CHANNELS`, default the shipped 32,64,128).
+//! `BENCH_ARCH`, default `pen,picture`).
 
 use std::io::Write as _;
 use std::path::Path;
@@ -31,7 +34,6 @@ use guardian_lab::train::{Learner, LossKind, Prepared, batch_loss};
 use guardian_models::fast::FastNet;
 use guardian_models::features::FeatureKind;
 use guardian_models::net::{Net, NetConfig};
-use guardian_shared::trajectory::STEPS;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
@@ -166,6 +168,7 @@ fn pytorch(
         .args(["--margin", &MARGIN.to_string()])
         .args(["--lr", &LR.to_string()])
         .args(["--weight-decay", &WEIGHT_DECAY.to_string()])
+        .args(config.features.is_picture().then_some("--picture"))
         .output()
         .map_err(|e| format!("python3: {e}"))?;
     let text = String::from_utf8_lossy(&out.stdout);
@@ -192,16 +195,38 @@ fn main() -> anyhow::Result<()> {
         .filter(|f| f.alphabet == "Latin")
         .collect();
     let (data, _) = generate_files(&files, &Geometry::default(), &|| {})?;
-    let set = Prepared::new(&data, &["Latin".to_string()], FeatureKind::Pen)?;
     let steps = env_usize("BENCH_STEPS", 40);
     let rounds = env_usize("BENCH_ROUNDS", 3).max(1);
-    let mut config = NetConfig {
-        channels: vec![32, 64, 128],
-        ..NetConfig::default()
-    };
-    if let Ok(c) = std::env::var("BENCH_CHANNELS") {
-        config.channels = c.split(',').filter_map(|v| v.parse().ok()).collect();
+    let arches = std::env::var("BENCH_ARCH").unwrap_or_else(|_| "pen,picture".into());
+    for arch in arches.split(',') {
+        let config = match arch {
+            "pen" => NetConfig {
+                channels: vec![32, 64, 128],
+                ..NetConfig::default()
+            },
+            "picture" => NetConfig {
+                features: FeatureKind::Picture,
+                channels: vec![32, 64, 64, 128],
+                kernel: 3,
+                ..NetConfig::default()
+            },
+            other => anyhow::bail!("BENCH_ARCH: unknown architecture {other} (pen, picture)"),
+        };
+        bench(here, &data, &config, steps, rounds)?;
     }
+    Ok(())
+}
+
+fn bench(
+    here: &Path,
+    data: &guardian_lab::dataset::Dataset,
+    config: &NetConfig,
+    steps: usize,
+    rounds: usize,
+) -> anyhow::Result<()> {
+    let config = config.clone();
+    let kind = config.features;
+    let set = Prepared::new(data, &["Latin".to_string()], kind)?;
     let (p, k) = (16, 4);
     let mut rng = StdRng::seed_from_u64(7);
     let batches: Vec<Batch> = (0..8)
@@ -211,9 +236,9 @@ fn main() -> anyhow::Result<()> {
             Ok(Batch { x, labels })
         })
         .collect::<anyhow::Result<_>>()?;
-    let flops = FastNet::<f32>::random(config.clone(), 1)?.flops(STEPS);
+    let flops = FastNet::<f32>::random(config.clone(), 1)?.flops(kind.steps());
     println!(
-        "network: pen features ({} channels), channels {:?}, kernel {}, embed {}; forward {:.2} MFLOP per sequence; batch {p} classes x {k} drawings of real Latin drawings; batch-all loss, margin {MARGIN}; AdamW lr {LR}, weight decay {WEIGHT_DECAY}; {steps} steps x {rounds} rounds",
+        "network: {kind:?} features ({} channels), channels {:?}, kernel {}, embed {}; forward {:.2} MFLOP per input; batch {p} classes x {k} drawings of real Latin drawings; batch-all loss, margin {MARGIN}; AdamW lr {LR}, weight decay {WEIGHT_DECAY}; {steps} steps x {rounds} rounds",
         config.in_channels(),
         config.channels,
         config.kernel,
@@ -277,13 +302,13 @@ fn main() -> anyhow::Result<()> {
             t.iter().map(|v| v.round()).collect::<Vec<_>>()
         );
         println!(
-            "training throughput ratio guardian/candle-autograd ({threads} thread{}): {:.2}",
+            "training throughput ratio guardian/candle-autograd, {kind:?} ({threads} thread{}): {:.2}",
             if threads == 1 { "" } else { "s" },
             gm / median(c)
         );
         if let Some(tm) = tm {
             println!(
-                "training throughput ratio guardian/pytorch ({threads} thread{}): {:.2}",
+                "training throughput ratio guardian/pytorch, {kind:?} ({threads} thread{}): {:.2}",
                 if threads == 1 { "" } else { "s" },
                 gm / tm
             );

@@ -57,6 +57,39 @@ pub enum FeatureArg {
     Joints,
     /// Pen-down strokes only, resampled (travel between strokes dropped).
     PenStrokes,
+    /// A picture of the pen-down path, read by a 2D CNN.
+    Picture,
+}
+
+/// Learning-rate schedule.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Schedule {
+    /// Halve the rate when the validation loss stalls and stop early; the model with the best
+    /// validation loss is kept.
+    #[default]
+    Plateau,
+    /// A fixed one-cycle schedule over every step of `epochs x steps-per-epoch` (linear
+    /// warm-up from lr/25 over the first 5 %, then cosine annealing to lr/10⁴), no early
+    /// stopping; the last model is kept. Validation is measured and logged only.
+    OneCycle,
+}
+
+/// The one-cycle rate at `step` of `total` for a peak rate `peak` (PyTorch's `OneCycleLR`
+/// with `pct_start = 0.05`, `div_factor = 25`, `final_div_factor = 10⁴`, cosine annealing).
+pub fn one_cycle_lr(peak: f64, step: usize, total: usize) -> f64 {
+    let total = total.max(2) as f64;
+    let warm = (0.05 * total).max(1.0);
+    let (start, end) = (peak / 25.0, peak / 25.0 / 1e4);
+    let s = step as f64;
+    let cos = |from: f64, to: f64, frac: f64| {
+        to + (from - to) * 0.5 * (1.0 + (std::f64::consts::PI * frac.clamp(0.0, 1.0)).cos())
+    };
+    if s <= warm {
+        cos(start, peak, s / warm)
+    } else {
+        cos(peak, end, (s - warm) / (total - 1.0 - warm).max(1.0))
+    }
 }
 
 impl From<FeatureArg> for FeatureKind {
@@ -65,6 +98,7 @@ impl From<FeatureArg> for FeatureKind {
             FeatureArg::Pen => FeatureKind::Pen,
             FeatureArg::Joints => FeatureKind::Joints,
             FeatureArg::PenStrokes => FeatureKind::PenStrokes,
+            FeatureArg::Picture => FeatureKind::Picture,
         }
     }
 }
@@ -91,6 +125,9 @@ pub struct TrainConfig {
     pub steps_per_epoch: usize,
     /// Most epochs.
     pub max_epochs: usize,
+    /// Learning-rate schedule (and whether validation stops training early).
+    #[serde(default)]
+    pub schedule: Schedule,
     /// Initial learning rate.
     pub lr: f64,
     /// AdamW weight decay.
@@ -231,6 +268,10 @@ pub struct Args {
     /// Most epochs.
     #[arg(long, default_value_t = 60)]
     pub epochs: usize,
+    /// Learning-rate schedule: `plateau` (early stopping on the validation loss) or
+    /// `one-cycle` (a fixed schedule over all epochs).
+    #[arg(long, value_enum, default_value = "plateau")]
+    pub schedule: Schedule,
     /// Learning rate.
     #[arg(long, default_value_t = 2e-3)]
     pub lr: f64,
@@ -363,6 +404,7 @@ impl Args {
             k_samples: self.k_samples,
             steps_per_epoch: self.steps_per_epoch,
             max_epochs: self.epochs,
+            schedule: self.schedule,
             lr: self.lr,
             weight_decay: self.weight_decay,
             plateau_patience: self.plateau_patience,
@@ -941,7 +983,7 @@ impl Prepared {
         self.raw.is_empty()
     }
 
-    /// Feature tensor `[B, STEPS, F]` of samples `idx`, augmented when `rng` is given.
+    /// Feature tensor `[B, steps, F]` (see [`FeatureKind::steps`]) of samples `idx`, augmented when `rng` is given.
     pub fn batch(&self, idx: &[usize], rng: Option<&mut StdRng>) -> candle_core::Result<Tensor> {
         let items: Vec<Item> = idx.iter().map(|&i| Item::Genuine(i)).collect();
         self.batch_items(&items, rng)
@@ -954,9 +996,9 @@ impl Prepared {
         items: &[Item],
         mut rng: Option<&mut StdRng>,
     ) -> candle_core::Result<Tensor> {
-        let c = self.kind.channels();
-        let mut buf = vec![0.0f32; items.len() * STEPS * c];
-        for (&item, out) in items.iter().zip(buf.chunks_exact_mut(STEPS * c)) {
+        let (steps, c) = (self.kind.steps(), self.kind.channels());
+        let mut buf = vec![0.0f32; items.len() * steps * c];
+        for (&item, out) in items.iter().zip(buf.chunks_exact_mut(steps * c)) {
             let path = match item {
                 Item::Genuine(i) if self.kind == FeatureKind::Joints => {
                     features::compute(self.kind, &self.raw[i], out);
@@ -974,7 +1016,7 @@ impl Prepared {
             };
             features::path_features(self.kind, path, &aug, out);
         }
-        Tensor::from_vec(buf, (items.len(), STEPS, c), &Device::Cpu)
+        Tensor::from_vec(buf, (items.len(), steps, c), &Device::Cpu)
     }
 
     /// A class-balanced batch: `p` classes, `k` samples each (fewer if a class is small).
@@ -1656,7 +1698,15 @@ pub fn train(
         let mut rng =
             StdRng::seed_from_u64(cfg.seed.wrapping_mul(1_000_003).wrapping_add(epoch as u64));
         let (mut loss_sum, mut active_sum, mut samples, mut triplets) = (0.0, 0.0, 0usize, 0usize);
-        for _ in 0..cfg.steps_per_epoch {
+        let total_steps = cfg.max_epochs * cfg.steps_per_epoch;
+        for step in 0..cfg.steps_per_epoch {
+            if cfg.schedule == Schedule::OneCycle {
+                state.lr = one_cycle_lr(
+                    cfg.lr,
+                    state.epoch * cfg.steps_per_epoch + step,
+                    total_steps,
+                );
+            }
             let (idx, labels) = train_set.sample_pk(cfg.p_classes, cfg.k_samples, &mut rng);
             let (items, labels) = train_set.with_faults(&idx, &labels, cfg.fault_share, &mut rng);
             let x = train_set.batch_items(&items, cfg.augment.then_some(&mut rng))?;
@@ -1717,7 +1767,11 @@ pub fn train(
 
         // Best model, schedule, early stopping.
         let current = Embedder::from_trained(&learner.net().to_net()?)?;
-        if val_loss < state.best_val_loss {
+        if cfg.schedule == Schedule::OneCycle {
+            // A fixed schedule keeps its last model; validation is only logged.
+            state.best_val_loss = state.best_val_loss.min(val_loss);
+            current.save(&best_path)?;
+        } else if val_loss < state.best_val_loss {
             state.best_val_loss = val_loss;
             state.epochs_since_best = 0;
             current.save(&best_path)?;
@@ -1725,7 +1779,8 @@ pub fn train(
             state.epochs_since_best += 1;
         }
         state.epochs_since_lr_change += 1;
-        if state.epochs_since_best > 0
+        if cfg.schedule == Schedule::Plateau
+            && state.epochs_since_best > 0
             && state.epochs_since_lr_change > cfg.plateau_patience
             && state.epochs_since_best > cfg.plateau_patience
         {
@@ -1735,7 +1790,8 @@ pub fn train(
         state.epoch = epoch;
         state.adam_step = learner.opt.step;
         state.train_seconds += t0.elapsed().as_secs_f64();
-        let stop = state.epochs_since_best >= cfg.early_stop_patience;
+        let stop =
+            cfg.schedule == Schedule::Plateau && state.epochs_since_best >= cfg.early_stop_patience;
         if stop {
             stopped = format!(
                 "early stopping after {} epochs without improvement",

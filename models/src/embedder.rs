@@ -563,9 +563,14 @@ impl Embedder {
         } else {
             &mut s.raw[..rows * EMBED_DIM]
         };
-        let c = self.net.config().features.channels();
-        self.fast
-            .forward(&s.feats[..rows * STEPS * c], rows, STEPS, &mut s.net, raw)?;
+        let kind = self.net.config().features;
+        self.fast.forward(
+            &s.feats[..rows * kind.values()],
+            rows,
+            kind.steps(),
+            &mut s.net,
+            raw,
+        )?;
         for (index, (o, r)) in out
             .iter_mut()
             .zip(raw.chunks_exact(copies * EMBED_DIM))
@@ -606,10 +611,10 @@ impl Embedder {
         mut path_out: Option<&mut [[PenPoint; STEPS]]>,
     ) -> usize {
         let kind = self.net.config().features;
-        let c = kind.channels();
+        let v = kind.values();
         let both = self.net.config().reverse_average && kind != FeatureKind::Joints;
         let copies = if both { 2 } else { 1 };
-        let n = copies * xs.len() * STEPS * c;
+        let n = copies * xs.len() * v;
         if feats.len() < n {
             feats.resize(n, 0.0);
         }
@@ -620,7 +625,7 @@ impl Embedder {
         };
         for (i, (x, out)) in xs
             .iter()
-            .zip(feats.chunks_exact_mut(copies * STEPS * c))
+            .zip(feats.chunks_exact_mut(copies * v))
             .enumerate()
         {
             let path_slot = path_out.as_deref_mut().and_then(|p| p.get_mut(i));
@@ -635,7 +640,7 @@ impl Embedder {
             if let Some(p) = path_slot {
                 *p = path;
             }
-            let (fwd, bwd) = out.split_at_mut(STEPS * c);
+            let (fwd, bwd) = out.split_at_mut(v);
             crate::features::path_features(kind, &path, &Augment::default(), fwd);
             if both {
                 crate::features::path_features(kind, &path, &reverse, bwd);
@@ -652,7 +657,7 @@ impl Embedder {
             return Ok(Vec::new());
         }
         check_finite(xs)?;
-        let c = self.net.config().features.channels();
+        let kind = self.net.config().features;
         let mut feats = Vec::new();
         let robot = &*self.robot;
         let copies = self.features_into(
@@ -661,7 +666,11 @@ impl Embedder {
             |x: &Resampled| pen_path_with(robot, x),
             None,
         );
-        let input = Tensor::from_vec(feats, (copies * xs.len(), STEPS, c), &Device::Cpu)?;
+        let input = Tensor::from_vec(
+            feats,
+            (copies * xs.len(), kind.steps(), kind.channels()),
+            &Device::Cpu,
+        )?;
         let mut e = self.net.forward(&input)?;
         if copies == 2 {
             e = e.reshape((xs.len(), 2, EMBED_DIM))?.mean(1)?;

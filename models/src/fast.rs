@@ -105,6 +105,8 @@ pub struct Scratch<T = f32> {
     pub(crate) norms: Vec<T>,
     /// `(batch, len)` of the last forward.
     pub(crate) shape: (usize, usize),
+    /// The input map of the picture layer being computed (picture networks only).
+    pub(crate) map: Vec<T>,
 }
 
 impl<T> Default for Scratch<T> {
@@ -116,6 +118,7 @@ impl<T> Default for Scratch<T> {
             emb: Vec::new(),
             norms: Vec::new(),
             shape: (0, 0),
+            map: Vec::new(),
         }
     }
 }
@@ -246,6 +249,9 @@ impl<T: Real> FastNet<T> {
     /// Floating-point operations (multiply and add counted separately) of one forward pass
     /// of one sequence of `len` steps: convolutions and the output layer.
     pub fn flops(&self, len: usize) -> u64 {
+        if self.config.features.is_picture() {
+            return self.picture_flops();
+        }
         let mut l = len as u64;
         let mut total = 0u64;
         let n = self.convs.len();
@@ -298,6 +304,21 @@ impl<T: Real> FastNet<T> {
         out: &mut [T],
     ) -> Result<(), FastNetError> {
         self.check_io(x.len(), out.len(), batch, len)?;
+        if self.config.features.is_picture() {
+            let pixels = crate::features::PICTURE_SIDE * crate::features::PICTURE_SIDE;
+            if len != pixels {
+                return Err(FastNetError::Shape {
+                    what: "picture",
+                    expected: pixels,
+                    got: len,
+                });
+            }
+            scratch.shape = (0, 0);
+            if batch == 0 {
+                return Ok(());
+            }
+            return self.forward_picture(x, batch, scratch, out);
+        }
         let (f, e) = (self.config.in_channels(), self.config.embed_dim);
         let pools = self.convs.len() - 1;
         if len >> pools == 0 {
@@ -317,6 +338,7 @@ impl<T: Real> FastNet<T> {
             emb,
             norms,
             shape,
+            ..
         } = scratch;
         inputs.resize_with(n_layers, Vec::new);
         outputs.resize_with(n_layers, Vec::new);

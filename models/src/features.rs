@@ -30,17 +30,45 @@ pub enum FeatureKind {
     /// order the strokes were drawn in) is dropped; channel 2 marks the first sample of each
     /// stroke (7 channels).
     PenStrokes,
+    /// A picture of the pen-down path: the segments whose both ends are pen down, splatted
+    /// bilinearly into a [`PICTURE_SIDE`] x [`PICTURE_SIDE`] image after the pen features'
+    /// bounding-box normalisation (see [`picture`]). Blind to stroke order and direction by
+    /// construction. One channel, [`PICTURE_SIDE`]² "steps" (pixels, row-major, top row
+    /// first).
+    Picture,
 }
 
 impl FeatureKind {
-    /// Feature channels per time step.
+    /// Feature channels per step (per pixel for [`FeatureKind::Picture`]).
     pub fn channels(self) -> usize {
         match self {
             Self::Joints => 8,
             Self::Pen | Self::PenStrokes => PEN_CHANNELS,
+            Self::Picture => 1,
         }
     }
+
+    /// Steps of the network input: [`STEPS`] time steps, or the pixels of a picture.
+    pub fn steps(self) -> usize {
+        match self {
+            Self::Picture => PICTURE_SIDE * PICTURE_SIDE,
+            _ => STEPS,
+        }
+    }
+
+    /// Values of one network input: `steps() * channels()`.
+    pub fn values(self) -> usize {
+        self.steps() * self.channels()
+    }
+
+    /// A picture, read by a 2D network, rather than a sequence.
+    pub fn is_picture(self) -> bool {
+        self == Self::Picture
+    }
 }
+
+/// Side of the picture of [`FeatureKind::Picture`] (pixels).
+pub const PICTURE_SIDE: usize = 32;
 
 /// Channels of [`FeatureKind::Pen`].
 pub const PEN_CHANNELS: usize = 7;
@@ -161,6 +189,7 @@ pub fn compute(kind: FeatureKind, x: &Resampled, out: &mut [f32]) {
         FeatureKind::Joints => joint_features(x, out),
         FeatureKind::Pen => pen_features(&pen_path(x), &Augment::default(), out),
         FeatureKind::PenStrokes => stroke_features(&pen_path(x), &Augment::default(), out),
+        FeatureKind::Picture => picture(&pen_path(x), &Augment::default(), out),
     }
 }
 
@@ -170,7 +199,63 @@ pub fn path_features(kind: FeatureKind, path: &[PenPoint; STEPS], aug: &Augment,
     match kind {
         FeatureKind::Pen => pen_features(path, aug, out),
         FeatureKind::PenStrokes => stroke_features(path, aug, out),
+        FeatureKind::Picture => picture(path, aug, out),
         FeatureKind::Joints => out.fill(0.0),
+    }
+}
+
+/// The picture of a pen path after an augmentation ([`FeatureKind::Picture`]) into `out`
+/// (`PICTURE_SIDE`², row-major, top row first): the pen-down box of the path is centred and
+/// its longest side scaled to `PICTURE_SIDE - 4` pixels (the pen features' normalisation, with
+/// a two-pixel margin); every segment between two pen-down samples is splatted bilinearly at
+/// four points (its start and three quarters), and a pixel saturates at 1. A path that never
+/// touches the canvas gives a blank picture.
+pub fn picture(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
+    const R: usize = PICTURE_SIDE;
+    let out = &mut out[..R * R];
+    out.fill(0.0);
+    let p = augmented(path, aug);
+    let (lo, hi) = pen_down_box(&p);
+    let centre = [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])];
+    let half = (0.5 * (hi[0] - lo[0]).max(hi[1] - lo[1])).max(2e-3);
+    if !half.is_finite() || !centre[0].is_finite() || !centre[1].is_finite() {
+        return;
+    }
+    // Normalised [-1, 1] -> pixel coordinates, the longest side spanning R - 4 pixels.
+    let scale = 0.5 * (R as f32 - 4.0);
+    let mid = 0.5 * (R as f32 - 1.0);
+    let px = |q: &PenPoint| {
+        [
+            (q[0] - centre[0]) / half * scale + mid,
+            (q[1] - centre[1]) / half * scale + mid,
+        ]
+    };
+    let last = (R - 1) as f32;
+    for w in p.windows(2) {
+        if w[0][2] <= 0.5 || w[1][2] <= 0.5 {
+            continue;
+        }
+        let (a, b) = (px(&w[0]), px(&w[1]));
+        for s in 0..4 {
+            let t = s as f32 * 0.25;
+            let (x, y) = (a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t);
+            let (x0, y0) = (x.floor(), y.floor());
+            let (fx, fy) = (x - x0, y - y0);
+            for (dx, dy, wgt) in [
+                (0.0, 0.0, (1.0 - fx) * (1.0 - fy)),
+                (1.0, 0.0, fx * (1.0 - fy)),
+                (0.0, 1.0, (1.0 - fx) * fy),
+                (1.0, 1.0, fx * fy),
+            ] {
+                let xi = (x0 + dx).clamp(0.0, last) as usize;
+                let yi = (y0 + dy).clamp(0.0, last) as usize;
+                // Drawing "up" is the top of the picture.
+                out[(R - 1 - yi) * R + xi] += wgt;
+            }
+        }
+    }
+    for v in out.iter_mut() {
+        *v = v.min(1.0);
     }
 }
 
@@ -449,6 +534,85 @@ mod tests {
             |v: &[f32], d: usize| (0..STEPS).map(|t| v[t * c + d]).sum::<f32>() / STEPS as f32;
         assert!((mean(&f, 0) - mean(&g, 0)).abs() < 0.05);
         assert!((mean(&f, 1) - mean(&g, 1)).abs() < 0.05);
+    }
+
+    #[test]
+    fn a_picture_ignores_position_size_stroke_order_and_direction() {
+        const N: usize = PICTURE_SIDE * PICTURE_SIDE;
+        // Two strokes (a horizontal bar, then a vertical one) with travel between them.
+        let draw = |scale: f32, offset: [f32; 2], swapped: bool, reversed: bool| {
+            let mut p = [[0.0f32; 3]; STEPS];
+            let bar = |t: usize| [t as f32 / 59.0, 0.5];
+            let post = |t: usize| [0.5, t as f32 / 59.0];
+            for (t, q) in p.iter_mut().enumerate() {
+                let (xy, down) = match t {
+                    0..60 => (bar(t), true),
+                    60..68 => ([0.5, 1.0], false),
+                    _ => (post(t - 68), true),
+                };
+                *q = [
+                    offset[0] + scale * xy[0],
+                    offset[1] + scale * xy[1],
+                    f32::from(down),
+                ];
+            }
+            if swapped {
+                let (a, b) = p.split_at_mut(60);
+                let bar: Vec<PenPoint> = a.to_vec();
+                let post: Vec<PenPoint> = b[8..].to_vec();
+                p[..60].copy_from_slice(&post);
+                p[60..68].fill([offset[0], offset[1], 0.0]);
+                p[68..].copy_from_slice(&bar);
+            }
+            if reversed {
+                p.reverse();
+            }
+            p
+        };
+        let render = |p: &[PenPoint; STEPS]| {
+            let mut img = vec![0.0f32; N];
+            picture(p, &Augment::default(), &mut img);
+            img
+        };
+        let base = render(&draw(0.05, [0.1, 0.2], false, false));
+        let ink: f32 = base.iter().sum();
+        assert!(ink > 20.0, "the strokes leave ink ({ink})");
+        assert!(base.iter().all(|v| (0.0..=1.0).contains(v)));
+        let diff = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).sum::<f32>();
+        // Where and how large it was drawn does not matter.
+        let moved = render(&draw(0.02, [-0.3, 0.4], false, false));
+        assert!(diff(&base, &moved) < 0.02 * ink, "{}", diff(&base, &moved));
+        // Nor the order or direction of the strokes (up to where the quarter points fall).
+        for (swapped, reversed) in [(true, false), (false, true), (true, true)] {
+            let other = render(&draw(0.05, [0.1, 0.2], swapped, reversed));
+            assert!(
+                diff(&base, &other) < 0.15 * ink,
+                "swapped {swapped} reversed {reversed}: {}",
+                diff(&base, &other)
+            );
+        }
+        // A different shape does matter: the bar alone.
+        let mut bar_only = draw(0.05, [0.1, 0.2], false, false);
+        for q in bar_only[60..].iter_mut() {
+            q[2] = 0.0;
+        }
+        let bar = render(&bar_only);
+        assert!(diff(&base, &bar) > 0.3 * ink);
+        // The bar is horizontal: its ink lies in few rows and many columns.
+        let rows = (0..PICTURE_SIDE)
+            .filter(|r| {
+                bar[r * PICTURE_SIDE..(r + 1) * PICTURE_SIDE]
+                    .iter()
+                    .any(|v| *v > 0.0)
+            })
+            .count();
+        assert!(rows <= 3, "{rows} rows");
+        // A path that never touches the canvas is a blank picture.
+        let mut up = draw(0.05, [0.1, 0.2], false, false);
+        for q in up.iter_mut() {
+            q[2] = 0.0;
+        }
+        assert!(render(&up).iter().all(|v| *v == 0.0));
     }
 
     #[test]

@@ -48,6 +48,11 @@ impl<T: Real> Grads<T> {
         &self.params
     }
 
+    /// The gradients, mutable (for the backward passes of this crate).
+    pub(crate) fn params_mut(&mut self) -> &mut [Vec<T>] {
+        &mut self.params
+    }
+
     /// Add `other` (same shapes) to these gradients.
     fn add(&mut self, other: &Self) {
         for (a, b) in self.params.iter_mut().zip(&other.params) {
@@ -62,16 +67,16 @@ impl<T: Real> Grads<T> {
 #[derive(Debug, Clone)]
 pub struct BackScratch<T = f32> {
     /// Output gradient of the layer being differentiated, time-padded like a layer input.
-    dy: Vec<T>,
+    pub(crate) dy: Vec<T>,
     /// Output gradient of the layer below.
-    dy_below: Vec<T>,
+    pub(crate) dy_below: Vec<T>,
     /// Gradient of the layer input (the GEMM's rows, sequence by sequence).
-    dx: Vec<T>,
+    pub(crate) dx: Vec<T>,
     /// Gradient of the pre-normalisation output and of the pooled features.
-    du: Vec<T>,
-    dpooled: Vec<T>,
+    pub(crate) du: Vec<T>,
+    pub(crate) dpooled: Vec<T>,
     /// Per layer: the kernel flipped in time and transposed, `[k * c_out, c_in]`.
-    flipped: Vec<T>,
+    pub(crate) flipped: Vec<T>,
 }
 
 impl<T> Default for BackScratch<T> {
@@ -114,6 +119,9 @@ impl<T: Real> FastNet<T> {
         }
         if batch == 0 {
             return Ok(());
+        }
+        if self.config().features.is_picture() {
+            return self.backward_picture(scratch, d_out, back, grads);
         }
         let k = self.kernel;
         let pad = k / 2;

@@ -19,5 +19,6 @@ pub mod grad;
 pub mod kinematics;
 pub mod loss;
 pub mod net;
+pub mod picture;
 pub mod preprocess;
 pub mod workcell;

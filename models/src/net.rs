@@ -59,16 +59,39 @@ impl NetConfig {
         self.features.channels()
     }
 
+    /// Taps of one convolution: `kernel` over time, `kernel²` over a picture.
+    pub fn taps(&self) -> usize {
+        if self.features.is_picture() {
+            self.kernel * self.kernel
+        } else {
+            self.kernel
+        }
+    }
+
+    /// Features the output layer reads: the last layer's global mean and max over time for
+    /// a sequence, its global mean for a picture.
+    pub fn pooled_features(&self) -> usize {
+        let last = self.channels.last().copied().unwrap_or(0);
+        if self.features.is_picture() {
+            last
+        } else {
+            2 * last
+        }
+    }
+
     /// Names and shapes of every parameter, in a fixed order.
     pub fn param_shapes(&self) -> Vec<(String, Vec<usize>)> {
         let mut out = Vec::new();
         let mut c_in = self.in_channels();
         for (i, &c) in self.channels.iter().enumerate() {
-            out.push((format!("conv{i}.weight"), vec![self.kernel * c_in, c]));
+            out.push((format!("conv{i}.weight"), vec![self.taps() * c_in, c]));
             out.push((format!("conv{i}.bias"), vec![c]));
             c_in = c;
         }
-        out.push(("fc.weight".to_string(), vec![2 * c_in, self.embed_dim]));
+        out.push((
+            "fc.weight".to_string(),
+            vec![self.pooled_features(), self.embed_dim],
+        ));
         out.push(("fc.bias".to_string(), vec![self.embed_dim]));
         out
     }
@@ -84,6 +107,20 @@ impl NetConfig {
         }
         if self.embed_dim == 0 {
             return Err("embed-dim must be positive".into());
+        }
+        if self.features.is_picture() {
+            // Every layer is followed by a 2 x 2 max pool.
+            let side = crate::features::PICTURE_SIDE;
+            if side >> self.channels.len() == 0 || !side.is_multiple_of(1 << self.channels.len()) {
+                return Err(format!(
+                    "{} layers with a 2 x 2 pool each do not fit a {side} x {side} picture",
+                    self.channels.len()
+                ));
+            }
+            if self.reverse_average {
+                return Err("a picture has no direction: reverse-average must be off".into());
+            }
+            return Ok(());
         }
         let pools = self.channels.len() - 1;
         if pools > 6 {
@@ -159,8 +196,12 @@ impl Net {
         &self.params
     }
 
-    /// Embed a batch of feature sequences `[B, L, F]` to `[B, embed_dim]`.
+    /// Embed a batch of feature sequences `[B, L, F]` (pictures: `[B, side², 1]`) to
+    /// `[B, embed_dim]`.
     pub fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        if self.config.features.is_picture() {
+            return self.forward_picture(x);
+        }
         let k = self.config.kernel;
         let n_layers = self.config.channels.len();
         let mut h = x.clone();
@@ -185,6 +226,66 @@ impl Net {
             Ok(e)
         }
     }
+}
+
+impl Net {
+    /// The picture network: per layer a "same" 2D convolution, ReLU and a 2 x 2 max pool
+    /// (the gradient goes to the first maximum of each window, as [`crate::picture`]'s
+    /// backward does), then the global mean, the output layer and L2 normalisation.
+    fn forward_picture(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        let k = self.config.kernel;
+        let n_layers = self.config.channels.len();
+        let (bsz, pixels, _) = x.dims3()?;
+        let side = crate::features::PICTURE_SIDE;
+        if pixels != side * side {
+            candle_core::bail!("a picture has {} pixels, got {pixels}", side * side);
+        }
+        let mut h = x.reshape((bsz, side, side, 1))?;
+        let mut s = side;
+        for i in 0..n_layers {
+            let w = &self.params[2 * i];
+            let b = &self.params[2 * i + 1];
+            h = conv2d_same(&h, w, b, k)?;
+            let o = w.dim(1)?;
+            let half = s / 2;
+            // Windows last: [B, s/2, s/2, o, 4], window element dy * 2 + dx.
+            let win = h
+                .reshape((bsz, half, 2, half, 2, o))?
+                .permute((0, 1, 3, 5, 2, 4))?
+                .contiguous()?
+                .reshape((bsz, half, half, o, 4))?;
+            let idx = win.argmax_keepdim(4)?;
+            h = win.gather(&idx, 4)?.squeeze(4)?.relu()?;
+            s = half;
+        }
+        let mean = h.mean(2)?.mean(1)?;
+        let fc_w = &self.params[2 * n_layers];
+        let fc_b = &self.params[2 * n_layers + 1];
+        let e = mean.matmul(fc_w)?.broadcast_add(fc_b)?;
+        if self.config.l2_normalize {
+            let norm = (e.sqr()?.sum_keepdim(1)? + 1e-12)?.sqrt()?;
+            e.broadcast_div(&norm)
+        } else {
+            Ok(e)
+        }
+    }
+}
+
+/// "Same" 2D convolution: `x [B, H, W, C]`, `w [k*k*C, O]` (row `(dy*k + dx)*C + c` is tap
+/// `(dy, dx)` of input channel `c`), `b [O]` -> `[B, H, W, O]`.
+pub fn conv2d_same(x: &Tensor, w: &Tensor, b: &Tensor, k: usize) -> candle_core::Result<Tensor> {
+    let (bsz, hgt, wid, c) = x.dims4()?;
+    let pad = k / 2;
+    let xp = x.pad_with_zeros(1, pad, pad)?.pad_with_zeros(2, pad, pad)?;
+    let mut taps = Vec::with_capacity(k * k);
+    for dy in 0..k {
+        for dx in 0..k {
+            taps.push(xp.narrow(1, dy, hgt)?.narrow(2, dx, wid)?);
+        }
+    }
+    let unfolded = Tensor::cat(&taps, 3)?.reshape((bsz * hgt * wid, k * k * c))?;
+    let out = unfolded.matmul(w)?.broadcast_add(b)?;
+    out.reshape((bsz, hgt, wid, w.dim(1)?))
 }
 
 /// "Same" 1D convolution over time: `x [B, L, C]`, `w [k*C, O]` (row `j*C + c` is tap `j`

@@ -15,7 +15,10 @@
 //! Run (see `docs/performance.md`):
 //! `RAYON_NUM_THREADS=1 cargo bench -p guardian-tests --bench latency`
 //! Options after `--`: `--model FILE` (default `models/embedder.safetensors`, else random
-//! weights), `--strokes DIR` (default `../shared/omniglot/strokes`), `--quick`.
+//! weights) and `--bank FILE` (its default bank), `--strokes DIR` (default
+//! `../shared/omniglot/strokes`), `--quick`; `--baseline-model FILE [--baseline-bank FILE]`
+//! adds a paired before/after figure — the whole check of both models in one process,
+//! alternating rounds, and the p50 ratio — and `--paired-only` stops after it.
 //! The bench builds `guardiand` with the bench's own profile before spawning it
 //! (`GUARDIAND_BIN` overrides the binary).
 
@@ -51,6 +54,13 @@ const CHECK_DRAWERS: std::ops::RangeInclusive<u32> = 11..=14;
 
 struct Opts {
     model: Option<PathBuf>,
+    /// The default bank served with `model` (when it is not the shipped model).
+    bank: Option<PathBuf>,
+    /// A second model (and its default bank) for the paired before/after check.
+    baseline_model: Option<PathBuf>,
+    baseline_bank: Option<PathBuf>,
+    /// Only the paired comparison (and what it needs).
+    paired_only: bool,
     strokes: PathBuf,
     quick: bool,
 }
@@ -59,6 +69,10 @@ fn parse_opts() -> Result<Opts> {
     let mut args = std::env::args().skip(1);
     let mut o = Opts {
         model: None,
+        bank: None,
+        baseline_model: None,
+        baseline_bank: None,
+        paired_only: false,
         strokes: workspace_root().join("../shared/omniglot/strokes"),
         quick: false,
     };
@@ -67,6 +81,14 @@ fn parse_opts() -> Result<Opts> {
             "--model" => o.model = Some(args.next().context("--model FILE")?.into()),
             "--strokes" => o.strokes = args.next().context("--strokes DIR")?.into(),
             "--quick" => o.quick = true,
+            "--bank" => o.bank = Some(args.next().context("--bank FILE")?.into()),
+            "--baseline-model" => {
+                o.baseline_model = Some(args.next().context("--baseline-model FILE")?.into());
+            }
+            "--baseline-bank" => {
+                o.baseline_bank = Some(args.next().context("--baseline-bank FILE")?.into());
+            }
+            "--paired-only" => o.paired_only = true,
             // `cargo bench` passes `--bench`; ignore other harness flags too.
             _ => {}
         }
@@ -193,6 +215,7 @@ fn load_drawings(strokes: &Path) -> Result<Drawings> {
 
 // ---------------------------------------------------------------- guardiand
 
+#[derive(Clone)]
 struct Deployment {
     dir: PathBuf,
     service: String,
@@ -402,18 +425,18 @@ fn request(op: Op, class: &str, examples: &[&[Waypoint]]) -> Result<(RequestHead
 /// What `guardiand` computes for a check, in this process: its own `Screen` built from the
 /// same configuration (model, shipped bank, workcell rules) with the same classes enrolled,
 /// answering whole requests, and each stage of a check alone.
-fn compute_breakdown(
+/// A `Screen` in this process built from `dep`'s configuration, the Latin classes enrolled
+/// through it, and one check request per check drawing.
+fn in_process_screen(
     dep: &Deployment,
     drawings: &Drawings,
-    n: usize,
-) -> Result<Vec<(&'static str, Vec<Duration>)>> {
-    use guardian_models::check::{self, Embedded, Prepared};
-    use guardian_models::workcell::inspect;
+    name: &str,
+) -> Result<(Screen, Config, Vec<(RequestHeader, Vec<f32>)>)> {
     let config = Config::from_file(&dep.write_config("event", 16)?)?;
     let (engine, workcell) = load_engine(&config)?;
     let panda = engine.robot().clone();
     let (bank, _) = load_bank(&config, &engine)?;
-    let state = dep.dir.join("in-process");
+    let state = dep.dir.join(name);
     std::fs::create_dir_all(&state)?;
     let mut screen = Screen::new(engine, bank, state.join("bank.gcb"), config.k_nearest);
     screen.set_workcell(workcell);
@@ -434,6 +457,49 @@ fn compute_breakdown(
         .iter()
         .map(|(c, w)| request(Op::Check, c, &[w]))
         .collect::<Result<_>>()?;
+    Ok((screen, config, reqs))
+}
+
+/// The whole check (`Screen::handle`) of two deployments that differ only in their model
+/// (and its default bank), timed in alternating rounds over the same requests so both see
+/// the same machine: `(baseline, current)` samples.
+fn paired_checks(
+    baseline: &Deployment,
+    current: &Deployment,
+    drawings: &Drawings,
+    n: usize,
+) -> Result<(Vec<Duration>, Vec<Duration>)> {
+    let (mut a, _, reqs) = in_process_screen(baseline, drawings, "paired-baseline")?;
+    let (mut b, _, _) = in_process_screen(current, drawings, "paired-current")?;
+    let (mut ta, mut tb) = (Vec::new(), Vec::new());
+    let rounds = 20;
+    let mut i = 0usize;
+    for r in 0..rounds + 2 {
+        let warm = if r < 2 { 50 } else { 0 };
+        for (screen, out) in [(&mut a, &mut ta), (&mut b, &mut tb)] {
+            let t = time_n(warm, n / rounds, || {
+                i += 1;
+                let (h, p) = &reqs[i % reqs.len()];
+                std::hint::black_box(screen.handle(h, p));
+                Ok(())
+            })?;
+            if r >= 2 {
+                out.extend(t);
+            }
+        }
+    }
+    Ok((ta, tb))
+}
+
+fn compute_breakdown(
+    dep: &Deployment,
+    drawings: &Drawings,
+    n: usize,
+) -> Result<Vec<(&'static str, Vec<Duration>)>> {
+    use guardian_models::check::{self, Embedded, Prepared};
+    use guardian_models::workcell::inspect;
+    let (mut screen, config, reqs) = in_process_screen(dep, drawings, "in-process")?;
+    let panda = screen.engine().robot().clone();
     let len = reqs.len();
     let (cell, bank, engine, k) = (
         *screen.workcell(),
@@ -730,10 +796,11 @@ fn run(o: Opts) -> Result<()> {
             1
         };
     // Network input of the first check drawing (forward, and reversed when averaging).
-    let mut feats = vec![0.0f32; copies * STEPS * c];
+    let (steps, values) = (cfg.features.steps(), cfg.features.values());
+    let mut feats = vec![0.0f32; copies * values];
     {
         let path = guardian_models::features::pen_path(&samples[0]);
-        let (fwd, bwd) = feats.split_at_mut(STEPS * c);
+        let (fwd, bwd) = feats.split_at_mut(values);
         guardian_models::features::path_features(cfg.features, &path, &Default::default(), fwd);
         if copies == 2 {
             let rev = guardian_models::features::Augment {
@@ -748,7 +815,7 @@ fn run(o: Opts) -> Result<()> {
     let net = embedder.net();
     let candle_fwd = time_n(50, n_fwd, || {
         let x =
-            candle_core::Tensor::from_slice(&feats, (copies, STEPS, c), &candle_core::Device::Cpu)?;
+            candle_core::Tensor::from_slice(&feats, (copies, steps, c), &candle_core::Device::Cpu)?;
         let e = net.forward(&x)?.flatten_all()?.to_vec1::<f32>()?;
         std::hint::black_box(e);
         Ok(())
@@ -757,13 +824,13 @@ fn run(o: Opts) -> Result<()> {
     let mut scratch = Scratch::default();
     let mut out = vec![0.0f32; copies * EMBED_DIM];
     let mut forward_once = || -> Result<()> {
-        fast.forward(&feats, copies, STEPS, &mut scratch, &mut out)?;
+        fast.forward(&feats, copies, steps, &mut scratch, &mut out)?;
         std::hint::black_box(&out);
         Ok(())
     };
     // The compute floor's GEMM rate, timed in rounds alternating with the fast forward so
     // that both see the same machine: one 512^3 GEMM, then n_fwd / rounds forwards.
-    let flops = fast.flops(STEPS) * copies as u64;
+    let flops = fast.flops(steps) * copies as u64;
     let (m, n, kk) = (512usize, 512usize, 512usize);
     let a = vec![0.5f32; m * kk];
     let b = vec![0.25f32; kk * n];
@@ -852,10 +919,40 @@ fn run(o: Opts) -> Result<()> {
         service: format!("guardian-bench/{tag}/v1/rpc"),
         prefix: format!("gb{tag}_"),
         model: model_path.clone(),
-        default_bank: Some(workspace_root().join("models/default-bank.gcb")).filter(|b| {
-            b.exists() && o.model.is_none() && model_path.ends_with("models/embedder.safetensors")
+        default_bank: o.bank.clone().or_else(|| {
+            Some(workspace_root().join("models/default-bank.gcb")).filter(|b| {
+                b.exists()
+                    && o.model.is_none()
+                    && model_path.ends_with("models/embedder.safetensors")
+            })
         }),
     };
+    if let Some(base) = &o.baseline_model {
+        let baseline = Deployment {
+            model: base.clone(),
+            default_bank: o.baseline_bank.clone(),
+            ..dep.clone()
+        };
+        let (a, b) = paired_checks(&baseline, &dep, &drawings, n_fwd)?;
+        let (sa, sb) = (stats(&a), stats(&b));
+        println!();
+        println!(
+            "paired whole check (Screen::handle), alternating rounds: baseline {} vs this model {}",
+            base.display(),
+            model_path.display()
+        );
+        print_header();
+        print_row("baseline model", &sa);
+        print_row("this model", &sb);
+        println!(
+            "whole check p50 ratio this/baseline: {:.2} (p99 {:.2})",
+            sb.p50 / sa.p50,
+            sb.p99 / sa.p99
+        );
+        if o.paired_only {
+            return Ok(());
+        }
+    }
     let breakdown = compute_breakdown(&dep, &drawings, n_fwd)?;
     let checks: Arc<Vec<(String, Trajectory)>> = Arc::new(
         drawings
