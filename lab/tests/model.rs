@@ -126,6 +126,63 @@ fn a_few_steps_lower_the_loss_and_separate_classes() {
     assert!(x1 / i1 > x0 / i0, "inter/intra {} -> {}", x0 / i0, x1 / i1);
 }
 
+/// The picture network learns on real drawings through the same training path: a small
+/// picture network's loss on a fixed batch falls and its classes separate, and the model it
+/// ships embeds plans the same way as the network trained.
+#[test]
+fn the_picture_network_learns_real_characters() {
+    let data = small_dataset();
+    let set = Prepared::new(data, &["Latin".to_string()], FeatureKind::Picture).expect("prepare");
+    let config = NetConfig {
+        features: FeatureKind::Picture,
+        channels: vec![8, 16, 16],
+        kernel: 3,
+        embed_dim: guardian_models::embedder::EMBED_DIM,
+        l2_normalize: true,
+        reverse_average: false,
+    };
+    let mut learner = Learner::new(FastNet::random(config, 11).expect("net"), 1e-4);
+    let mut rng = StdRng::seed_from_u64(5);
+    let mut erng = StdRng::seed_from_u64(9);
+    let (eidx, elabels) = set.sample_pk(8, 6, &mut erng);
+    let ex = set.batch(&eidx, None).expect("batch");
+    assert_eq!(ex.dims(), [48, 32 * 32, 1], "pictures are the network's input");
+    let loss_on_fixed = |net: &FastNet, rng: &mut StdRng| -> f32 {
+        let e = train::embed(net, &ex).expect("embed");
+        let (l, _, _) =
+            train::batch_loss(&e, &elabels, LossKind::BatchAll, 0.2, rng).expect("loss");
+        l.to_scalar::<f32>().expect("scalar")
+    };
+    let before = loss_on_fixed(learner.net(), &mut rng);
+    let (i0, x0) = intra_inter(
+        &train::embed_all(learner.net(), &set).expect("embed"),
+        set.labels(),
+    );
+    for _ in 0..60 {
+        let (idx, labels) = set.sample_pk(8, 4, &mut rng);
+        let x = set.batch(&idx, Some(&mut rng)).expect("batch");
+        learner
+            .step(&x, 3e-3, |e| {
+                let (l, _, _) = train::batch_loss(e, &labels, LossKind::BatchAll, 0.2, &mut rng)?;
+                Ok((l, ()))
+            })
+            .expect("step");
+    }
+    let after = loss_on_fixed(learner.net(), &mut rng);
+    let embs = train::embed_all(learner.net(), &set).expect("embed");
+    let (i1, x1) = intra_inter(&embs, set.labels());
+    eprintln!("picture: fixed-batch loss {before} -> {after}, intra/inter {i0}/{x0} -> {i1}/{x1}");
+    assert!(after < 0.8 * before, "loss {before} -> {after}");
+    assert!(i1 < x1, "after training: intra {i1} vs inter {x1}");
+    assert!(x1 / i1 > x0 / i0, "inter/intra {} -> {}", x0 / i0, x1 / i1);
+    // The shipped form (an Embedder from the trained weights) embeds a plan as training did.
+    let model = Embedder::from_trained(&learner.net().to_net().expect("net")).expect("model");
+    let e = model.embed(&set.raw()[0]).expect("embed");
+    let want = &embs[0];
+    let err: f32 = e.iter().zip(want).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
+    assert!(err < 1e-5, "embedder vs training embedding: {err}");
+}
+
 #[test]
 fn the_training_pipeline_checkpoints_resumes_and_ships_a_loadable_model() {
     let data = small_dataset();
@@ -353,14 +410,15 @@ fn rel_diff(a: &[f32], b: &[f32]) -> f64 {
 #[test]
 fn training_gradients_match_candle_autograd_on_real_batches() {
     let data = small_dataset();
-    let mut set = Prepared::new(data, &["Latin".to_string()], FeatureKind::Pen).expect("prepare");
-    set.make_faults(data, &shared_strokes(), &train::TRAIN_FAULTS, 2, 3)
-        .expect("faults");
     let shipped = Embedder::load(
         &Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/embedder.safetensors"),
     )
     .expect("the shipped model loads");
     let config = shipped.config().clone();
+    let mut set =
+        Prepared::new(data, &["Latin".to_string()], config.features).expect("prepare");
+    set.make_faults(data, &shared_strokes(), &train::TRAIN_FAULTS, 2, 3)
+        .expect("faults");
     let cfg = TrainConfig {
         net: config.clone(),
         loss: LossKind::BatchAll,
