@@ -102,9 +102,8 @@ fn sigkill_during_enrollment_persistence_leaves_the_old_or_the_new_bank() {
                 std::hint::spin_loop();
             }
             std::thread::sleep(Duration::from_micros(next() % 20_000));
-            // Kill only while the snapshot is being written: a kill later in the start-up,
-            // while iceoryx2 creates the service, leaves it `HangsInCreation` for the next
-            // start (an iceoryx2 matter, outside persistence).
+            // Kill only while the snapshot is being written: kills later in the start-up,
+            // while iceoryx2 creates the services, are `tests/startup.rs`'s matter.
             if temporaries(&state).is_empty() {
                 d.wait_note("READY=1");
                 drop(d);
