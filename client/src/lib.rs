@@ -432,7 +432,30 @@ pub enum CheckError {
         /// The daemon's explanation.
         message: String,
     },
-    /// The admin socket could not be reached or broke off.
+    /// An enroll or forget was sent whole over the admin socket but no answer came (timeout,
+    /// or the connection broke): the daemon may or may not have applied it. The daemon
+    /// applies a change only while its requester still waits, so once this client has hung
+    /// up (it has, when this error is returned) the outcome is settled and the next request
+    /// served shows it: ask the admin socket ([`AdminClient::classes`], `guardianctl
+    /// classes --admin`) whether the class is there.
+    #[error(
+        "outcome unknown: the {op} of class {class:?} was sent to the admin socket {} but no answer came ({detail}); \
+         the daemon applied it only if it had taken it before this client gave up — list the classes through \
+         the admin socket (`guardianctl --admin-socket {} classes --admin`) to see whether it happened",
+        .path.display(), .path.display()
+    )]
+    OutcomeUnknown {
+        /// `enroll` or `forget`.
+        op: &'static str,
+        /// The class.
+        class: String,
+        /// The socket.
+        path: PathBuf,
+        /// What happened to the answer.
+        detail: String,
+    },
+    /// The admin socket could not be reached or broke off (nothing was applied: the request
+    /// was not sent whole, or it changes nothing).
     #[error("admin socket {}: {detail}", .path.display())]
     AdminSocket {
         /// The socket.
@@ -926,7 +949,7 @@ fn neighbours(entries: &[ClassEntry]) -> Vec<Neighbour> {
         .collect()
 }
 
-fn class_info(e: &ClassEntry) -> Result<ClassInfo, CheckError> {
+pub(crate) fn class_info(e: &ClassEntry) -> Result<ClassInfo, CheckError> {
     Ok(ClassInfo {
         name: wire::decode_class_name(&e.name)?.to_owned(),
         examples: e.examples,

@@ -7,13 +7,19 @@ use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
-use guardian_client::{AdminClient, Client, ClientConfig, Trajectory, Verdict};
+use guardian_client::{
+    AdminClient, CheckError, ClassInfo, Client, ClientConfig, Trajectory, Verdict,
+};
 
 /// Talk to guardiand: check, identify, enroll, forget, list classes, status.
 ///
 /// check, identify, classes and status use the planners' iceoryx2 service; enroll and
 /// forget use the daemon's admin socket, which only admin uids/gids may use.
 /// The go/no-go demo on real drawings is `guardian-lab demo`.
+///
+/// Exit status: 0 done (check: go), 1 failed or not applied (check: no-go), 3 the outcome
+/// of an enroll or forget is unknown (sent, no answer, and the daemon could not be asked
+/// afterwards).
 #[derive(Debug, Parser)]
 #[command(version, about)]
 struct Args {
@@ -78,7 +84,12 @@ enum Cmd {
         name: String,
     },
     /// List enrolled classes.
-    Classes,
+    Classes {
+        /// Ask the admin socket instead of the planners' iceoryx2 service (an admin of
+        /// another uid cannot open the latter).
+        #[arg(long)]
+        admin: bool,
+    },
     /// Versions, counters and latency percentiles.
     Status,
 }
@@ -144,7 +155,12 @@ fn main() -> anyhow::Result<()> {
                     examples.push(read_trajectory(f, None)?);
                 }
             }
-            let info = admin.enroll(&name, &examples)?;
+            let info = match admin.enroll(&name, &examples) {
+                Err(guardian_client::EnrollError::Request(
+                    e @ CheckError::OutcomeUnknown { .. },
+                )) => settle(&args.admin_socket, timeout, &e, &name, true),
+                other => other?,
+            };
             if json {
                 println!("{}", serde_json::to_string_pretty(&info)?);
             } else {
@@ -155,15 +171,24 @@ fn main() -> anyhow::Result<()> {
             }
         }
         Cmd::Forget { name } => {
-            admin.forget(&name)?;
+            match admin.forget(&name) {
+                Err(e @ CheckError::OutcomeUnknown { .. }) => {
+                    settle(&args.admin_socket, timeout, &e, &name, false);
+                }
+                other => other?,
+            }
             if json {
                 println!("{}", serde_json::json!({ "forgotten": name }));
             } else {
                 println!("forgot {name}");
             }
         }
-        Cmd::Classes => {
-            let classes = connect()?.classes()?;
+        Cmd::Classes { admin: via_admin } => {
+            let classes = if via_admin {
+                admin.classes()?
+            } else {
+                connect()?.classes()?
+            };
             if json {
                 println!("{}", serde_json::to_string_pretty(&classes)?);
             } else {
@@ -209,6 +234,57 @@ fn main() -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// An enroll or forget of `class` was sent but not answered (`unknown`). This client has
+/// hung up, so the daemon will not apply it any more if it has not yet; the admin socket
+/// answers requests in arrival order, so its class list now shows the outcome. Returns the
+/// class if an enroll was applied; exits 1 if the change was not applied, 3 if the daemon
+/// cannot be asked either.
+fn settle(
+    socket: &Path,
+    timeout: Duration,
+    unknown: &CheckError,
+    class: &str,
+    enroll: bool,
+) -> ClassInfo {
+    eprintln!("guardianctl: {unknown}");
+    let asked = AdminClient::new(socket, timeout.max(Duration::from_secs(10))).classes();
+    let classes = match asked {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("guardianctl: cannot list the classes to settle it either: {e}");
+            std::process::exit(3);
+        }
+    };
+    let now = classes.into_iter().find(|c| c.name == class);
+    match (enroll, now) {
+        (true, Some(info)) => {
+            eprintln!(
+                "guardianctl: class {class} is enrolled now with {} examples: the enroll was applied, \
+                 unless the class already existed (then compare its example count)",
+                info.examples
+            );
+            info
+        }
+        (true, None) => {
+            eprintln!("guardianctl: class {class} is not enrolled: the enroll was not applied");
+            std::process::exit(1);
+        }
+        (false, None) => {
+            eprintln!("guardianctl: class {class} is not enrolled (any more): forgotten");
+            ClassInfo {
+                name: class.to_owned(),
+                examples: 0,
+                threshold: f32::NAN,
+                calibrated: false,
+            }
+        }
+        (false, Some(_)) => {
+            eprintln!("guardianctl: class {class} is still enrolled: the forget was not applied");
+            std::process::exit(1);
+        }
+    }
 }
 
 fn print_verdict(v: &Verdict) {
@@ -278,15 +354,21 @@ fn read_trajectory(path: &Path, index: Option<usize>) -> anyhow::Result<Trajecto
         String::from_utf8(bytes).with_context(|| format!("{}: not UTF-8", path.display()))?;
     let mut data = Vec::new();
     let mut channels = None;
+    // The first line with content may be a header of column names; any other line must be
+    // numbers (an all-text file is an error, not an empty trajectory).
+    let mut first = true;
+    let mut header = false;
     for (n, line) in text.lines().enumerate() {
         let line = line.trim();
         if line.is_empty() || line.starts_with('#') {
             continue;
         }
         let vals: Result<Vec<f32>, _> = line.split(',').map(|v| v.trim().parse::<f32>()).collect();
+        let is_first = std::mem::replace(&mut first, false);
         let Ok(vals) = vals else {
-            if data.is_empty() && channels.is_none() {
-                continue; // a header line
+            if is_first {
+                header = true;
+                continue;
             }
             bail!("{}:{}: not a list of numbers", path.display(), n + 1);
         };
@@ -303,6 +385,12 @@ fn read_trajectory(path: &Path, index: Option<usize>) -> anyhow::Result<Trajecto
             _ => {}
         }
         data.extend(vals);
+    }
+    if header && channels.is_none() {
+        bail!(
+            "{}: no line of numbers (only a header line)",
+            path.display()
+        );
     }
     // An empty file sends no waypoints; the daemon answers TooFewWaypoints.
     Ok(Trajectory::from_flat(data, channels.unwrap_or(0)))

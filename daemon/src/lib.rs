@@ -7,6 +7,7 @@ pub mod admin;
 pub mod config;
 pub mod engine;
 pub mod notify;
+pub mod recovery;
 pub mod screen;
 pub mod serve;
 pub mod state;

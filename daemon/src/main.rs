@@ -54,6 +54,9 @@ fn main() -> anyhow::Result<()> {
             src,
             bank.len()
         );
+        for w in guardian_daemon::state::limit_warnings(&bank, &config.limits()) {
+            println!("warning: configured limits below the loaded bank: {w}");
+        }
         return Ok(());
     }
     let control = Control::default();

@@ -94,10 +94,14 @@ type Rpc = RpcFactory<ipc::Service, [f32], RequestHeader, [ClassEntry], Response
 pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     let sd = SdNotify::from_env();
     let state_dir = config.state_dir();
-    std::fs::create_dir_all(&state_dir).map_err(|source| RunError::StateDir {
-        path: state_dir.clone(),
-        source,
-    })?;
+    // Owner-only, as the package's tmpfiles.d entry makes it: the bank holds the enrolled
+    // plans. An existing directory keeps the mode its owner gave it.
+    std::os::unix::fs::DirBuilderExt::mode(std::fs::DirBuilder::new().recursive(true), 0o700)
+        .create(&state_dir)
+        .map_err(|source| RunError::StateDir {
+            path: state_dir.clone(),
+            source,
+        })?;
 
     // A daemon killed while persisting leaves its temporary file (never a damaged bank).
     match guardian_models::bank::remove_stale_temporaries(&config.bank_path()) {
@@ -122,6 +126,9 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     } else {
         tracing::info!(%source, classes = bank.len(), version = bank.generation(), "class bank loaded");
     }
+    for w in crate::state::limit_warnings(&bank, &config.limits()) {
+        tracing::warn!(%source, "configured limits below the loaded bank: {w}");
+    }
     let mut screen = Screen::new(engine, bank, config.bank_path(), config.k_nearest);
     screen.set_workcell(workcell);
     screen.set_limits(config.limits());
@@ -143,11 +150,24 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         .signal_handling_mode(SignalHandlingMode::Disabled)
         .create::<ipc::Service>()
         .map_err(iox("create node"))?;
+    // What a crashed daemon or planner left behind: dead nodes (their ports, connections
+    // and service tags), and files of the daemon's own services whose creation a kill
+    // interrupted (which would make every open `HangsInCreation`).
     let cleaned = node.try_cleanup_dead_nodes();
-    if cleaned.cleanups > 0 {
-        tracing::info!(
+    if cleaned.cleanups > 0 || cleaned.failed_cleanups > 0 {
+        tracing::warn!(
             nodes = cleaned.cleanups,
+            failed = cleaned.failed_cleanups,
             "removed resources of dead iceoryx2 nodes"
+        );
+    }
+    for (file, bytes) in
+        crate::recovery::remove_half_created_services(&iox_config, &config.service_name)
+    {
+        tracing::warn!(
+            file = %file.display(),
+            bytes,
+            "removed a half-created iceoryx2 service file (its creator was killed during start-up)"
         );
     }
     let max_clients = config.max_clients;
@@ -337,6 +357,9 @@ fn reload(config: &Config, screen: &mut Screen, sd: &SdNotify) {
     });
     match result {
         Ok((engine, bank, source, workcell)) => {
+            for w in crate::state::limit_warnings(&bank, &config.limits()) {
+                tracing::warn!(%source, "configured limits below the loaded bank: {w}");
+            }
             screen.replace(engine, bank, config.k_nearest);
             screen.set_workcell(workcell);
             tracing::info!(%source, "reload complete: {}", screen.summary());
@@ -352,6 +375,10 @@ fn reload(config: &Config, screen: &mut Screen, sd: &SdNotify) {
 fn serve_admin(admin: &AdminEndpoint, screen: &mut Screen) -> usize {
     let mut n = 0;
     while let Ok(job) = admin.jobs.try_recv() {
+        // A change whose requester has gone is not applied (the endpoint logs it).
+        if !job.take() {
+            continue;
+        }
         let answer = screen.handle_admin(&job.header, &job.payload);
         job.answer(answer);
         n += 1;

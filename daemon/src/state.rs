@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use guardian_models::bank::{ClassBank, DEFAULT_THRESHOLD};
+use guardian_models::bank::{BankLimits, ClassBank, DEFAULT_THRESHOLD};
 use guardian_models::kinematics::{PANDA_JOINTS, RobotRecord};
 
 use guardian_shared::workcell::Workcell;
@@ -194,4 +194,40 @@ pub fn load_bank(
         tracing::warn!(%source, classes = without.len(), first = without[0], "classes without plan-geometry descriptors (enrolled by format 1): geometry check off for them");
     }
     Ok((bank, source))
+}
+
+/// Where the loaded bank already holds more than the configured limits allow. Such a bank
+/// is served as it is — the limits bound the bank's growth, and refusing to start would
+/// take the screen away from the planners over a setting that makes nothing unsafe — but
+/// every enroll that would add to an exceeded count is refused until classes are forgotten,
+/// so the daemon says so at start, on reload and in `--check`.
+pub fn limit_warnings(bank: &ClassBank, limits: &BankLimits) -> Vec<String> {
+    let mut out = Vec::new();
+    if bank.len() > limits.max_classes {
+        out.push(format!(
+            "the bank holds {} classes but max-classes is {}: every enroll of a new class will be refused",
+            bank.len(),
+            limits.max_classes
+        ));
+    }
+    let over: Vec<&str> = bank
+        .classes()
+        .filter(|(_, c)| c.embeddings.len() > limits.max_examples_per_class)
+        .map(|(n, _)| n)
+        .collect();
+    if let Some(first) = over.first() {
+        out.push(format!(
+            "{} classes (first: {first}) hold more examples than max-examples-per-class = {}: enrolls adding to them will be refused",
+            over.len(),
+            limits.max_examples_per_class
+        ));
+    }
+    let bytes = bank.classes_bytes();
+    if bytes > limits.max_bytes {
+        out.push(format!(
+            "the bank's class data is {bytes} bytes but max-bank-bytes is {}: every enroll will be refused",
+            limits.max_bytes
+        ));
+    }
+    out
 }

@@ -102,9 +102,8 @@ fn sigkill_during_enrollment_persistence_leaves_the_old_or_the_new_bank() {
                 std::hint::spin_loop();
             }
             std::thread::sleep(Duration::from_micros(next() % 20_000));
-            // Kill only while the snapshot is being written: a kill later in the start-up,
-            // while iceoryx2 creates the service, leaves it `HangsInCreation` for the next
-            // start (an iceoryx2 matter, outside persistence).
+            // Kill only while the snapshot is being written: kills later in the start-up,
+            // while iceoryx2 creates the services, are `tests/startup.rs`'s matter.
             if temporaries(&state).is_empty() {
                 d.wait_note("READY=1");
                 drop(d);
@@ -405,4 +404,99 @@ fn an_empty_journal_left_by_a_kill_is_removed_at_start() {
     assert_eq!(client.status().expect("status").classes, 1);
     assert!(!journal.exists(), "the empty journal was left in place");
     drop(d);
+}
+
+/// A bit flipped inside the journal's last record — complete, newline-terminated, an
+/// acknowledged enroll — is damage: the daemon refuses to start and `--check` fails, naming
+/// the journal, which is left as it was. (Found: it was dropped as a torn write, the class
+/// vanished, `--check` exited 0 and the start-up compaction deleted the journal.)
+#[test]
+fn a_damaged_complete_last_journal_record_is_refused_and_the_journal_kept() {
+    let mut s = Setup::new(44);
+    s.extra = "default-threshold = 1e9".into();
+    let path = s.state_dir().join("bank.gcb");
+    let journal = journal_path(&path);
+    let mut d = Daemon::start(&s);
+    let client = s.client();
+    client
+        .enroll("task0", &[traj(0, 1), traj(0, 2)])
+        .expect("enroll");
+    client
+        .enroll("task1", &[traj(1, 1), traj(1, 2)])
+        .expect("enroll");
+    // Killed, so the journal is not compacted at shutdown.
+    d.signal("KILL");
+    d.wait_exit();
+    drop(client);
+    let good = std::fs::read(&journal).expect("journal written by the enrollments");
+    assert_eq!(good.last(), Some(&b'\n'));
+    // A bit inside the last record's JSON.
+    let last_start = good[..good.len() - 1]
+        .iter()
+        .rposition(|&b| b == b'\n')
+        .expect("an earlier line")
+        + 1;
+    let mut bad = good.clone();
+    let at = last_start + (good.len() - last_start) / 2;
+    bad[at] ^= 0x01;
+    std::fs::write(&journal, &bad).unwrap();
+
+    let out = harness::run_to_exit(&s);
+    let err = refused(&out, &journal, "damaged last record");
+    assert!(err.contains("damage"), "{err}");
+    let check = std::process::Command::new(harness::bin())
+        .arg("--config")
+        .arg(s.config_path())
+        .arg("--check")
+        .output()
+        .expect("guardiand --check");
+    assert!(!check.status.success(), "--check passed a damaged journal");
+    assert_eq!(
+        std::fs::read(&journal).expect("journal kept"),
+        bad,
+        "the damaged journal was changed or removed"
+    );
+    eprintln!(
+        "refused: {}",
+        err.lines().find(|l| l.contains("damage")).unwrap_or("")
+    );
+    // Repaired (the bit restored), the daemon serves both classes.
+    std::fs::write(&journal, &good).unwrap();
+    let _d = Daemon::start(&s);
+    assert_eq!(s.client().classes().expect("classes").len(), 2);
+}
+
+/// A state directory the daemon creates itself is owner-only (0700), as the package's
+/// tmpfiles entry makes it, and so are the bank, its journal and the save temporaries
+/// (0600). (Found: 0755 and 0644.)
+#[test]
+fn the_state_the_daemon_creates_is_owner_only() {
+    use std::os::unix::fs::PermissionsExt;
+    let mode = |p: &Path| {
+        std::fs::metadata(p)
+            .unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+            .permissions()
+            .mode()
+            & 0o777
+    };
+    let s = Setup::new(45);
+    assert!(!s.state_dir().exists());
+    let mut d = Daemon::start(&s);
+    let client = s.client();
+    client
+        .enroll("task0", &[traj(0, 1), traj(0, 2)])
+        .expect("enroll");
+    client
+        .enroll("task1", &[traj(1, 1), traj(1, 2)])
+        .expect("enroll");
+    let bank = s.state_dir().join("bank.gcb");
+    assert_eq!(mode(&s.state_dir()), 0o700, "state directory");
+    assert_eq!(mode(&bank), 0o600, "bank snapshot");
+    assert_eq!(mode(&journal_path(&bank)), 0o600, "bank journal");
+    d.signal("KILL");
+    d.wait_exit();
+    // The start-up compaction writes a new snapshot: owner-only too.
+    let _d = Daemon::start(&s);
+    assert!(!journal_path(&bank).exists());
+    assert_eq!(mode(&bank), 0o600, "compacted snapshot");
 }

@@ -188,8 +188,10 @@ impl ClassBank {
 
     /// Save atomically: write a temporary file in the same directory, fsync it, rename it
     /// over `path`, fsync the directory. A crash leaves either the old or the new file.
-    /// Then remove the journal next to `path` (the snapshot holds the whole bank now): this
-    /// is also the journal's compaction. A crash before the removal leaves records the new
+    /// The temporary file is read back and verified before the rename, so a snapshot that
+    /// does not load never replaces the old one. Then remove the journal next to `path`
+    /// (the snapshot holds the whole bank now): this is also the journal's compaction, and
+    /// the journal is kept whenever any step before fails. The file is created mode 0600. A crash before the removal leaves records the new
     /// snapshot already holds, which a load skips by generation.
     pub fn save(&self, path: &Path) -> Result<(), SaveBankError> {
         let bytes = self.to_bytes()?;
@@ -211,10 +213,14 @@ impl ClassBank {
             move |source| SaveBankError::Io { path: p, source }
         };
         let result = (|| {
-            let mut f = fs::File::create(&tmp).map_err(io(&tmp))?;
+            let mut f = create_owner_only(&tmp).map_err(io(&tmp))?;
             f.write_all(&bytes).map_err(io(&tmp))?;
             f.sync_all().map_err(io(&tmp))?;
             drop(f);
+            // Nothing is replaced or deleted before the new snapshot is known to be good:
+            // read it back and verify it (checksum, consistency, generation) first.
+            self.verify_written(&tmp, &bytes)
+                .map_err(|detail| io(&tmp)(std::io::Error::other(detail)))?;
             fs::rename(&tmp, path).map_err(io(path))?;
             fs::File::open(&dir)
                 .and_then(|d| d.sync_all())
@@ -233,6 +239,38 @@ impl ClassBank {
         }
         result
     }
+}
+
+impl ClassBank {
+    /// Check that the file at `path` holds exactly `written` and that it loads as this bank
+    /// (its checksum, consistency and generation).
+    fn verify_written(&self, path: &Path, written: &[u8]) -> Result<(), String> {
+        let read = fs::read(path).map_err(|e| format!("cannot read it back: {e}"))?;
+        if read != written {
+            return Err(format!(
+                "read back {} bytes that differ from the {} written",
+                read.len(),
+                written.len()
+            ));
+        }
+        let loaded = Self::from_bytes(&read).map_err(|e| format!("does not load back: {e}"))?;
+        if loaded.generation != self.generation || loaded.classes.len() != self.classes.len() {
+            return Err("loads back as another bank".into());
+        }
+        Ok(())
+    }
+}
+
+/// Create `path` for writing, readable and writable by its owner only (mode 0600: the bank
+/// holds the operator's enrolled plans).
+pub(super) fn create_owner_only(path: &Path) -> std::io::Result<fs::File> {
+    use std::os::unix::fs::OpenOptionsExt;
+    fs::OpenOptions::new()
+        .write(true)
+        .create(true)
+        .truncate(true)
+        .mode(0o600)
+        .open(path)
 }
 
 /// Name prefix of the temporary files [`ClassBank::save`] writes next to `file_name`.

@@ -11,9 +11,12 @@
 //! (`remove`), so replaying a record twice changes nothing. Replay applies, in order, the
 //! records whose generation is above the snapshot's (a crash between a compaction's rename
 //! and the journal's removal leaves records the snapshot already holds; they are skipped).
-//! A record that is incomplete or fails its checksum as the **last** line is a torn tail (a
-//! crash during its append, never acknowledged): it is ignored and reported. A bad record
-//! followed by further lines means damage, and the bank does not load.
+//! Only an **incomplete last line** (no terminating newline) is a torn tail: an append
+//! writes its record and the newline in one `write` and fsyncs it before the change is
+//! acknowledged, so a crash can cut the last line short but never leave a complete line
+//! that fails its checksum. The torn tail is ignored and reported. A complete line that
+//! fails its checksum or does not parse — the last one included — is damage, and the bank
+//! does not load (an acknowledged change must never vanish silently).
 
 use std::fs;
 use std::io::Write;
@@ -108,13 +111,30 @@ impl ClassBank {
                 Some(nl) => (&rest[..nl], &rest[nl + 1..], true),
                 None => (rest, &rest[rest.len()..], false),
             };
-            match parse_record(line).filter(|_| complete) {
-                Some(record) => self.apply(record, &mut replay),
-                None if after.is_empty() => {
-                    replay.torn_bytes = rest.len() as u64;
-                    break;
+            if !complete {
+                // Necessarily the last line: an append cut short by a crash, unless it is a
+                // whole record whose newline was changed into another byte.
+                if line.len() > 1 && parse_record(&line[..line.len() - 1]).is_some() {
+                    return Err(format!(
+                        "record on line {line_no} (the last one) is whole but its newline is damaged"
+                    ));
                 }
-                None => return Err(format!("record on line {line_no} is damaged")),
+                replay.torn_bytes = rest.len() as u64;
+                break;
+            }
+            match parse_record(line) {
+                Some(record) => self.apply(record, &mut replay),
+                None => {
+                    let last = if after.is_empty() {
+                        " (the last one)"
+                    } else {
+                        ""
+                    };
+                    return Err(format!(
+                        "record on line {line_no}{last} is complete but fails its checksum or does not parse: \
+                         damage, not an interrupted append"
+                    ));
+                }
             }
             rest = after;
         }
@@ -162,11 +182,15 @@ impl ClassBank {
             path: jpath.clone(),
             source,
         };
-        let mut f = fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&jpath)
-            .map_err(io)?;
+        let mut f = {
+            use std::os::unix::fs::OpenOptionsExt;
+            fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .mode(0o600)
+                .open(&jpath)
+                .map_err(io)?
+        };
         let before = f.metadata().map_err(io)?.len();
         let mut buf = Vec::with_capacity(json.len() + 80);
         if before == 0 {
@@ -287,5 +311,47 @@ mod tests {
         let (l, r) = ClassBank::load_with_journal(&path).unwrap();
         assert_eq!(l, b);
         assert_eq!((r.applied, r.skipped), (0, 3));
+    }
+
+    /// A complete last record that fails its checksum is damage, refused like damage
+    /// elsewhere; only a last line without its newline is a torn append.
+    #[test]
+    fn a_damaged_complete_last_record_is_refused_not_taken_for_a_torn_append() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("bank.gcb");
+        let mut b = bank();
+        b.save(&path).unwrap();
+        b.enroll("b", &[vec![1.0, 0.0]]).unwrap();
+        let first = b.append_change(&path, "b").unwrap() as usize;
+        b.enroll("c", &[vec![0.5, 0.5]]).unwrap();
+        b.append_change(&path, "c").unwrap();
+        let journal = fs::read(journal_path(&path)).unwrap();
+        let last = first..journal.len();
+        // A bit flipped at every byte of the last record but its newline (checksum, space,
+        // JSON): refused, never loaded without it.
+        for i in last.start..last.end - 1 {
+            let mut bad = journal.clone();
+            bad[i] ^= 0x04;
+            fs::write(journal_path(&path), &bad).unwrap();
+            match ClassBank::load_with_journal(&path) {
+                Err(LoadBankError::Journal { detail, .. }) => {
+                    assert!(detail.contains("the last one"), "byte {i}: {detail}")
+                }
+                other => panic!("byte {i}: {other:?}"),
+            }
+        }
+        // Its newline damaged: the record is whole, so this is damage too.
+        let mut bad = journal.clone();
+        *bad.last_mut().unwrap() = b'x';
+        fs::write(journal_path(&path), &bad).unwrap();
+        assert!(matches!(
+            ClassBank::load_with_journal(&path),
+            Err(LoadBankError::Journal { .. })
+        ));
+        // Cut before its newline: a torn append, ignored and reported.
+        fs::write(journal_path(&path), &journal[..journal.len() - 1]).unwrap();
+        let (l, r) = ClassBank::load_with_journal(&path).unwrap();
+        assert_eq!(names(&l), ["a", "b"]);
+        assert_eq!(r.torn_bytes as usize, last.len() - 1);
     }
 }
