@@ -29,9 +29,12 @@ struct Args {
     /// iceoryx2 prefix (must match the daemon's config).
     #[arg(long)]
     iceoryx2_prefix: Option<String>,
-    /// The daemon's admin socket (enroll, forget; config `[admin] socket`).
-    #[arg(long, default_value = guardian_client::DEFAULT_ADMIN_SOCKET)]
-    admin_socket: PathBuf,
+    /// The daemon's admin socket (enroll, forget; config `[admin] socket`). Unset:
+    /// $GUARDIAN_ADMIN_SOCKET, else the socket the daemon reached with the iceoryx2
+    /// options above names in its locator file, else /run/guardian/admin.sock, else
+    /// ./guardiand-state/admin.sock.
+    #[arg(long)]
+    admin_socket: Option<PathBuf>,
     /// Print JSON instead of tables.
     #[arg(long)]
     json: bool,
@@ -88,16 +91,17 @@ fn main() -> anyhow::Result<()> {
     let timeout = Duration::from_millis(args.timeout_ms);
     // Enroll and forget go through the admin socket only: an admin of another uid cannot
     // (and need not) open the planners' iceoryx2 service.
-    let admin = AdminClient::new(&args.admin_socket, timeout);
-    let connect = || {
-        Client::connect(ClientConfig {
-            service_name: args.service.clone(),
-            timeout,
-            iceoryx2_root_path: args.iceoryx2_root_path.clone(),
-            iceoryx2_prefix: args.iceoryx2_prefix.clone(),
-        })
-        .context("cannot connect to guardiand")
+    let config = ClientConfig {
+        service_name: args.service.clone(),
+        timeout,
+        iceoryx2_root_path: args.iceoryx2_root_path.clone(),
+        iceoryx2_prefix: args.iceoryx2_prefix.clone(),
     };
+    let admin = || match &args.admin_socket {
+        Some(p) => Ok(AdminClient::new(p, timeout)),
+        None => AdminClient::locate(&config),
+    };
+    let connect = || Client::connect(config.clone()).context("cannot connect to guardiand");
     let json = args.json;
     match args.cmd {
         Cmd::Check { file, class, index } => {
@@ -144,7 +148,7 @@ fn main() -> anyhow::Result<()> {
                     examples.push(read_trajectory(f, None)?);
                 }
             }
-            let info = admin.enroll(&name, &examples)?;
+            let info = admin()?.enroll(&name, &examples)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&info)?);
             } else {
@@ -155,7 +159,7 @@ fn main() -> anyhow::Result<()> {
             }
         }
         Cmd::Forget { name } => {
-            admin.forget(&name)?;
+            admin()?.forget(&name)?;
             if json {
                 println!("{}", serde_json::json!({ "forgotten": name }));
             } else {
