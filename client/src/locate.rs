@@ -53,10 +53,9 @@ impl AdminClient {
                 match read_locator(&file) {
                     Ok(socket) => match is_socket(&socket) {
                         Ok(()) => return Ok(Self::new(socket, config.timeout)),
-                        Err(what) => looked.push((
-                            file,
-                            format!("names {}: {what}", socket.display()),
-                        )),
+                        Err(what) => {
+                            looked.push((file, format!("names {}: {what}", socket.display())))
+                        }
                     },
                     Err(what) => looked.push((file, what)),
                 }
@@ -64,7 +63,10 @@ impl AdminClient {
             Err(e) => looked.push((PathBuf::from("(locator file)"), e.to_string())),
         }
         let mut fixed = vec![PathBuf::from(DEFAULT_ADMIN_SOCKET)];
-        fixed.push(std::path::absolute(QUICK_START_ADMIN_SOCKET).unwrap_or_else(|_| QUICK_START_ADMIN_SOCKET.into()));
+        fixed.push(
+            std::path::absolute(QUICK_START_ADMIN_SOCKET)
+                .unwrap_or_else(|_| QUICK_START_ADMIN_SOCKET.into()),
+        );
         for socket in fixed {
             match is_socket(&socket) {
                 Ok(()) => return Ok(Self::new(socket, config.timeout)),

@@ -117,6 +117,9 @@ mod tests {
         let old = AdminLocator::publish(&ic, "svc/a", Path::new("/x/old.sock")).unwrap();
         let new = AdminLocator::publish(&ic, "svc/a", Path::new("/x/new.sock")).unwrap();
         drop(old);
-        assert_eq!(std::fs::read_to_string(new.file()).unwrap(), "/x/new.sock\n");
+        assert_eq!(
+            std::fs::read_to_string(new.file()).unwrap(),
+            "/x/new.sock\n"
+        );
     }
 }

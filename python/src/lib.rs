@@ -18,12 +18,10 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use guardian_client as gc;
-use numpy::{
-    PyArray1, PyArray2, PyArray3, PyArrayMethods, PyUntypedArray, PyUntypedArrayMethods,
-};
+use numpy::{PyArray1, PyArray2, PyArray3, PyArrayMethods, PyUntypedArray, PyUntypedArrayMethods};
+use pyo3::IntoPyObjectExt;
 use pyo3::create_exception;
 use pyo3::exceptions::{PyException, PyTypeError, PyValueError};
-use pyo3::IntoPyObjectExt;
 use pyo3::prelude::*;
 use send_wrapper::SendWrapper;
 
@@ -154,11 +152,9 @@ fn check_err(py: Python<'_>, e: gc::CheckError) -> PyErr {
     use gc::CheckError as E;
     let msg = e.to_string();
     match e {
-        E::Timeout { after } => raise::<Timeout>(
-            py,
-            msg,
-            &[("after", obj(py, after.as_secs_f64()))],
-        ),
+        E::Timeout { after } => {
+            raise::<Timeout>(py, msg, &[("after", obj(py, after.as_secs_f64()))])
+        }
         E::NotServing { .. } => raise::<NotServing>(py, msg, &[]),
         E::InvalidClassName(_) => raise::<InvalidClassName>(py, msg, &[]),
         E::InvalidTrajectory {
@@ -192,11 +188,9 @@ fn check_err(py: Python<'_>, e: gc::CheckError) -> PyErr {
             ],
         ),
         E::NotPermitted { .. } => raise::<NotPermitted>(py, msg, &[]),
-        E::AdminSocket { path, .. } => raise::<AdminSocketError>(
-            py,
-            msg,
-            &[("path", obj(py, path.display().to_string()))],
-        ),
+        E::AdminSocket { path, .. } => {
+            raise::<AdminSocketError>(py, msg, &[("path", obj(py, path.display().to_string()))])
+        }
         _ => raise::<GuardianError>(py, msg, &[]),
     }
 }
@@ -227,8 +221,8 @@ fn invalid_kind_name(k: gc::InvalidKind) -> String {
 }
 
 /// One trajectory from a numpy array `[waypoints, channels]` of float32 or float64. The
-/// count of channels and waypoints is the daemon's to judge (it answers with the invalid
-/// kind), except what the wire cannot carry.
+/// counts of waypoints and channels are the daemon's to judge, as for a Rust or C planner:
+/// it answers with the invalid kind and the offending count.
 fn trajectory(a: &Bound<'_, PyAny>, what: &str) -> PyResult<gc::Trajectory> {
     let Ok(u) = a.cast::<PyUntypedArray>() else {
         return Err(PyTypeError::new_err(format!(
@@ -242,30 +236,21 @@ fn trajectory(a: &Bound<'_, PyAny>, what: &str) -> PyResult<gc::Trajectory> {
             u.shape()
         )));
     }
-    let (n, c) = (u.shape()[0], u.shape()[1]);
-    if c == 0 || c > guardian_shared::wire::MAX_CHANNELS {
-        return Err(PyValueError::new_err(format!(
-            "{what} has {c} channels per waypoint; the wire carries 1..={}",
-            guardian_shared::wire::MAX_CHANNELS
-        )));
-    }
-    if n > gc::MAX_WAYPOINTS {
-        return Err(PyValueError::new_err(format!(
-            "{what} has {n} waypoints; at most {} per trajectory",
-            gc::MAX_WAYPOINTS
-        )));
-    }
+    let c = u.shape()[1];
+    // Row-major order whatever the layout: a slice copy only when the memory is C order
+    // (`as_slice` also accepts Fortran order), else ndarray's logical-order iterator.
+    let c_order = u.is_c_contiguous();
     let data: Vec<f32> = if let Ok(a) = a.cast::<PyArray2<f32>>() {
         let r = a.readonly();
         match r.as_slice() {
-            Ok(s) => s.to_vec(),
-            Err(_) => r.as_array().iter().copied().collect(),
+            Ok(s) if c_order => s.to_vec(),
+            _ => r.as_array().iter().copied().collect(),
         }
     } else if let Ok(a) = a.cast::<PyArray2<f64>>() {
         let r = a.readonly();
         match r.as_slice() {
-            Ok(s) => s.iter().map(|&v| v as f32).collect(),
-            Err(_) => r.as_array().iter().map(|&v| v as f32).collect(),
+            Ok(s) if c_order => s.iter().map(|&v| v as f32).collect(),
+            _ => r.as_array().iter().map(|&v| v as f32).collect(),
         }
     } else {
         return Err(PyTypeError::new_err(format!(
@@ -592,24 +577,49 @@ impl Status {
 }
 
 /// A connection to guardiand over iceoryx2 for one thread: give every planner thread its
-/// own `Client` (the ports are single-threaded; using one from another thread raises).
-#[pyclass(unsendable, module = "guardian")]
+/// own `Client` (the ports are single-threaded; using one from another thread raises
+/// `RuntimeError`).
+#[pyclass(frozen, module = "guardian")]
 struct Client {
-    inner: gc::Client,
+    /// The Rust client, usable only on the thread that created it (checked on every call).
+    /// `None` only while dropping.
+    inner: Option<SendWrapper<gc::Client>>,
     service: String,
 }
 
 impl Client {
+    /// The Rust client, if this is the thread that owns it.
+    fn owned(&self) -> PyResult<&gc::Client> {
+        match &self.inner {
+            Some(c) if c.valid() => Ok(c),
+            _ => Err(pyo3::exceptions::PyRuntimeError::new_err(
+                "this guardian.Client belongs to the thread that created it: use one Client per thread",
+            )),
+        }
+    }
+
     /// Run `f` on the client with the GIL released. `detach` runs it on this same thread
-    /// (the class is unsendable, so this is the thread that owns the client); the wrapper
-    /// only carries the reference across the `Send` bound and checks that at run time.
+    /// (checked by `owned`); the wrapper only carries the reference across the `Send`
+    /// bound, and checks the thread again when it is used.
     fn detached<T: Send>(
         &self,
         py: Python<'_>,
         f: impl FnOnce(&gc::Client) -> T + Send,
-    ) -> T {
-        let inner = SendWrapper::new(&self.inner);
-        py.detach(move || f(&inner))
+    ) -> PyResult<T> {
+        let inner = SendWrapper::new(self.owned()?);
+        Ok(py.detach(move || f(&inner)))
+    }
+}
+
+impl Drop for Client {
+    fn drop(&mut self) {
+        if let Some(c) = self.inner.take()
+            && !c.valid()
+        {
+            // Collected on another thread: the ports cannot be closed here; leave them to
+            // the process's exit (and the daemon's dead-node cleanup).
+            std::mem::forget(c);
+        }
     }
 }
 
@@ -631,13 +641,16 @@ impl Client {
             .detach(move || SendWrapper::new(gc::Client::connect(config)))
             .take()
             .map_err(|e| connect_err(py, e))?;
-        Ok(Client { inner, service })
+        Ok(Client {
+            inner: Some(SendWrapper::new(inner)),
+            service,
+        })
     }
 
     /// Is `plan` the task `claimed`? Invalid plans and unknown classes are no-go verdicts.
     fn check(&self, py: Python<'_>, plan: &Bound<'_, PyAny>, claimed: &str) -> PyResult<Verdict> {
         let t = trajectory(plan, "plan")?;
-        self.detached(py, |c| c.check(&t, claimed))
+        self.detached(py, |c| c.check(&t, claimed))?
             .map(Verdict::from)
             .map_err(|e| check_err(py, e))
     }
@@ -646,7 +659,7 @@ impl Client {
     fn identify(&self, py: Python<'_>, plan: &Bound<'_, PyAny>) -> PyResult<Ranking> {
         let t = trajectory(plan, "plan")?;
         let r = self
-            .detached(py, |c| c.identify(&t))
+            .detached(py, |c| c.identify(&t))?
             .map_err(|e| check_err(py, e))?;
         Ok(Ranking {
             nearest: neighbours(&r.nearest),
@@ -658,7 +671,7 @@ impl Client {
     /// Every enrolled class.
     fn classes(&self, py: Python<'_>) -> PyResult<Vec<ClassInfo>> {
         let v = self
-            .detached(py, |c| c.classes())
+            .detached(py, |c| c.classes())?
             .map_err(|e| check_err(py, e))?;
         Ok(v.into_iter().map(ClassInfo::from).collect())
     }
@@ -666,7 +679,7 @@ impl Client {
     /// Versions, counters, latency percentiles and the robot served.
     fn status(&self, py: Python<'_>) -> PyResult<Status> {
         let s = self
-            .detached(py, |c| c.status())
+            .detached(py, |c| c.status())?
             .map_err(|e| check_err(py, e))?;
         Ok(Status {
             model_version: s.model_version,
@@ -696,21 +709,21 @@ impl Client {
         examples: &Bound<'_, PyAny>,
     ) -> PyResult<ClassInfo> {
         let ex = self::examples(examples)?;
-        self.detached(py, |c| c.enroll(name, &ex))
+        self.detached(py, |c| c.enroll(name, &ex))?
             .map(ClassInfo::from)
             .map_err(|e| enroll_err(py, e))
     }
 
     /// Forget over the planners' service (only without admin separation).
     fn forget(&self, py: Python<'_>, name: &str) -> PyResult<()> {
-        self.detached(py, |c| c.forget(name))
+        self.detached(py, |c| c.forget(name))?
             .map_err(|e| check_err(py, e))
     }
 
     /// The per-request timeout in seconds.
     #[getter]
-    fn timeout(&self) -> f64 {
-        self.inner.timeout().as_secs_f64()
+    fn timeout(&self) -> PyResult<f64> {
+        Ok(self.owned()?.timeout().as_secs_f64())
     }
 
     /// The service name.
@@ -720,11 +733,7 @@ impl Client {
     }
 
     fn __repr__(&self) -> String {
-        format!(
-            "Client(service={:?}, timeout={})",
-            self.service,
-            self.inner.timeout().as_secs_f64()
-        )
+        format!("Client(service={:?})", self.service)
     }
 }
 
@@ -799,7 +808,10 @@ impl AdminClient {
     }
 
     fn __repr__(&self) -> String {
-        format!("AdminClient(socket={:?})", self.inner.path().display().to_string())
+        format!(
+            "AdminClient(socket={:?})",
+            self.inner.path().display().to_string()
+        )
     }
 }
 
@@ -850,8 +862,8 @@ fn read_dataset(py: Python<'_>, path: PathBuf) -> PyResult<Dataset> {
         .map_err(|e| pyo3::exceptions::PyOSError::new_err(format!("{}: {e}", path.display())))?;
     let st = safetensors::SafeTensors::deserialize(&bytes)
         .map_err(|e| read_err(&path, format!("not a safetensors file: {e}")))?;
-    let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes)
-        .map_err(|e| read_err(&path, e))?;
+    let (_, meta) =
+        safetensors::SafeTensors::read_metadata(&bytes).map_err(|e| read_err(&path, e))?;
     let meta = meta.metadata().clone().unwrap_or_default();
     let list = |key: &str| -> PyResult<Vec<String>> {
         let text = meta
@@ -891,7 +903,12 @@ fn read_dataset(py: Python<'_>, path: PathBuf) -> PyResult<Dataset> {
         if v.dtype() != safetensors::Dtype::I64 || v.shape() != [shape[0]] {
             return Err(read_err(
                 &path,
-                format!("{name} must be I64 [{}], got {:?} {:?}", shape[0], v.dtype(), v.shape()),
+                format!(
+                    "{name} must be I64 [{}], got {:?} {:?}",
+                    shape[0],
+                    v.dtype(),
+                    v.shape()
+                ),
             ));
         }
         let d: Vec<i64> = v
@@ -920,7 +937,10 @@ fn read_dataset(py: Python<'_>, path: PathBuf) -> PyResult<Dataset> {
 fn guardian(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let py = m.py();
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
-    m.add("DEFAULT_SERVICE", guardian_shared::wire::DEFAULT_SERVICE_NAME)?;
+    m.add(
+        "DEFAULT_SERVICE",
+        guardian_shared::wire::DEFAULT_SERVICE_NAME,
+    )?;
     m.add("DEFAULT_ADMIN_SOCKET", gc::DEFAULT_ADMIN_SOCKET)?;
     m.add_class::<Client>()?;
     m.add_class::<AdminClient>()?;

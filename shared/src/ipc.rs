@@ -144,7 +144,10 @@ mod tests {
         );
         assert_ne!(
             admin_locator_path(&c, "x"),
-            admin_locator_path(&iceoryx2_config(Some(Path::new("/run/h")), Some("gx_")).unwrap(), "x")
+            admin_locator_path(
+                &iceoryx2_config(Some(Path::new("/run/h")), Some("gx_")).unwrap(),
+                "x"
+            )
         );
     }
 }
