@@ -2,11 +2,11 @@
 """Round-trip latency of the Python package beside the Rust client, in one run against one
 daemon (docs/performance.md, "Python client").
 
-Starts GUARDIAND_BIN (release build) with the shipped model on an empty bank in event mode,
+Starts GUARDIAND_BIN (release build) with the shipped model and default bank in event mode,
 enrolls three Latin characters (drawers 1-5) through the admin socket, then alternates
 Python and Rust (`client/examples/check_latency.rs`, CHECK_LATENCY_BIN) rounds of N checks
 of one genuine plan (drawer 6), each after 50 warm-up checks, and prints p50/p99 of each
-round and the ratio of the medians.
+round and the median of the per-round Python/Rust ratios.
 
     GUARDIAND_BIN=target/release/guardiand CHECK_LATENCY_BIN=target/release/examples/check_latency \
         python python/bench.py DATASET [--n 1000] [--rounds 2]
@@ -47,7 +47,7 @@ def main():
     tag = uuid.uuid4().hex[:10]
     service, root, prefix = f"guardian-bench/{tag}/rpc", tmp / "iox", f"gb{tag}_"
     (tmp / "g.toml").write_text(
-        f'model = "{REPO / "models" / "embedder.safetensors"}"\ndefault-bank = ""\nstate-dir = "{tmp / "state"}"\n'
+        f'model = "{REPO / "models" / "embedder.safetensors"}"\ndefault-bank = "{REPO / "models" / "default-bank.gcb"}"\nstate-dir = "{tmp / "state"}"\n'
         f'service-name = "{service}"\n[iceoryx2]\nroot-path = "{root}/"\nprefix = "{prefix}"\n'
     )
     env = dict(os.environ, RAYON_NUM_THREADS="1")
@@ -69,6 +69,7 @@ def main():
         plan = ds.trajectories[idx[("Latin/character01", 6)]]
         csv = tmp / "plan.csv"
         np.savetxt(csv, plan, delimiter=",", fmt="%.9g")
+        print("verdict:", g.check(plan, "bench-latin-01"))
         rows = []
         for r in range(a.rounds):
             for _ in range(50):
@@ -87,9 +88,12 @@ def main():
         print(f"{'client':<8} {'round':>5} {'p50 us':>8} {'p99 us':>8} {'go':>6}")
         for c, r, p50, p99, go in rows:
             print(f"{c:<8} {r:>5} {p50:>8.1f} {p99:>8.1f} {go:>6}")
-        med = lambda c, k: float(np.median([row[k] for row in rows if row[0] == c]))  # noqa: E731
-        print(f"ratio python/rust: p50 {med('python', 2) / med('rust', 2):.2f}, p99 {med('python', 3) / med('rust', 3):.2f}"
-              f" (medians over {a.rounds} rounds of {a.n} checks)")
+        # Each Python round against the Rust round right after it, then the median ratio.
+        py = [row for row in rows if row[0] == "python"]
+        rs = [row for row in rows if row[0] == "rust"]
+        r50 = float(np.median([p[2] / r[2] for p, r in zip(py, rs)]))
+        r99 = float(np.median([p[3] / r[3] for p, r in zip(py, rs)]))
+        print(f"python/rust, median of the per-round ratios over {a.rounds} rounds of {a.n} checks: p50 {r50:.2f}, p99 {r99:.2f}")
     finally:
         daemon.terminate()
         daemon.wait()
