@@ -35,7 +35,9 @@
 pub mod samples;
 
 mod admin;
+mod locate;
 pub use admin::AdminClient;
+pub use locate::{ADMIN_SOCKET_ENV, LocateAdminError, QUICK_START_ADMIN_SOCKET};
 
 use std::cell::Cell;
 use std::path::PathBuf;

@@ -35,9 +35,12 @@ struct Args {
     /// iceoryx2 prefix (must match the daemon's config).
     #[arg(long)]
     iceoryx2_prefix: Option<String>,
-    /// The daemon's admin socket (enroll, forget; config `[admin] socket`).
-    #[arg(long, default_value = guardian_client::DEFAULT_ADMIN_SOCKET)]
-    admin_socket: PathBuf,
+    /// The daemon's admin socket (enroll, forget; config `[admin] socket`). Unset:
+    /// $GUARDIAN_ADMIN_SOCKET, else the socket the daemon reached with the iceoryx2
+    /// options above names in its locator file, else /run/guardian/admin.sock, else
+    /// ./guardiand-state/admin.sock.
+    #[arg(long)]
+    admin_socket: Option<PathBuf>,
     /// Print JSON instead of tables.
     #[arg(long)]
     json: bool,
@@ -99,16 +102,17 @@ fn main() -> anyhow::Result<()> {
     let timeout = Duration::from_millis(args.timeout_ms);
     // Enroll and forget go through the admin socket only: an admin of another uid cannot
     // (and need not) open the planners' iceoryx2 service.
-    let admin = AdminClient::new(&args.admin_socket, timeout);
-    let connect = || {
-        Client::connect(ClientConfig {
-            service_name: args.service.clone(),
-            timeout,
-            iceoryx2_root_path: args.iceoryx2_root_path.clone(),
-            iceoryx2_prefix: args.iceoryx2_prefix.clone(),
-        })
-        .context("cannot connect to guardiand")
+    let config = ClientConfig {
+        service_name: args.service.clone(),
+        timeout,
+        iceoryx2_root_path: args.iceoryx2_root_path.clone(),
+        iceoryx2_prefix: args.iceoryx2_prefix.clone(),
     };
+    let admin = || match &args.admin_socket {
+        Some(p) => Ok(AdminClient::new(p, timeout)),
+        None => AdminClient::locate(&config),
+    };
+    let connect = || Client::connect(config.clone()).context("cannot connect to guardiand");
     let json = args.json;
     match args.cmd {
         Cmd::Check { file, class, index } => {
@@ -155,10 +159,10 @@ fn main() -> anyhow::Result<()> {
                     examples.push(read_trajectory(f, None)?);
                 }
             }
-            let info = match admin.enroll(&name, &examples) {
+            let info = match admin()?.enroll(&name, &examples) {
                 Err(guardian_client::EnrollError::Request(
                     e @ CheckError::OutcomeUnknown { .. },
-                )) => settle(&args.admin_socket, timeout, &e, &name, true),
+                )) => settle(&admin()?, timeout, &e, &name, true),
                 other => other?,
             };
             if json {
@@ -171,9 +175,9 @@ fn main() -> anyhow::Result<()> {
             }
         }
         Cmd::Forget { name } => {
-            match admin.forget(&name) {
+            match admin()?.forget(&name) {
                 Err(e @ CheckError::OutcomeUnknown { .. }) => {
-                    settle(&args.admin_socket, timeout, &e, &name, false);
+                    settle(&admin()?, timeout, &e, &name, false);
                 }
                 other => other?,
             }
@@ -185,7 +189,7 @@ fn main() -> anyhow::Result<()> {
         }
         Cmd::Classes { admin: via_admin } => {
             let classes = if via_admin {
-                admin.classes()?
+                admin()?.classes()?
             } else {
                 connect()?.classes()?
             };
@@ -242,14 +246,14 @@ fn main() -> anyhow::Result<()> {
 /// class if an enroll was applied; exits 1 if the change was not applied, 3 if the daemon
 /// cannot be asked either.
 fn settle(
-    socket: &Path,
+    admin: &AdminClient,
     timeout: Duration,
     unknown: &CheckError,
     class: &str,
     enroll: bool,
 ) -> ClassInfo {
     eprintln!("guardianctl: {unknown}");
-    let asked = AdminClient::new(socket, timeout.max(Duration::from_secs(10))).classes();
+    let asked = AdminClient::new(admin.path(), timeout.max(Duration::from_secs(10))).classes();
     let classes = match asked {
         Ok(c) => c,
         Err(e) => {

@@ -360,6 +360,21 @@ impl Config {
     }
 }
 
+impl AdminConfig {
+    /// The admin uids in force for a daemon running as `own_uid`: the configured ones, and,
+    /// with separation off, the daemon's own uid too — its planners may enroll and forget
+    /// over iceoryx2 then anyway, so its user gains nothing new, and the quick-start daemon's
+    /// user can use `guardianctl enroll`. With separation on the daemon's uid is the
+    /// planners' and stays out unless listed.
+    pub fn effective_uids(&self, own_uid: u32) -> Vec<u32> {
+        let mut uids = self.uids.clone();
+        if !self.separation && !uids.contains(&own_uid) && own_uid != OVERFLOW_ID {
+            uids.push(own_uid);
+        }
+        uids
+    }
+}
+
 /// The directory systemd passes in `$var` (`StateDirectory=` etc.); it may pass several,
 /// colon-separated, and the first is ours.
 fn systemd_dir(var: &str) -> Option<PathBuf> {
@@ -430,6 +445,19 @@ mod tests {
         )
         .unwrap();
         assert_eq!(c.robot_description().unwrap().robot.name(), "ur5e");
+    }
+
+    #[test]
+    fn the_daemons_own_uid_is_an_admin_only_without_separation() {
+        let open = AdminConfig::default();
+        assert_eq!(open.effective_uids(1000), [0, 1000]);
+        assert_eq!(open.effective_uids(0), [0]);
+        let separated = AdminConfig {
+            separation: true,
+            ..AdminConfig::default()
+        };
+        assert_eq!(separated.effective_uids(1000), [0]);
+        assert_eq!(open.effective_uids(OVERFLOW_ID), [0]);
     }
 
     #[test]

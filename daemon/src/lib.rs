@@ -6,6 +6,7 @@
 pub mod admin;
 pub mod config;
 pub mod engine;
+pub mod locator;
 pub mod notify;
 pub mod recovery;
 pub mod screen;

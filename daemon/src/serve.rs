@@ -223,15 +223,23 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
 
     let admin_path = config.admin_socket();
     let make_wake = admin_waker(&iox_config, request_event_name(&config.service_name));
+    let admin_uids = config
+        .admin
+        .effective_uids(rustix::process::getuid().as_raw());
     let admin = AdminEndpoint::start(
         &admin_path,
         AdminPolicy {
-            uids: config.admin.uids.clone(),
+            uids: admin_uids.clone(),
             gids: config.admin.gids.clone(),
         },
         make_wake,
     )?;
-    tracing::info!(socket = %admin_path.display(), separation = config.admin.separation, uids = ?config.admin.uids, gids = ?config.admin.gids, "admin socket ready");
+    let _locator = crate::locator::AdminLocator::publish_or_warn(
+        &iox_config,
+        &config.service_name,
+        &admin_path,
+    );
+    tracing::info!(socket = %admin_path.display(), separation = config.admin.separation, uids = ?admin_uids, gids = ?config.admin.gids, "admin socket ready");
 
     let watchdog = if config.watchdog {
         sd.watchdog_timeout().map(|t| t / 2)

@@ -83,6 +83,38 @@ pub fn iceoryx2_config(
     Ok(c)
 }
 
+/// Directory, inside the iceoryx2 root path, of the files in which daemons name their admin
+/// sockets ([`admin_locator_path`]).
+pub const ADMIN_LOCATOR_DIR: &str = "guardian-admin";
+
+/// The file in which the daemon serving `service` under the iceoryx2 configuration
+/// `config` names its admin socket: `<root-path>/guardian-admin/<prefix>+<service>.socket`,
+/// prefix and service name percent-encoded (every byte but ASCII letters, digits, `-`, `.`
+/// and `_`), so distinct deployments never share a file. A client that reaches the daemon
+/// with the same service name, root path and prefix finds its admin socket there
+/// (`docs/guardiand.md`, "Admin endpoint").
+pub fn admin_locator_path(config: &iceoryx2::config::Config, service: &str) -> PathBuf {
+    let root = String::from_utf8_lossy(config.global.root_path().as_bytes()).into_owned();
+    let file = format!(
+        "{}+{}.socket",
+        percent_encode(config.global.prefix.as_bytes()),
+        percent_encode(service.as_bytes())
+    );
+    PathBuf::from(root).join(ADMIN_LOCATOR_DIR).join(file)
+}
+
+fn percent_encode(bytes: &[u8]) -> String {
+    let mut s = String::with_capacity(bytes.len());
+    for &b in bytes {
+        if b.is_ascii_alphanumeric() || matches!(b, b'-' | b'.' | b'_') {
+            s.push(char::from(b));
+        } else {
+            s.push_str(&format!("%{b:02X}"));
+        }
+    }
+    s
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -95,5 +127,27 @@ mod tests {
             iceoryx2_config(None, Some("a/b")),
             Err(Iceoryx2ConfigError::Prefix { .. })
         ));
+    }
+
+    #[test]
+    fn admin_locator_paths_follow_root_path_prefix_and_service() {
+        let c = iceoryx2_config(Some(Path::new("/run/g/iox")), Some("gx_")).unwrap();
+        assert_eq!(
+            admin_locator_path(&c, "guardian/v4/rpc"),
+            Path::new("/run/g/iox/guardian-admin/gx_+guardian%2Fv4%2Frpc.socket")
+        );
+        // Distinct settings, distinct files; the separator cannot come from either part.
+        let other = iceoryx2_config(Some(Path::new("/run/g/iox")), Some("gx_+a")).unwrap();
+        assert_ne!(
+            admin_locator_path(&other, "b"),
+            admin_locator_path(&c, "a+b")
+        );
+        assert_ne!(
+            admin_locator_path(&c, "x"),
+            admin_locator_path(
+                &iceoryx2_config(Some(Path::new("/run/h")), Some("gx_")).unwrap(),
+                "x"
+            )
+        );
     }
 }
