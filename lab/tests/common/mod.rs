@@ -29,6 +29,7 @@ pub fn tiny_config() -> TrainConfig {
         k_samples: 4,
         steps_per_epoch: 5,
         max_epochs: 2,
+        schedule: guardian_lab::train::Schedule::Plateau,
         lr: 3e-3,
         weight_decay: 1e-4,
         plateau_patience: 3,
