@@ -146,7 +146,11 @@ fn the_picture_network_learns_real_characters() {
     let mut erng = StdRng::seed_from_u64(9);
     let (eidx, elabels) = set.sample_pk(8, 6, &mut erng);
     let ex = set.batch(&eidx, None).expect("batch");
-    assert_eq!(ex.dims(), [48, 32 * 32, 1], "pictures are the network's input");
+    assert_eq!(
+        ex.dims(),
+        [48, 32 * 32, 1],
+        "pictures are the network's input"
+    );
     let loss_on_fixed = |net: &FastNet, rng: &mut StdRng| -> f32 {
         let e = train::embed(net, &ex).expect("embed");
         let (l, _, _) =
@@ -179,7 +183,11 @@ fn the_picture_network_learns_real_characters() {
     let model = Embedder::from_trained(&learner.net().to_net().expect("net")).expect("model");
     let e = model.embed(&set.raw()[0]).expect("embed");
     let want = &embs[0];
-    let err: f32 = e.iter().zip(want).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
+    let err: f32 = e
+        .iter()
+        .zip(want)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f32::max);
     assert!(err < 1e-5, "embedder vs training embedding: {err}");
 }
 
@@ -415,8 +423,7 @@ fn training_gradients_match_candle_autograd_on_real_batches() {
     )
     .expect("the shipped model loads");
     let config = shipped.config().clone();
-    let mut set =
-        Prepared::new(data, &["Latin".to_string()], config.features).expect("prepare");
+    let mut set = Prepared::new(data, &["Latin".to_string()], config.features).expect("prepare");
     set.make_faults(data, &shared_strokes(), &train::TRAIN_FAULTS, 2, 3)
         .expect("faults");
     let cfg = TrainConfig {
