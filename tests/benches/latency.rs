@@ -40,7 +40,7 @@ use guardian_lab::path::{Geometry, PathSolver};
 use guardian_lab::strokes::read_strokes;
 use guardian_models::embedder::{EMBED_DIM, Embedder};
 use guardian_models::fast::{Scratch, sgemm};
-use guardian_shared::trajectory::{STEPS, Waypoint};
+use guardian_shared::trajectory::Waypoint;
 use guardian_shared::wire::{
     Op, ReasonCode, RequestHeader, VerdictCode, decode_text, encode_class_name,
 };
@@ -425,13 +425,16 @@ fn request(op: Op, class: &str, examples: &[&[Waypoint]]) -> Result<(RequestHead
 /// What `guardiand` computes for a check, in this process: its own `Screen` built from the
 /// same configuration (model, shipped bank, workcell rules) with the same classes enrolled,
 /// answering whole requests, and each stage of a check alone.
+/// Check requests as the wire carries them: header and payload.
+type Requests = Vec<(RequestHeader, Vec<f32>)>;
+
 /// A `Screen` in this process built from `dep`'s configuration, the Latin classes enrolled
 /// through it, and one check request per check drawing.
 fn in_process_screen(
     dep: &Deployment,
     drawings: &Drawings,
     name: &str,
-) -> Result<(Screen, Config, Vec<(RequestHeader, Vec<f32>)>)> {
+) -> Result<(Screen, Config, Requests)> {
     let config = Config::from_file(&dep.write_config("event", 16)?)?;
     let (engine, workcell) = load_engine(&config)?;
     let panda = engine.robot().clone();
@@ -452,7 +455,7 @@ fn in_process_screen(
             bail!("in-process enrolment of {class}: status {}", r.status);
         }
     }
-    let reqs: Vec<(RequestHeader, Vec<f32>)> = drawings
+    let reqs: Requests = drawings
         .checks
         .iter()
         .map(|(c, w)| request(Op::Check, c, &[w]))
