@@ -17,9 +17,11 @@ pub struct AdminLocator {
 
 impl AdminLocator {
     /// Write the locator of `socket` for the daemon serving `service` under `iceoryx2`.
-    /// The directory is created world-writable and sticky (like `/tmp`) when missing, so
-    /// daemons of several users can publish side by side under one root path; clients trust
-    /// a locator only if it belongs to them or to root.
+    /// The directory and the file are owner-only (0700, 0600), like everything else of the
+    /// daemon's under its iceoryx2 root path but iceoryx2's node counter: the daemon's own
+    /// user and root read it (the quick-start user, and root as the installed admin); an
+    /// admin of another uid passes `--admin-socket` or uses the installed default path.
+    /// Clients trust a locator only if it belongs to them or to root.
     pub fn publish(
         iceoryx2: &iceoryx2::config::Config,
         service: &str,
@@ -39,15 +41,15 @@ impl AdminLocator {
             + "\n";
         let file = guardian_shared::ipc::admin_locator_path(iceoryx2, service);
         let dir = file.parent().unwrap_or(Path::new("/"));
-        match std::fs::DirBuilder::new().mode(0o755).create(dir) {
-            Ok(()) => std::fs::set_permissions(dir, std::fs::Permissions::from_mode(0o1777))?,
+        match std::fs::DirBuilder::new().mode(0o700).create(dir) {
+            Ok(()) => std::fs::set_permissions(dir, std::fs::Permissions::from_mode(0o700))?,
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
             Err(e) => return Err(e),
         }
         let tmp = file.with_extension(format!("{}.tmp", std::process::id()));
         let write = || -> std::io::Result<()> {
             let mut f = std::fs::File::create(&tmp)?;
-            f.set_permissions(std::fs::Permissions::from_mode(0o644))?;
+            f.set_permissions(std::fs::Permissions::from_mode(0o600))?;
             f.write_all(content.as_bytes())?;
             std::fs::rename(&tmp, &file)
         };
@@ -109,7 +111,9 @@ mod tests {
             .unwrap()
             .permissions()
             .mode();
-        assert_eq!(mode & 0o7777, 0o1777);
+        assert_eq!(mode & 0o7777, 0o700, "the locator directory is owner-only");
+        let mode = std::fs::metadata(l.file()).unwrap().permissions().mode();
+        assert_eq!(mode & 0o777, 0o600, "the locator file is owner-only");
         let file = l.file().to_owned();
         drop(l);
         assert!(!file.exists());
