@@ -56,7 +56,7 @@ pub const MIN_JOURNAL_COMPACT_BYTES: u64 = 1 << 20;
 pub const DEFAULT_LIMITS: BankLimits = BankLimits {
     max_classes: 4096,
     max_examples_per_class: 64,
-    max_bytes: 64 << 20,
+    max_bytes: 256 << 20,
 };
 
 /// A prepared check plan handed from a batch to its answer.

@@ -26,9 +26,7 @@ fn enroll_all(client: &Client) {
         client.enroll(name, &ex).expect("enroll");
     }
     // One class extended by a second call.
-    client
-        .enroll("pick-a", &[traj(1, 7)])
-        .expect("enroll more");
+    client.enroll("pick-a", &[traj(1, 7)]).expect("enroll more");
 }
 
 /// Genuine plans, wrong-task plans and a plan of a default-bank class, checked by claim.
@@ -40,7 +38,11 @@ fn checks(client: &Client) -> Vec<Verdict> {
         }
         out.push(client.check(&traj(7, 10), name).expect("check"));
     }
-    out.push(client.check(&traj(1, 12), "Greek/character01").expect("check"));
+    out.push(
+        client
+            .check(&traj(1, 12), "Greek/character01")
+            .expect("check"),
+    );
     out
 }
 
@@ -119,13 +121,21 @@ fn classes_enrolled_under_one_model_are_served_by_the_next_as_if_enrolled_under_
                 && log.contains("classes=67"),
             "{log}"
         );
+        // What the daemon logged (shown with --nocapture): classes, models, time taken.
+        for line in log.lines().filter(|l| l.contains("re-embedded")) {
+            eprintln!("{line}");
+        }
         let client = s.client();
         (names(&client), checks(&client))
     };
     assert_eq!(listed_b, listed_a, "the same classes, the same examples");
     let persisted = ClassBank::load(&state_bank).expect("state bank");
     assert_eq!(persisted.model_version(), version_b);
-    assert!(std::fs::read(&state_bank).unwrap().starts_with(b"guardian-class-bank 4 "));
+    assert!(
+        std::fs::read(&state_bank)
+            .unwrap()
+            .starts_with(b"guardian-class-bank 4 ")
+    );
     for (a, b) in verdicts_a.iter().zip(&verdicts_b) {
         assert_eq!(b.model_version, version_b);
         assert_ne!(a.claimed_distance, b.claimed_distance, "{a:?} vs {b:?}");
