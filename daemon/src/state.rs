@@ -75,7 +75,7 @@ pub enum LoadStateError {
     /// The bank was built with another model and cannot be embedded again for this one.
     #[error(
         "class bank {path} was built with model {bank_model} ({bank_dim}-d) but the loaded model is {model} ({model_dim}-d), \
-         and it cannot be re-embedded: {reason}; {remedy}"
+         and it cannot be re-embedded: {reason}"
     )]
     BankModelMismatch {
         /// The bank file.
@@ -88,10 +88,8 @@ pub enum LoadStateError {
         model: String,
         /// The loaded model's dimension.
         model_dim: usize,
-        /// Why it cannot be re-embedded.
+        /// Why it cannot be re-embedded, and what the operator can do.
         reason: String,
-        /// What the operator can do.
-        remedy: String,
     },
     /// The re-embedded bank could not be persisted.
     #[error("cannot persist the class bank re-embedded for model {model}: {source}")]
@@ -251,8 +249,7 @@ pub fn reembed(
         bank_dim: bank.dim(),
         model: engine.version().to_owned(),
         model_dim: engine.dim(),
-        reason,
-        remedy: remedy.to_owned(),
+        reason: format!("{reason}; {remedy}"),
     };
     let default = config.default_bank_path();
     let calibrated = match &default {

@@ -66,7 +66,7 @@ impl Example {
         let bytes = base64_decode(s)?;
         let per_step = STEPS * 4;
         let channels = bytes.len() / per_step;
-        if bytes.len() % per_step != 0 || !(2..=MAX_JOINTS + 1).contains(&channels) {
+        if !bytes.len().is_multiple_of(per_step) || !(2..=MAX_JOINTS + 1).contains(&channels) {
             return Err(format!(
                 "an enrolled example holds {} bytes, not {STEPS} waypoints of 2..={} f32 channels",
                 bytes.len(),
@@ -121,7 +121,7 @@ fn base64_encode(bytes: &[u8]) -> String {
 
 fn base64_decode(s: &str) -> Result<Vec<u8>, String> {
     let s = s.as_bytes();
-    if s.len() % 4 != 0 {
+    if !s.len().is_multiple_of(4) {
         return Err("an enrolled example is not base64 (length)".into());
     }
     let value = |c: u8| -> Result<u32, String> {

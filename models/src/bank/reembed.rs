@@ -214,10 +214,10 @@ mod tests {
         let mut x = [[0.0f32; SLOTS]; STEPS];
         for (k, w) in x.iter_mut().enumerate() {
             let t = k as f32 / (STEPS - 1) as f32;
-            for j in 0..PANDA_JOINTS {
+            for (j, (q, ready)) in w.iter_mut().zip(READY_POSE).take(PANDA_JOINTS).enumerate() {
                 let phase = (class * 7 + j) as f32 * 0.9 + drawer as f32 * 0.05;
-                w[j] = READY_POSE[j] as f32
-                    + 0.2 * (6.28 * t * (1.0 + class as f32 * 0.3) + phase).sin();
+                let f = std::f32::consts::TAU * (1.0 + class as f32 * 0.3);
+                *q = ready as f32 + 0.2 * (f * t + phase).sin();
             }
             w[TOOL] = f32::from(u8::from(t < 0.8));
         }
