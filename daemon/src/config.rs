@@ -155,7 +155,7 @@ impl Default for Config {
             fair_batching: true,
             max_classes: 4096,
             max_examples_per_class: 64,
-            max_bank_bytes: 64 << 20,
+            max_bank_bytes: 256 << 20,
             iceoryx2: Iceoryx2Config::default(),
             workcell: None,
             admin: AdminConfig::default(),

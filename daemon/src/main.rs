@@ -44,7 +44,12 @@ fn main() -> anyhow::Result<()> {
     }
     if args.check {
         let (engine, _) = guardian_daemon::state::load_engine(&config)?;
-        let (bank, src) = guardian_daemon::state::load_bank(&config, &engine)?;
+        // A bank of another model is re-embedded in memory (and logged), not saved.
+        let (bank, src) = guardian_daemon::state::load_bank_with(
+            &config,
+            &engine,
+            guardian_daemon::state::Persist::No,
+        )?;
         println!(
             "ok: model {} ({}), robot {} ({} joints), {} with {} classes",
             engine.version(),

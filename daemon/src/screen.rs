@@ -7,10 +7,11 @@ use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use guardian_models::bank::{BankLimits, Class, ClassBank, Decision, Outcome, journal_path};
+use guardian_models::bank::{
+    BankLimits, Class, ClassBank, Decision, Example, Outcome, journal_path,
+};
 use guardian_models::check::{self, PlanCheck, Prepared};
 use guardian_models::embedder::EmbedError;
-use guardian_models::workcell;
 use guardian_shared::trajectory::{InvalidTrajectory, Waypoint};
 use guardian_shared::wire::{
     CheckAnswer, CheckVerdict, ClassEntry, DaemonState, Failure, Limit, NoGo, Op, Request,
@@ -55,7 +56,7 @@ pub const MIN_JOURNAL_COMPACT_BYTES: u64 = 1 << 20;
 pub const DEFAULT_LIMITS: BankLimits = BankLimits {
     max_classes: 4096,
     max_examples_per_class: 64,
-    max_bytes: 64 << 20,
+    max_bytes: 256 << 20,
 };
 
 /// A prepared check plan handed from a batch to its answer.
@@ -329,32 +330,31 @@ impl Screen {
         self.limits
             .check_counts(&self.bank, name, ts.len())
             .map_err(limit_exceeded)?;
-        let mut embeddings = Vec::with_capacity(ts.len());
-        let mut geometry = Vec::with_capacity(ts.len());
+        let mut xs = Vec::with_capacity(ts.len());
         for (i, t) in ts.iter().enumerate() {
-            let x = self
-                .engine
-                .preprocess(t)
-                .map_err(|inv| invalid(inv, i as u32))?;
-            let (e, path) = self
-                .engine
-                .embed_with_pen_path(&x)
-                .map_err(|e| embedding_failed(&e))?;
-            embeddings.push(e.to_vec());
-            geometry.push(workcell::plan_geometry_of_path(&path));
+            xs.push(
+                self.engine
+                    .preprocess(t)
+                    .map_err(|inv| invalid(inv, i as u32))?,
+            );
         }
-        // Descriptors only if every example draws on the canvas.
-        let geometry: Vec<_> = geometry
-            .into_iter()
-            .collect::<Option<_>>()
-            .unwrap_or_default();
+        // Embeddings and geometry descriptors (only if every example draws on the canvas),
+        // as a re-embedding for a new model computes them; the resampled plans are kept so
+        // that the class survives a new model.
+        let (embeddings, geometry) = guardian_models::bank::enrollment(self.engine.embedder(), &xs)
+            .map_err(|e| embedding_failed(&e))?;
+        let joints = self.engine.robot().joints();
+        let examples: Vec<Example> = xs
+            .iter()
+            .map(|x| Example::from_resampled(x, joints))
+            .collect();
         // The change is made in place (no copy of the bank) and undone if it breaks the
         // size limit or cannot be persisted.
         let previous = self.bank.class(name).cloned();
         let generation = self.bank.generation();
         let before = self.bank.class_bytes(name);
         self.bank
-            .enroll_with_geometry(name, &embeddings, &geometry)
+            .enroll_plans(name, &embeddings, &geometry, &examples)
             .map_err(|e| Failure::Internal {
                 message: e.to_string(),
             })?;

@@ -1,9 +1,10 @@
 //! Loading the daemon's state: the model named by the configuration and the class bank
 //! it serves (persisted, else default, else empty), checked against each other.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
 
-use guardian_models::bank::{BankLimits, ClassBank, DEFAULT_THRESHOLD};
+use guardian_models::bank::{BankLimits, ClassBank, DEFAULT_THRESHOLD, ReembedError};
 use guardian_models::kinematics::{PANDA_JOINTS, RobotRecord};
 
 use guardian_shared::workcell::Workcell;
@@ -71,10 +72,10 @@ pub enum LoadStateError {
         /// The served robot.
         robot: String,
     },
-    /// The bank was built with another model.
+    /// The bank was built with another model and cannot be embedded again for this one.
     #[error(
-        "class bank {path} was built with model {bank_model} ({bank_dim}-d) but the loaded model is {model} ({model_dim}-d); \
-         re-enroll the classes or remove the file"
+        "class bank {path} was built with model {bank_model} ({bank_dim}-d) but the loaded model is {model} ({model_dim}-d), \
+         and it cannot be re-embedded: {reason}"
     )]
     BankModelMismatch {
         /// The bank file.
@@ -87,7 +88,27 @@ pub enum LoadStateError {
         model: String,
         /// The loaded model's dimension.
         model_dim: usize,
+        /// Why it cannot be re-embedded, and what the operator can do.
+        reason: String,
     },
+    /// The re-embedded bank could not be persisted.
+    #[error("cannot persist the class bank re-embedded for model {model}: {source}")]
+    PersistReembedded {
+        /// The new model.
+        model: String,
+        /// Why.
+        source: guardian_models::bank::SaveBankError,
+    },
+}
+
+/// Whether [`load_bank_with`] may write the bank it re-embedded for a new model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Persist {
+    /// Save it atomically as the state bank (the daemon), so the next start does not
+    /// re-embed again.
+    Yes,
+    /// Keep it in memory only (`guardiand --check`).
+    No,
 }
 
 /// Load the model named by `config` for the robot it names, and that robot's workcell
@@ -108,10 +129,21 @@ pub fn load_engine(config: &Config) -> Result<(Engine, Workcell), LoadStateError
     Ok((engine, workcell))
 }
 
-/// Load the bank for `engine`: the persisted one, else the default one, else empty.
+/// Load the bank for `engine`: the persisted one, else the default one, else empty. A bank
+/// built with another model is embedded again from its kept examples ([`reembed`]) and
+/// saved as the state bank.
 pub fn load_bank(
     config: &Config,
     engine: &Engine,
+) -> Result<(ClassBank, BankSource), LoadStateError> {
+    load_bank_with(config, engine, Persist::Yes)
+}
+
+/// [`load_bank`], persisting a re-embedded bank or not.
+pub fn load_bank_with(
+    config: &Config,
+    engine: &Engine,
+    persist: Persist,
 ) -> Result<(ClassBank, BankSource), LoadStateError> {
     let state = config.bank_path();
     let load = |path: &PathBuf| {
@@ -174,13 +206,16 @@ pub fn load_bank(
     }
     bank.set_robot(served);
     if bank.dim() != engine.dim() || bank.model_version() != engine.version() {
-        return Err(LoadStateError::BankModelMismatch {
-            path: path(),
-            bank_model: bank.model_version().to_owned(),
-            bank_dim: bank.dim(),
-            model: engine.version().to_owned(),
-            model_dim: engine.dim(),
-        });
+        bank = reembed(config, engine, &bank, &path())?;
+        if persist == Persist::Yes {
+            let state = config.bank_path();
+            bank.save(&state)
+                .map_err(|source| LoadStateError::PersistReembedded {
+                    model: engine.version().to_owned(),
+                    source,
+                })?;
+            tracing::info!(bank = %state.display(), "saved the re-embedded class bank");
+        }
     }
     if let Some(t) = config.default_threshold
         && t != bank.default_threshold()
@@ -230,4 +265,71 @@ pub fn limit_warnings(bank: &ClassBank, limits: &BankLimits) -> Vec<String> {
         ));
     }
     out
+}
+
+/// Embed `bank` (built with another model) again with `engine`'s model: every class from
+/// its kept examples, its thresholds from the calibration of the new model, which is the
+/// configured default bank's when that bank was built with the new model (the calibrated
+/// default bank shipped with it). Without one, only an uncalibrated bank is re-embedded:
+/// another model's thresholds are never kept. Logs what it did.
+pub fn reembed(
+    config: &Config,
+    engine: &Engine,
+    bank: &ClassBank,
+    path: &Path,
+) -> Result<ClassBank, LoadStateError> {
+    let started = Instant::now();
+    let mismatch = |reason: String, remedy: &str| LoadStateError::BankModelMismatch {
+        path: path.to_owned(),
+        bank_model: bank.model_version().to_owned(),
+        bank_dim: bank.dim(),
+        model: engine.version().to_owned(),
+        model_dim: engine.dim(),
+        reason: format!("{reason}; {remedy}"),
+    };
+    let default = config.default_bank_path();
+    let calibrated = match &default {
+        Some(p) if p.as_path() != path => match ClassBank::load(p) {
+            Ok(b) if b.model_version() == engine.version() && b.calibration().is_some() => Some(b),
+            Ok(_) => None,
+            Err(e) => {
+                tracing::warn!(default_bank = %p.display(), error = %e, "cannot read the default bank for the new model's calibration");
+                None
+            }
+        },
+        _ => None,
+    };
+    let (out, report) = bank
+        .reembedded(engine.embedder(), calibrated.as_ref())
+        .map_err(|e| match e {
+            ReembedError::MissingExamples { .. } => mismatch(
+                e.to_string(),
+                "re-enroll those classes, or remove the file and re-enroll every class",
+            ),
+            ReembedError::NoCalibration { .. } => mismatch(
+                format!(
+                    "{e}; the new model's calibration comes from the configured default bank, \
+                     which must be a calibrated bank built with model {} ({})",
+                    engine.version(),
+                    default.as_ref().map_or_else(
+                        || "none is configured".to_owned(),
+                        |p| format!("{} is not", p.display())
+                    )
+                ),
+                "install the default bank shipped with the model (`default-bank`), or go back to the model the bank was built with",
+            ),
+            other => mismatch(other.to_string(), "remove the file and re-enroll the classes"),
+        })?;
+    tracing::info!(
+        from_model = %report.from_model,
+        to_model = %report.to_model,
+        classes = report.classes,
+        examples = report.examples,
+        calibration = report.calibration.as_deref().unwrap_or("none (uncalibrated bank, global default threshold kept)"),
+        calibration_bank = %default.as_ref().filter(|_| calibrated.is_some()).map_or_else(String::new, |p| p.display().to_string()),
+        ms = started.elapsed().as_millis() as u64,
+        bank = %path.display(),
+        "re-embedded the class bank for a new model: every class from its enrolled examples, thresholds derived again"
+    );
+    Ok(out)
 }

@@ -51,3 +51,31 @@ fn a_ur5e_daemon_refuses_the_panda_bank() {
     let text = e.to_string();
     assert!(text.contains("panda") && text.contains("ur5e"), "{text}");
 }
+
+/// The shipped default bank keeps every class's enrolled plans, and they are the plans its
+/// embeddings came from: the shipped model embeds them to the stored embeddings (so a
+/// daemon with a new model re-embeds the very tasks the bank holds).
+#[test]
+fn shipped_default_bank_keeps_the_plans_its_embeddings_came_from() {
+    let state = tempfile::tempdir().unwrap();
+    let config = Config {
+        state_dir: Some(state.path().to_owned()),
+        ..Config::default()
+    };
+    let (engine, _) = load_engine(&config).unwrap();
+    let (bank, _) = load_bank(&config, &engine).unwrap();
+    assert!(bank.classes_without_examples().is_empty());
+    let mut worst = 0.0f32;
+    for (name, class) in bank.classes() {
+        let xs: Vec<_> = class.examples.iter().map(|x| x.to_resampled()).collect();
+        let (embeddings, geometry) =
+            guardian_models::bank::enrollment(engine.embedder(), &xs).unwrap();
+        assert_eq!(geometry, class.geometry, "{name}");
+        for (e, stored) in embeddings.iter().zip(&class.embeddings) {
+            worst = worst.max(guardian_models::bank::distance(e, stored));
+        }
+    }
+    // The bank was built by the lab's batched embedding; the daemon embeds one plan at a
+    // time: the same numbers up to float rounding.
+    assert!(worst < 1e-5, "largest distance {worst}");
+}

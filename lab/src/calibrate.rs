@@ -11,7 +11,9 @@
 use std::path::PathBuf;
 
 use anyhow::Context as _;
-use guardian_models::bank::{self, Calibration, ClassBank, GenuineScore, GeometryCalibration};
+use guardian_models::bank::{
+    self, Calibration, ClassBank, Example, GenuineScore, GeometryCalibration,
+};
 use guardian_models::embedder::Embedder;
 use guardian_models::geometry::{self, PlanGeometry};
 use guardian_models::kinematics::Robot;
@@ -335,6 +337,12 @@ pub struct Args {
     /// used with `--model` ([`cross_fit`]).
     #[arg(long)]
     pub cross_fit: Vec<CrossFitPair>,
+    /// Take the calibration (record and geometry calibration) from this bank instead of
+    /// calibrating: it must be a calibrated bank built with `--model`. Rebuilds a bank with
+    /// the same numbers, e.g. to add the enrolled examples to a bank whose cross-fit fold
+    /// models are not at hand.
+    #[arg(long, conflicts_with = "cross_fit")]
+    pub calibration_from: Option<PathBuf>,
 }
 
 /// What `guardian-lab bank` did.
@@ -404,7 +412,22 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         (0.0..=1.0).contains(&args.geometry_share),
         "--geometry-share must be in [0, 1]"
     );
-    let (cal, gcal) = if args.cross_fit.is_empty() {
+    let (cal, gcal) = if let Some(p) = &args.calibration_from {
+        let from =
+            ClassBank::load(p).with_context(|| format!("--calibration-from {}", p.display()))?;
+        anyhow::ensure!(
+            from.model_version() == model.version(),
+            "--calibration-from {} is a bank of model {}, not of {}",
+            p.display(),
+            from.model_version(),
+            model.version()
+        );
+        let cal = from
+            .calibration()
+            .cloned()
+            .with_context(|| format!("--calibration-from {} is not calibrated", p.display()))?;
+        (cal, from.geometry_calibration().cloned())
+    } else if args.cross_fit.is_empty() {
         if args
             .calib_alphabets
             .iter()
@@ -449,7 +472,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             .get(l)
             .cloned()
             .unwrap_or_else(|| format!("class{l}"));
-        b.enroll_with_geometry(&name, &rows, &g)?;
+        // The resampled plans too: a daemon with a new model embeds them again.
+        let examples: Vec<Example> = idx
+            .iter()
+            .map(|&i| Example::from_resampled(&pool.xs[i], data.robot.joints))
+            .collect();
+        b.enroll_plans(&name, &rows, &g, &examples)?;
     }
     b.apply_calibration(cal.clone());
     b.set_geometry_calibration(gcal.clone());

@@ -32,6 +32,8 @@ pub struct Setup {
     /// Apply the workcell rules (`[workcell] enabled`). Off by default here: the synthetic
     /// sample tasks are joint-space patterns that do not draw on the canvas.
     pub workcell_rules: bool,
+    /// The config's `default-bank` (`None`: none, `default-bank = ""`).
+    pub default_bank: Option<PathBuf>,
 }
 
 impl Setup {
@@ -60,6 +62,7 @@ impl Setup {
             dir,
             extra: String::new(),
             workcell_rules: false,
+            default_bank: None,
         }
     }
 
@@ -73,8 +76,9 @@ impl Setup {
 
     pub fn write_config(&self) -> PathBuf {
         let text = format!(
-            "model = {:?}\ndefault-bank = \"\"\nstate-dir = {:?}\nservice-name = {:?}\ntick-ms = 50\n{}\n[iceoryx2]\nroot-path = {:?}\nprefix = {:?}\n[workcell]\nenabled = {}\n",
+            "model = {:?}\ndefault-bank = {:?}\nstate-dir = {:?}\nservice-name = {:?}\ntick-ms = 50\n{}\n[iceoryx2]\nroot-path = {:?}\nprefix = {:?}\n[workcell]\nenabled = {}\n",
             self.model,
+            self.default_bank.clone().unwrap_or_default(),
             self.state_dir(),
             self.service,
             self.extra,

@@ -7,7 +7,10 @@ use std::path::{Path, PathBuf};
 
 use sha2::{Digest, Sha256};
 
-use super::{ClassBank, FORMAT_VERSION, FORMAT_VERSION_WITHOUT_ROBOT, OLDEST_FORMAT_VERSION};
+use super::{
+    ClassBank, FORMAT_VERSION, FORMAT_VERSION_WITHOUT_EXAMPLES, FORMAT_VERSION_WITHOUT_ROBOT,
+    OLDEST_FORMAT_VERSION,
+};
 
 const MAGIC: &str = "guardian-class-bank";
 
@@ -86,8 +89,11 @@ impl ClassBank {
     pub fn to_bytes(&self) -> Result<Vec<u8>, serde_json::Error> {
         let body = serde_json::to_vec(self)?;
         let sum = hex(&Sha256::digest(&body));
-        let version = if self.robot.is_some() {
+        // The oldest version that holds the bank, so older builds keep reading what they can.
+        let version = if self.classes.values().any(|c| !c.examples.is_empty()) {
             FORMAT_VERSION
+        } else if self.robot.is_some() {
+            FORMAT_VERSION_WITHOUT_EXAMPLES
         } else {
             FORMAT_VERSION_WITHOUT_ROBOT
         };
@@ -166,6 +172,18 @@ impl ClassBank {
             }
             if c.geometry.iter().any(|g| !g.is_finite()) {
                 return inconsistent(format!("class {name:?}: geometry is not finite"));
+            }
+            if !c.examples.is_empty() && c.examples.len() != c.embeddings.len() {
+                return inconsistent(format!("class {name:?}: enrolled example count"));
+            }
+            if c.examples.iter().any(|x| x.joints() != self.robot_joints()) {
+                return inconsistent(format!(
+                    "class {name:?}: an enrolled example is not a plan of the bank's robot ({} joints)",
+                    self.robot_joints()
+                ));
+            }
+            if c.examples.iter().any(|x| !x.is_finite()) {
+                return inconsistent(format!("class {name:?}: an enrolled example is not finite"));
             }
         }
         Ok(())

@@ -28,6 +28,10 @@
 //! (positive = the claimed class is the nearest).
 //!
 //! ## File format (version [`FORMAT_VERSION`])
+//! Version 4 adds each class's enrolled examples (`examples`, one per embedding: the
+//! resampled plans in the robot's joints, [`Example`]), so that a daemon started with a new
+//! model embeds them again ([`ClassBank::reembedded`]) instead of refusing the bank. A bank
+//! in which no class has examples is still written as version 3 (or 2, without a robot).
 //! Version 3 adds the bank's `robot` (name, joints, SHA-256 of its URDF): the arm whose plans
 //! were enrolled, so a daemon serving another arm refuses the bank. Versions 1 and 2 have no
 //! `robot`: they were made with the Panda ([`ClassBank::robot`] says so), and a bank without
@@ -46,9 +50,11 @@ use crate::kinematics::RobotRecord;
 mod calibrate;
 mod decide;
 mod distance;
+mod examples;
 mod file;
 mod journal;
 mod limits;
+mod reembed;
 
 use std::collections::BTreeMap;
 
@@ -62,13 +68,19 @@ pub use calibrate::{
 };
 pub use decide::{Decision, Outcome, is_outlier, is_wrong_task};
 pub use distance::distance;
+pub use examples::Example;
 pub use file::{LoadBankError, SaveBankError, remove_stale_temporaries};
 pub use journal::{Replay, journal_path};
 pub use limits::BankLimits;
+pub use reembed::{ReembedError, Reembedding, enrollment};
 
 /// Version of the on-disk format written by [`ClassBank::to_bytes`].
-pub const FORMAT_VERSION: u32 = 3;
-/// The version written for a bank that records no robot (read by builds before version 3).
+pub const FORMAT_VERSION: u32 = 4;
+/// The version written for a bank whose classes hold no enrolled examples (read by builds
+/// before version 4).
+pub const FORMAT_VERSION_WITHOUT_EXAMPLES: u32 = 3;
+/// The version written for a bank that records no robot and holds no examples (read by
+/// builds before version 3).
 pub const FORMAT_VERSION_WITHOUT_ROBOT: u32 = 2;
 /// Oldest on-disk format [`ClassBank::from_bytes`] still reads.
 pub const OLDEST_FORMAT_VERSION: u32 = 1;
@@ -93,12 +105,22 @@ pub struct Class {
     /// off for the class.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub geometry: Vec<PlanGeometry>,
+    /// The resampled plan of every enrolled example, in enrollment order (format 4); empty
+    /// when any example has none (enrolled by a build before format 4, or embeddings only),
+    /// and then the class cannot be embedded again for a new model.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub examples: Vec<Example>,
 }
 
 impl Class {
     /// Every enrolled example has a geometry descriptor.
     pub fn has_geometry(&self) -> bool {
         !self.geometry.is_empty() && self.geometry.len() == self.embeddings.len()
+    }
+
+    /// Every enrolled example's plan is kept: the class can be embedded by another model.
+    pub fn has_examples(&self) -> bool {
+        !self.examples.is_empty() && self.examples.len() == self.embeddings.len()
     }
 }
 
@@ -136,7 +158,25 @@ pub enum EnrollError {
         /// Descriptors given.
         geometry: usize,
     },
-    /// An embedding (or its geometry descriptor) holds NaN or infinity.
+    /// Examples were given, but not one per embedding.
+    #[error("{examples} enrolled examples for {embeddings} embeddings")]
+    ExampleCount {
+        /// Embeddings given.
+        embeddings: usize,
+        /// Examples given.
+        examples: usize,
+    },
+    /// An example is a plan of another robot than the bank's.
+    #[error("example {index} has {got} joints, the bank's robot {expected}")]
+    ExampleJoints {
+        /// Which example.
+        index: usize,
+        /// Joints of the bank's robot (the Panda's 7 if it records none).
+        expected: usize,
+        /// Joints of the example.
+        got: usize,
+    },
+    /// An embedding (or its geometry descriptor or example) holds NaN or infinity.
     #[error("embedding {index} is not finite")]
     NonFinite {
         /// Which embedding.
@@ -229,6 +269,21 @@ impl ClassBank {
     pub fn set_geometry_calibration(&mut self, g: Option<GeometryCalibration>) {
         self.geometry_calibration = g;
         self.generation += 1;
+    }
+    /// Names of the classes that do not keep their enrolled examples (they cannot be
+    /// embedded again for a new model).
+    pub fn classes_without_examples(&self) -> Vec<&str> {
+        self.classes
+            .iter()
+            .filter(|(_, c)| !c.has_examples())
+            .map(|(n, _)| n.as_str())
+            .collect()
+    }
+    /// Joints of the robot whose plans the bank holds: its record's, else the Panda's.
+    pub fn robot_joints(&self) -> usize {
+        self.robot
+            .as_ref()
+            .map_or(crate::kinematics::PANDA_JOINTS, |r| r.joints)
     }
     /// Names of the classes without geometry descriptors (the geometry check is off for
     /// them), e.g. classes of a format-1 bank.
@@ -330,13 +385,46 @@ impl ClassBank {
     }
 
     /// Add `embeddings` with their plan-geometry descriptors (one per embedding, or none) to
-    /// class `name`. The class keeps descriptors only while every example has one.
+    /// class `name`. The class keeps descriptors only while every example has one. The
+    /// examples' plans are not kept ([`ClassBank::enroll_plans`] keeps them).
     pub fn enroll_with_geometry(
         &mut self,
         name: &str,
         embeddings: &[Vec<f32>],
         geometry: &[PlanGeometry],
     ) -> Result<&Class, EnrollError> {
+        self.enroll_plans(name, embeddings, geometry, &[])
+    }
+
+    /// Add `embeddings` with their plan-geometry descriptors and their resampled plans
+    /// (`examples`; each one per embedding, or none) to class `name`. The class keeps
+    /// descriptors and plans only while every example has one.
+    pub fn enroll_plans(
+        &mut self,
+        name: &str,
+        embeddings: &[Vec<f32>],
+        geometry: &[PlanGeometry],
+        examples: &[Example],
+    ) -> Result<&Class, EnrollError> {
+        if !examples.is_empty() && examples.len() != embeddings.len() {
+            return Err(EnrollError::ExampleCount {
+                embeddings: embeddings.len(),
+                examples: examples.len(),
+            });
+        }
+        let joints = self.robot_joints();
+        for (index, x) in examples.iter().enumerate() {
+            if x.joints() != joints {
+                return Err(EnrollError::ExampleJoints {
+                    index,
+                    expected: joints,
+                    got: x.joints(),
+                });
+            }
+            if !x.is_finite() {
+                return Err(EnrollError::NonFinite { index });
+            }
+        }
         if !geometry.is_empty() && geometry.len() != embeddings.len() {
             return Err(EnrollError::GeometryCount {
                 embeddings: embeddings.len(),
@@ -371,12 +459,19 @@ impl ClassBank {
                 threshold: None,
                 calibration: None,
                 geometry: Vec::new(),
+                examples: Vec::new(),
             });
         let complete = class.geometry.len() == class.embeddings.len();
         if complete && !geometry.is_empty() {
             class.geometry.extend_from_slice(geometry);
         } else {
             class.geometry.clear();
+        }
+        let complete = class.examples.len() == class.embeddings.len();
+        if complete && !examples.is_empty() {
+            class.examples.extend_from_slice(examples);
+        } else {
+            class.examples.clear();
         }
         class.embeddings.extend(embeddings.iter().cloned());
         class.prototype = mean(&class.embeddings, dim);
@@ -589,14 +684,14 @@ mod tests {
         ));
         let newer = String::from_utf8(bytes.clone()).unwrap().replacen(
             "guardian-class-bank 2 ",
-            "guardian-class-bank 4 ",
+            "guardian-class-bank 5 ",
             1,
         );
         assert!(matches!(
             ClassBank::from_bytes(newer.as_bytes()),
             Err(LoadBankError::UnsupportedFormat {
-                found: 4,
-                supported: 3
+                found: 5,
+                supported: 4
             })
         ));
         assert!(matches!(
