@@ -272,8 +272,9 @@ fn enrollment_persists_across_restart() {
     }
     let bank = s.state_dir().join("bank.gcb");
     let text = std::fs::read(&bank).expect("bank file");
-    // Format 3: the bank records the robot it was enrolled on.
-    assert!(text.starts_with(b"guardian-class-bank 3 sha256:"));
+    // Format 4: the bank records the robot it was enrolled on and keeps every class's plans
+    // (so a daemon with another model can embed them again).
+    assert!(text.starts_with(b"guardian-class-bank 4 sha256:"));
 
     let d = Daemon::start(&s);
     d.wait_log("persisted bank");
