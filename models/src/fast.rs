@@ -423,22 +423,28 @@ impl<T: Real> FastNet<T> {
                 )?;
             }
         }
-        let norms = grow(norms, batch);
-        if self.config.l2_normalize {
-            let eps = real::<T>(1e-12);
-            for (row, n) in out.chunks_exact_mut(e).zip(norms.iter_mut()) {
-                let norm = (row.iter().map(|v| *v * *v).sum::<T>() + eps).sqrt();
-                for v in row.iter_mut() {
-                    *v = *v / norm;
-                }
-                *n = norm;
-            }
-        } else {
-            norms.fill(T::one());
-        }
+        l2_normalize_rows(self.config.l2_normalize, out, e, grow(norms, batch));
         grow(emb, batch * e).copy_from_slice(out);
         *shape = (batch, len);
         Ok(())
+    }
+}
+
+/// Divide every row of `e` values of `out` by its L2 norm (with `l2`; otherwise leave it),
+/// writing the norm each row was divided by (1 without `l2`) to `norms`: the network's last
+/// step, shared by the sequence and the picture network.
+pub(crate) fn l2_normalize_rows<T: Real>(l2: bool, out: &mut [T], e: usize, norms: &mut [T]) {
+    if !l2 {
+        norms.fill(T::one());
+        return;
+    }
+    let eps = real::<T>(1e-12);
+    for (row, n) in out.chunks_exact_mut(e).zip(norms.iter_mut()) {
+        let norm = (row.iter().map(|v| *v * *v).sum::<T>() + eps).sqrt();
+        for v in row.iter_mut() {
+            *v = *v / norm;
+        }
+        *n = norm;
     }
 }
 

@@ -136,23 +136,8 @@ impl<T: Real> FastNet<T> {
         } = back;
         let (conv_grads, fc_grads) = grads.params.split_at_mut(2 * n_layers);
 
-        // L2 normalisation: e = u / n, so du = (de - e (e . de)) / n.
         let du = grow(du, batch * e);
-        if self.config().l2_normalize {
-            for (((g, d), o), n) in du
-                .chunks_exact_mut(e)
-                .zip(d_out.chunks_exact(e))
-                .zip(scratch.emb.chunks_exact(e))
-                .zip(&scratch.norms)
-            {
-                let dot: T = d.iter().zip(o).map(|(a, b)| *a * *b).sum();
-                for ((g, d), o) in g.iter_mut().zip(d).zip(o) {
-                    *g = (*d - *o * dot) / *n;
-                }
-            }
-        } else {
-            du.copy_from_slice(d_out);
-        }
+        l2_backward(self.config().l2_normalize, scratch, d_out, e, du);
 
         // Output layer: u = p · W + b.
         let last = &self.convs[n_layers - 1];
@@ -267,6 +252,33 @@ impl<T: Real> FastNet<T> {
             l = lb;
         }
         Ok(())
+    }
+}
+
+/// The gradient `du` of the output before L2 normalisation from the gradient `d_out` of the
+/// normalised output of the last forward in `scratch` (with `l2`; otherwise `d_out`):
+/// `e = u / n`, so `du = (de - e (e . de)) / n`.
+pub(crate) fn l2_backward<T: Real>(
+    l2: bool,
+    scratch: &Scratch<T>,
+    d_out: &[T],
+    e: usize,
+    du: &mut [T],
+) {
+    if !l2 {
+        du.copy_from_slice(d_out);
+        return;
+    }
+    for (((g, d), o), n) in du
+        .chunks_exact_mut(e)
+        .zip(d_out.chunks_exact(e))
+        .zip(scratch.emb.chunks_exact(e))
+        .zip(&scratch.norms)
+    {
+        let dot: T = d.iter().zip(o).map(|(a, b)| *a * *b).sum();
+        for ((g, d), o) in g.iter_mut().zip(d).zip(o) {
+            *g = (*d - *o * dot) / *n;
+        }
     }
 }
 

@@ -219,6 +219,11 @@ impl Net {
         let fc_w = &self.params[2 * n_layers];
         let fc_b = &self.params[2 * n_layers + 1];
         let e = pooled.matmul(fc_w)?.broadcast_add(fc_b)?;
+        self.normalized(e)
+    }
+
+    /// The embedding `e [B, D]` L2-normalised per row when the config asks for it.
+    fn normalized(&self, e: Tensor) -> candle_core::Result<Tensor> {
         if self.config.l2_normalize {
             let norm = (e.sqr()?.sum_keepdim(1)? + 1e-12)?.sqrt()?;
             e.broadcast_div(&norm)
@@ -262,12 +267,7 @@ impl Net {
         let fc_w = &self.params[2 * n_layers];
         let fc_b = &self.params[2 * n_layers + 1];
         let e = mean.matmul(fc_w)?.broadcast_add(fc_b)?;
-        if self.config.l2_normalize {
-            let norm = (e.sqr()?.sum_keepdim(1)? + 1e-12)?.sqrt()?;
-            e.broadcast_div(&norm)
-        } else {
-            Ok(e)
-        }
+        self.normalized(e)
     }
 }
 

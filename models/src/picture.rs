@@ -15,9 +15,11 @@
 //! ([`crate::net::Net::forward`]) follows the same rules, and the tests hold this code to it
 //! and to central finite differences in `f64`.
 
-use crate::fast::{FastNet, FastNetError, Real, Scratch, gemm_strided, grow, real};
+use crate::fast::{
+    FastNet, FastNetError, Real, Scratch, gemm_strided, grow, l2_normalize_rows, real,
+};
 use crate::features::PICTURE_SIDE;
-use crate::grad::{BackScratch, Grads};
+use crate::grad::{BackScratch, Grads, l2_backward};
 
 /// Write the im2col rows of `x [batch, s, s, c]` for a `k x k` "same" convolution into
 /// `cols [batch * s * s, k * k * c]` (zero outside the picture). The `k` taps of one kernel
@@ -195,19 +197,7 @@ impl<T: Real> FastNet<T> {
             row.copy_from_slice(&self.fc_b);
         }
         gemm_strided(batch, e, o, out, (p, o, 1), (&self.fc_w, e, 1), true)?;
-        let norms = grow(norms, batch);
-        if self.config().l2_normalize {
-            let eps = real::<T>(1e-12);
-            for (row, n) in out.chunks_exact_mut(e).zip(norms.iter_mut()) {
-                let norm = (row.iter().map(|v| *v * *v).sum::<T>() + eps).sqrt();
-                for v in row.iter_mut() {
-                    *v = *v / norm;
-                }
-                *n = norm;
-            }
-        } else {
-            norms.fill(T::one());
-        }
+        l2_normalize_rows(self.config().l2_normalize, out, e, grow(norms, batch));
         grow(emb, batch * e).copy_from_slice(out);
         *shape = (batch, PICTURE_SIDE * PICTURE_SIDE);
         Ok(())
@@ -235,23 +225,8 @@ impl<T: Real> FastNet<T> {
         } = back;
         let (conv_grads, fc_grads) = grads.params_mut().split_at_mut(2 * n_layers);
 
-        // L2 normalisation: e = u / n, so du = (de - e (e . de)) / n.
         let du = grow(du, batch * e);
-        if self.config().l2_normalize {
-            for (((g, d), o), n) in du
-                .chunks_exact_mut(e)
-                .zip(d_out.chunks_exact(e))
-                .zip(scratch.emb.chunks_exact(e))
-                .zip(&scratch.norms)
-            {
-                let dot: T = d.iter().zip(o).map(|(a, b)| *a * *b).sum();
-                for ((g, d), o) in g.iter_mut().zip(d).zip(o) {
-                    *g = (*d - *o * dot) / *n;
-                }
-            }
-        } else {
-            du.copy_from_slice(d_out);
-        }
+        l2_backward(self.config().l2_normalize, scratch, d_out, e, du);
         // Output layer: u = p · W + b.
         let o = self.config().pooled_features();
         let p = &scratch.pooled[..batch * o];
