@@ -136,26 +136,9 @@ impl<T: Real> FastNet<T> {
         } = back;
         let (conv_grads, fc_grads) = grads.params.split_at_mut(2 * n_layers);
 
-        let du = grow(du, batch * e);
-        l2_backward(self.config().l2_normalize, scratch, d_out, e, du);
-
-        // Output layer: u = p · W + b.
-        let last = &self.convs[n_layers - 1];
-        let o = last.c_out;
+        let dp = self.head_backward(scratch, d_out, du, dpooled, fc_grads)?;
+        let o = self.convs[n_layers - 1].c_out;
         let p = &scratch.pooled[..batch * 2 * o];
-        let [fc_w, fc_b] = fc_grads else {
-            return Err(FastNetError::Config("missing fc gradients".into()));
-        };
-        for row in du.chunks_exact(e) {
-            for (g, v) in fc_b.iter_mut().zip(row) {
-                *g = *g + *v;
-            }
-        }
-        // dW += pᵀ · du
-        gemm_strided(2 * o, e, batch, fc_w, (p, 1, 2 * o), (du, e, 1), true)?;
-        // dp = du · Wᵀ
-        let dp = grow(dpooled, batch * 2 * o);
-        gemm_strided(batch, 2 * o, e, dp, (du, e, 1), (&self.fc_w, 1, e), false)?;
 
         // Global mean and max over time of relu(y) of the last layer.
         let mut l = len >> (n_layers - 1);
@@ -255,16 +238,46 @@ impl<T: Real> FastNet<T> {
     }
 }
 
+impl<T: Real> FastNet<T> {
+    /// The backward of the network's head, shared by the sequence and the picture network:
+    /// L2 normalisation, then the output layer `u = p · W + b` (its gradients added to
+    /// `fc_grads`). Returns the gradient of the pooled features `p` of the last forward in
+    /// `scratch`, `[batch, pooled_features]`, in `dpooled`.
+    pub(crate) fn head_backward<'a>(
+        &self,
+        scratch: &Scratch<T>,
+        d_out: &[T],
+        du: &mut Vec<T>,
+        dpooled: &'a mut Vec<T>,
+        fc_grads: &mut [Vec<T>],
+    ) -> Result<&'a mut [T], FastNetError> {
+        let (batch, _) = scratch.shape;
+        let e = self.config().embed_dim;
+        let o = self.config().pooled_features();
+        let du = grow(du, batch * e);
+        l2_backward(self.config().l2_normalize, scratch, d_out, e, du);
+        let p = &scratch.pooled[..batch * o];
+        let [fc_w, fc_b] = fc_grads else {
+            return Err(FastNetError::Config("missing fc gradients".into()));
+        };
+        for row in du.chunks_exact(e) {
+            for (g, v) in fc_b.iter_mut().zip(row) {
+                *g = *g + *v;
+            }
+        }
+        // dW += pᵀ · du
+        gemm_strided(o, e, batch, fc_w, (p, 1, o), (du, e, 1), true)?;
+        // dp = du · Wᵀ
+        let dp = grow(dpooled, batch * o);
+        gemm_strided(batch, o, e, dp, (du, e, 1), (&self.fc_w, 1, e), false)?;
+        Ok(dp)
+    }
+}
+
 /// The gradient `du` of the output before L2 normalisation from the gradient `d_out` of the
 /// normalised output of the last forward in `scratch` (with `l2`; otherwise `d_out`):
 /// `e = u / n`, so `du = (de - e (e . de)) / n`.
-pub(crate) fn l2_backward<T: Real>(
-    l2: bool,
-    scratch: &Scratch<T>,
-    d_out: &[T],
-    e: usize,
-    du: &mut [T],
-) {
+fn l2_backward<T: Real>(l2: bool, scratch: &Scratch<T>, d_out: &[T], e: usize, du: &mut [T]) {
     if !l2 {
         du.copy_from_slice(d_out);
         return;

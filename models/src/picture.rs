@@ -19,7 +19,7 @@ use crate::fast::{
     FastNet, FastNetError, Real, Scratch, gemm_strided, grow, l2_normalize_rows, real,
 };
 use crate::features::PICTURE_SIDE;
-use crate::grad::{BackScratch, Grads, l2_backward};
+use crate::grad::{BackScratch, Grads};
 
 /// Write the im2col rows of `x [batch, s, s, c]` for a `k x k` "same" convolution into
 /// `cols [batch * s * s, k * k * c]` (zero outside the picture). The `k` taps of one kernel
@@ -212,7 +212,6 @@ impl<T: Real> FastNet<T> {
         grads: &mut Grads<T>,
     ) -> Result<(), FastNetError> {
         let (batch, _) = scratch.shape;
-        let e = self.config().embed_dim;
         let k = self.kernel;
         let n_layers = self.convs.len();
         let BackScratch {
@@ -225,22 +224,8 @@ impl<T: Real> FastNet<T> {
         } = back;
         let (conv_grads, fc_grads) = grads.params_mut().split_at_mut(2 * n_layers);
 
-        let du = grow(du, batch * e);
-        l2_backward(self.config().l2_normalize, scratch, d_out, e, du);
-        // Output layer: u = p · W + b.
+        let dp = self.head_backward(scratch, d_out, du, dpooled, fc_grads)?;
         let o = self.config().pooled_features();
-        let p = &scratch.pooled[..batch * o];
-        let [fc_w, fc_b] = fc_grads else {
-            return Err(FastNetError::Config("missing fc gradients".into()));
-        };
-        for row in du.chunks_exact(e) {
-            for (g, v) in fc_b.iter_mut().zip(row) {
-                *g = *g + *v;
-            }
-        }
-        gemm_strided(o, e, batch, fc_w, (p, 1, o), (du, e, 1), true)?;
-        let dp = grow(dpooled, batch * o);
-        gemm_strided(batch, o, e, dp, (du, e, 1), (&self.fc_w, 1, e), false)?;
 
         // The global mean: every cell of the last map gets dp / cells.
         let mut s = PICTURE_SIDE >> n_layers;
