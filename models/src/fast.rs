@@ -305,7 +305,7 @@ impl<T: Real> FastNet<T> {
     ) -> Result<(), FastNetError> {
         self.check_io(x.len(), out.len(), batch, len)?;
         if self.config.features.is_picture() {
-            let pixels = crate::features::PICTURE_SIDE * crate::features::PICTURE_SIDE;
+            let pixels = self.config.features.steps();
             if len != pixels {
                 return Err(FastNetError::Shape {
                     what: "picture",
