@@ -199,7 +199,7 @@ fn full_score(
     workcell: f32,
 ) -> f32 {
     let g = match (geometry, gcal) {
-        (Some(s), Some(c)) => s / c.threshold,
+        (Some(s), Some(c)) => geometry::normalised_geometry_score(s, c.threshold),
         _ => 0.0,
     };
     emb.max(g).max(workcell)

@@ -130,6 +130,31 @@ pub fn score(
     Some(worst)
 }
 
+/// The geometry rule, the one place it is written: a plan whose geometry score against its
+/// claimed class exceeds the calibrated `threshold` is a no-go, and so is a score that is
+/// not a number (a degenerate descriptor is never a pass). The daemon's decision
+/// ([`crate::bank::ClassBank::decide_with_geometry`]), the calibration
+/// ([`crate::bank::calibrate_geometry`]) and the lab's figures all use it.
+pub fn is_geometry_no_go(score: f32, threshold: f32) -> bool {
+    // `!(a <= b)`, not `a > b`: NaN fails every comparison.
+    !(score <= threshold)
+}
+
+/// `score / threshold` as a continuous score for ROC curves: above 1 exactly when
+/// [`is_geometry_no_go`], at most 1 otherwise (a NaN score is +∞).
+pub fn normalised_geometry_score(score: f32, threshold: f32) -> f32 {
+    let r = score / threshold;
+    if is_geometry_no_go(score, threshold) {
+        if r.is_nan() {
+            f32::INFINITY
+        } else {
+            r.max(1.0f32.next_up())
+        }
+    } else {
+        r.min(1.0)
+    }
+}
+
 /// Pooled within-class standard deviation of every feature: `sqrt(Σ_c Σ_i (g − mean_c)² /
 /// Σ_c (n_c − 1))` over the groups (classes) with at least two members. Features without
 /// spread get a tiny positive scale. `None` if no group has two members.
@@ -158,6 +183,48 @@ mod tests {
     use super::*;
 
     /// Two strokes: a horizontal line, then a vertical one.
+    /// One rule, one NaN answer: the rule and its continuous score agree on every value,
+    /// NaN included (a no-go), and the calibration counts a NaN score as a reject.
+    #[test]
+    fn a_nan_geometry_score_is_a_no_go_everywhere() {
+        let t = 2.0;
+        for s in [0.0, 1.0, 2.0, 2.0f32.next_up(), 3.0, f32::INFINITY, f32::NAN] {
+            let no_go = is_geometry_no_go(s, t);
+            assert_eq!(no_go, !(s <= t), "{s}");
+            assert_eq!(normalised_geometry_score(s, t) > 1.0, no_go, "{s}");
+        }
+        assert!(is_geometry_no_go(f32::NAN, f32::INFINITY));
+        assert_eq!(normalised_geometry_score(f32::NAN, t), f32::INFINITY);
+        // Calibration: 10 genuine plans, none rejected by the embedding, one with a NaN
+        // geometry score and a budget of one reject: the NaN plan takes the budget, so the
+        // threshold keeps every finite score and the measured rate counts the NaN once.
+        use crate::bank::{Calibration, GenuineScore, calibrate_geometry};
+        let scores = vec![
+            GenuineScore {
+                claimed: 0.1,
+                nearest_other: None,
+                spread: None,
+            };
+            10
+        ];
+        let mut geometry: Vec<Option<f32>> = (1..=9).map(|i| Some(i as f32)).collect();
+        geometry.push(Some(f32::NAN));
+        let cal = Calibration {
+            method: "t".into(),
+            samples: 10,
+            target_rate: None,
+            note: String::new(),
+            global_threshold: Some(1.0),
+            class_scale: None,
+            wrong_task_tolerance: None,
+            measured_rate: None,
+        };
+        let g = calibrate_geometry(&scores, &geometry, &cal, 0.1, [1.0; GEOMETRY_FEATURES], "t")
+            .unwrap();
+        assert_eq!(g.threshold, 9.0);
+        assert!((g.measured_rate - 0.1).abs() < 1e-6, "{}", g.measured_rate);
+    }
+
     fn drawing(dx: f32, s: f32, reverse: bool) -> Vec<([f32; 2], bool)> {
         let mut a: Vec<[f32; 2]> = (0..=10).map(|i| [i as f32 * 0.01, 0.0]).collect();
         let mut b: Vec<[f32; 2]> = (0..=5).map(|i| [0.05, i as f32 * 0.01]).collect();

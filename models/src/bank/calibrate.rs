@@ -162,6 +162,8 @@ pub fn calibrate_geometry(
         .zip(&emb_rejected)
         .filter(|(_, r)| !**r)
         .filter_map(|(g, _)| *g)
+        // A NaN score is always a no-go: it sorts above every threshold.
+        .map(|g| if g.is_nan() { f32::INFINITY } else { g })
         .collect();
     let threshold = threshold_allowing(&kept, budget.saturating_sub(used))
         .unwrap_or(f32::MAX)
@@ -169,7 +171,7 @@ pub fn calibrate_geometry(
     let rejected = geometry
         .iter()
         .zip(&emb_rejected)
-        .filter(|(g, r)| **r || g.is_some_and(|g| g > threshold))
+        .filter(|(g, r)| **r || g.is_some_and(|g| crate::geometry::is_geometry_no_go(g, threshold)))
         .count();
     Some(GeometryCalibration {
         scales,

@@ -184,7 +184,7 @@ impl ClassBank {
             d.geometry_score = Some(s);
             d.geometry_threshold = Some(t);
             d.geometry_feature = Some(f);
-            if d.outcome == Outcome::Go && (s > t || s.is_nan()) {
+            if d.outcome == Outcome::Go && geometry::is_geometry_no_go(s, t) {
                 d.outcome = Outcome::GeometryMismatch { feature: f };
             }
         }
