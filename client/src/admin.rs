@@ -8,7 +8,7 @@ use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use guardian_shared::wire::{ClassEntry, Op, RequestHeader, ResponseHeader, admin};
+use guardian_shared::wire::{ClassEntry, Op, RequestHeader, ResponseHeader, admin, decode_code};
 
 use crate::{CheckError, ClassInfo, EnrollError, Trajectory};
 
@@ -94,7 +94,7 @@ impl AdminClient {
         let (r, entries) = match read_frame(&mut s, max_entries) {
             Ok(frame) => frame?,
             Err(e) => {
-                let op = match Op::from_u32(header.op) {
+                let op = match decode_code::<Op>(header.op) {
                     Some(Op::Enroll) => "enroll",
                     Some(Op::Forget) => "forget",
                     _ => return Err(self.io("read response")(e)),

@@ -27,7 +27,7 @@ use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use guardian_shared::wire::{
-    ClassEntry, Failure, Op, RequestHeader, ResponseHeader, admin, encode_failure,
+    ClassEntry, Failure, Op, RequestHeader, ResponseHeader, admin, decode_code, encode_failure,
 };
 
 /// Builds, inside the endpoint's dispatch thread, the function that wakes the serving loop
@@ -460,7 +460,7 @@ fn serve_connection(
             }
         };
         s.write_all(&admin::encode_response(&response.0, &response.1))?;
-        if matches!(Op::from_u32(header.op), Some(Op::Enroll | Op::Forget)) {
+        if matches!(decode_code::<Op>(header.op), Some(Op::Enroll | Op::Forget)) {
             tracing::debug!(uid, pid, op = header.op, "admin change answered");
         }
     }

@@ -15,8 +15,8 @@ use guardian_models::embedder::EmbedError;
 use guardian_shared::trajectory::{InvalidTrajectory, Waypoint};
 use guardian_shared::wire::{
     CheckAnswer, CheckVerdict, ClassEntry, DaemonState, Failure, Limit, NoGo, Op, Request,
-    RequestHeader, ResponseHeader, RobotInfo, encode_check, encode_failure, encode_state,
-    encode_text,
+    RequestHeader, ResponseHeader, RobotInfo, decode_code, encode_check, encode_failure,
+    encode_state, encode_text,
 };
 use guardian_shared::workcell::Workcell;
 
@@ -203,7 +203,7 @@ impl Screen {
     ) -> Result<Request<'a>, Failure> {
         if !admin
             && self.admin_separation
-            && matches!(Op::from_u32(h.op), Some(Op::Enroll | Op::Forget))
+            && matches!(decode_code::<Op>(h.op), Some(Op::Enroll | Op::Forget))
         {
             return Err(Failure::NotPermitted {
                 message: "enroll and forget are admin operations here: use the admin socket".into(),
@@ -248,7 +248,7 @@ impl Screen {
         // Status answers fresh percentiles; other responses carry ones at most a second old.
         let latency_us = self
             .stats
-            .latency_us(Op::from_u32(h.op) == Some(Op::Status));
+            .latency_us(decode_code::<Op>(h.op) == Some(Op::Status));
         let counters = self.stats.counters();
         encode_state(
             &mut r,

@@ -14,7 +14,7 @@ use guardian_models::kinematics::{PANDA_JOINTS, Robot};
 use guardian_shared::trajectory::{Waypoint, from_flat};
 use guardian_shared::wire::{
     MAX_EXAMPLES, NAME_BYTES, Op, RequestHeader, ResponseHeader, Status, VerdictCode,
-    decode_class_name, encode_class_name,
+    decode_class_name, decode_code, encode_class_name,
 };
 use proptest::prelude::*;
 use std::sync::{Mutex, OnceLock};
@@ -171,8 +171,8 @@ fn assert_sound(
     let genuine = genuine_check(bank, h, payload);
     prop_assert_eq!(r.request_id, h.request_id);
     prop_assert_eq!(r.op, h.op);
-    prop_assert!(Status::from_u32(r.status).is_some());
-    prop_assert!(VerdictCode::from_u32(r.verdict).is_some());
+    prop_assert!(decode_code::<Status>(r.status).is_some());
+    prop_assert!(decode_code::<VerdictCode>(r.verdict).is_some());
     if r.status != Status::Ok as u32 {
         prop_assert_eq!(r.verdict, VerdictCode::None as u32);
     }

@@ -188,7 +188,15 @@ mod tests {
     #[test]
     fn a_nan_geometry_score_is_a_no_go_everywhere() {
         let t = 2.0;
-        for s in [0.0, 1.0, 2.0, 2.0f32.next_up(), 3.0, f32::INFINITY, f32::NAN] {
+        for s in [
+            0.0,
+            1.0,
+            2.0,
+            2.0f32.next_up(),
+            3.0,
+            f32::INFINITY,
+            f32::NAN,
+        ] {
             let no_go = is_geometry_no_go(s, t);
             assert_eq!(no_go, !(s <= t), "{s}");
             assert_eq!(normalised_geometry_score(s, t) > 1.0, no_go, "{s}");

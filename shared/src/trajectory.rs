@@ -108,7 +108,9 @@ pub type Waypoint = [f32; SLOTS];
 pub type Resampled = [Waypoint; STEPS];
 
 /// What is wrong with a trajectory. The discriminants are stable: they go on the wire.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, num_enum::TryFromPrimitive,
+)]
 #[repr(u8)]
 #[non_exhaustive]
 pub enum InvalidKind {
@@ -124,21 +126,6 @@ pub enum InvalidKind {
     JointOutOfLimits = 5,
     /// The tool channel is neither 0 nor 1.
     ToolOutOfRange = 6,
-}
-
-impl InvalidKind {
-    /// Decode a wire discriminant.
-    pub fn from_u8(v: u8) -> Option<Self> {
-        Some(match v {
-            1 => Self::NonFinite,
-            2 => Self::WrongChannelCount,
-            3 => Self::TooFewWaypoints,
-            4 => Self::TooManyWaypoints,
-            5 => Self::JointOutOfLimits,
-            6 => Self::ToolOutOfRange,
-            _ => return None,
-        })
-    }
 }
 
 /// A trajectory failed validation: what is wrong and where.
@@ -507,9 +494,9 @@ mod tests {
         assert!(JointLimits::new(vec![1.0], vec![0.0]).is_err());
         assert!(JointLimits::new(vec![f64::NAN], vec![0.0]).is_err());
         for k in 1..=6u8 {
-            assert_eq!(InvalidKind::from_u8(k).map(|k| k as u8), Some(k));
+            assert_eq!(InvalidKind::try_from(k).ok().map(|k| k as u8), Some(k));
         }
-        assert_eq!(InvalidKind::from_u8(0), None);
+        assert_eq!(InvalidKind::try_from(0).ok(), None);
     }
 
     #[test]

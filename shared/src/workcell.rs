@@ -96,7 +96,9 @@ impl Workcell {
 }
 
 /// Which workcell rule a plan broke (wire value in `ResponseHeader::workcell_kind`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, num_enum::TryFromPrimitive,
+)]
 #[serde(rename_all = "kebab-case")]
 #[repr(u8)]
 #[non_exhaustive]
@@ -113,19 +115,6 @@ pub enum WorkcellKind {
     HoverHeight = 4,
 }
 
-impl WorkcellKind {
-    /// Decode a wire value.
-    pub fn from_u32(v: u32) -> Option<Self> {
-        Some(match v {
-            1 => Self::ToolOrientation,
-            2 => Self::PenHeight,
-            3 => Self::OffCanvas,
-            4 => Self::HoverHeight,
-            _ => return None,
-        })
-    }
-}
-
 /// The first waypoint that broke a workcell rule.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct WorkcellViolation {
@@ -140,7 +129,9 @@ pub struct WorkcellViolation {
 /// (x right = base −y, y up = base +x); sizes, length and stroke count as natural
 /// logarithms (their spread grows with their value); start and end points relative to the
 /// drawing's size, the direction relative to its pen-down length.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, num_enum::TryFromPrimitive,
+)]
 #[serde(rename_all = "kebab-case")]
 #[repr(u8)]
 #[non_exhaustive]
@@ -192,12 +183,6 @@ impl GeometryFeature {
         Self::DirectionY,
     ];
 
-    /// Decode a wire value.
-    pub fn from_u32(v: u32) -> Option<Self> {
-        let i = usize::try_from(v).ok()?.checked_sub(1)?;
-        Self::ALL.get(i).copied()
-    }
-
     /// Kebab-case name, e.g. `centre-x`.
     pub fn name(self) -> &'static str {
         match self {
@@ -220,19 +205,20 @@ impl GeometryFeature {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::wire::decode_code;
 
     #[test]
     fn codes_round_trip_and_defaults_are_valid() {
         for (i, f) in GeometryFeature::ALL.iter().enumerate() {
             assert_eq!(*f as u32, i as u32 + 1);
-            assert_eq!(GeometryFeature::from_u32(*f as u32), Some(*f));
+            assert_eq!(decode_code::<GeometryFeature>(*f as u32), Some(*f));
         }
-        assert_eq!(GeometryFeature::from_u32(0), None);
-        assert_eq!(GeometryFeature::from_u32(13), None);
+        assert_eq!(decode_code::<GeometryFeature>(0), None);
+        assert_eq!(decode_code::<GeometryFeature>(13), None);
         for v in 1..=4 {
-            assert_eq!(WorkcellKind::from_u32(v).map(|k| k as u32), Some(v));
+            assert_eq!(decode_code::<WorkcellKind>(v).map(|k| k as u32), Some(v));
         }
-        assert_eq!(WorkcellKind::from_u32(5), None);
+        assert_eq!(decode_code::<WorkcellKind>(5), None);
         assert!(Workcell::default().validate().is_ok());
         let bad = Workcell {
             margin: f64::NAN,

@@ -8,10 +8,11 @@ use guardian_shared::trajectory::{
     resample, split_flat, to_flat, validate,
 };
 use guardian_shared::wire::{
-    ClassNameError, MAX_CLASS_NAME, NAME_BYTES, Op, ReasonCode, ResponseHeader, Status,
-    VerdictCode, decode_class_name, decode_text, encode_class_name, encode_text,
+    ClassNameError, LimitKind, MAX_CLASS_NAME, NAME_BYTES, Op, ReasonCode, ResponseHeader, Status,
+    VerdictCode, decode_class_name, decode_code, decode_text, encode_class_name, encode_text,
     validate_class_name,
 };
+use guardian_shared::workcell::{GeometryFeature, WorkcellKind};
 use proptest::prelude::*;
 
 const CASES: u32 = 10_000;
@@ -167,11 +168,14 @@ proptest! {
 
     /// Every u32 either decodes to the code with that value or to nothing.
     #[test]
-    fn any_code_decodes_or_is_rejected(v in any::<u32>()) {
-        prop_assert_eq!(Op::from_u32(v).map(|o| o as u32), (1..=6).contains(&v).then_some(v));
-        prop_assert_eq!(Status::from_u32(v).map(|o| o as u32), (v <= 6).then_some(v));
-        prop_assert_eq!(VerdictCode::from_u32(v).map(|o| o as u32), (v <= 2).then_some(v));
-        prop_assert_eq!(ReasonCode::from_u32(v).map(|o| o as u32), (v <= 4).then_some(v));
+    fn any_code_decodes_or_is_rejected(v in prop_oneof![0u32..20, any::<u32>()]) {
+        prop_assert_eq!(decode_code::<Op>(v).map(|o| o as u32), (1..=6).contains(&v).then_some(v));
+        prop_assert_eq!(decode_code::<Status>(v).map(|o| o as u32), (v <= 8).then_some(v));
+        prop_assert_eq!(decode_code::<VerdictCode>(v).map(|o| o as u32), (v <= 2).then_some(v));
+        prop_assert_eq!(decode_code::<ReasonCode>(v).map(|o| o as u32), (v <= 6).then_some(v));
+        prop_assert_eq!(decode_code::<LimitKind>(v).map(|o| o as u32), (1..=3).contains(&v).then_some(v));
+        prop_assert_eq!(decode_code::<WorkcellKind>(v).map(|o| o as u32), (1..=4).contains(&v).then_some(v));
+        prop_assert_eq!(decode_code::<GeometryFeature>(v).map(|o| o as u32), (1..=12).contains(&v).then_some(v));
         let r = ResponseHeader { invalid_kind: v, ..ResponseHeader::default() };
         prop_assert_eq!(r.invalid().map(|k| k as u32), (1..=6).contains(&v).then_some(v));
     }

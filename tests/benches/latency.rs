@@ -42,7 +42,7 @@ use guardian_models::embedder::{EMBED_DIM, Embedder};
 use guardian_models::fast::{Scratch, sgemm};
 use guardian_shared::trajectory::Waypoint;
 use guardian_shared::wire::{
-    Op, ReasonCode, RequestHeader, VerdictCode, decode_text, encode_class_name,
+    Op, ReasonCode, RequestHeader, VerdictCode, decode_code, decode_text, encode_class_name,
 };
 use guardian_tests::harness::{guardiand_bin, workspace_root};
 use serde::{Deserialize, Serialize};
@@ -659,13 +659,13 @@ fn uds_server(socket: &Path, config: &Path) -> Result<()> {
             let opt = |v: f32| if v.is_nan() { None } else { Some(v) };
             let resp = JsonResponse {
                 status: r.status,
-                verdict: match VerdictCode::from_u32(r.verdict) {
+                verdict: match decode_code::<VerdictCode>(r.verdict) {
                     Some(VerdictCode::Go) => "go",
                     Some(VerdictCode::NoGo) => "no-go",
                     _ => "none",
                 }
                 .into(),
-                reason: format!("{:?}", ReasonCode::from_u32(r.reason)),
+                reason: format!("{:?}", decode_code::<ReasonCode>(r.reason)),
                 claimed_distance: opt(r.claimed_distance),
                 threshold: opt(r.threshold),
                 nearest: entries

@@ -17,7 +17,8 @@ use guardian_shared::trajectory::{MAX_WAYPOINTS, from_flat, to_flat};
 const CHANNELS: usize = PANDA_JOINTS + 1;
 use guardian_shared::wire::{
     self, ClassEntry, ClassNameError, MAX_EXAMPLES, MAX_REQUEST_FLOATS, NAME_BYTES, Op, ReasonCode,
-    RequestHeader, ResponseHeader, Status, VerdictCode, decode_class_name, encode_class_name,
+    RequestHeader, ResponseHeader, Status, VerdictCode, decode_class_name, decode_code,
+    encode_class_name,
 };
 use guardian_tests::harness::{Daemon, PATIENCE, RawPlanner, RawPort, Setup, task, traj};
 use proptest::prelude::*;
@@ -98,7 +99,7 @@ fn judge(
     let genuine = genuine_check(enrolled, h, payload);
     prop_assert_eq!(r.request_id, h.request_id);
     prop_assert_eq!(r.op, h.op);
-    prop_assert!(Status::from_u32(r.status).is_some(), "{r:?}");
+    prop_assert!(decode_code::<Status>(r.status).is_some(), "{r:?}");
     if r.status != Status::Ok as u32 || h.op != Op::Check as u32 {
         prop_assert_eq!(r.verdict, VerdictCode::None as u32, "{:?}", h);
     }

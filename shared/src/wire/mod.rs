@@ -58,6 +58,17 @@ pub const MAX_CHANNELS: usize = MAX_JOINTS + 1;
 /// port for its own robot's channels.
 pub const MAX_REQUEST_FLOATS: usize = MAX_EXAMPLES * MAX_WAYPOINTS * MAX_CHANNELS;
 
+/// Decode a wire code into its enum (`Op`, `Status`, `WorkcellKind`, ...; each derives
+/// [`num_enum::TryFromPrimitive`]): `None` for a value the enum does not have, including one
+/// too wide for its representation.
+pub fn decode_code<T>(v: u32) -> Option<T>
+where
+    T: num_enum::TryFromPrimitive,
+    T::Primitive: TryFrom<u32>,
+{
+    T::try_from_primitive(T::Primitive::try_from(v).ok()?).ok()
+}
+
 /// Name of the event service clients notify after sending a request.
 pub fn request_event_name(service: &str) -> String {
     format!("{service}/requests")
@@ -80,7 +91,7 @@ pub fn client_response_event_name(service: &str, client_id: u128) -> String {
 }
 
 /// Operation codes ([`RequestHeader::op`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, num_enum::TryFromPrimitive)]
 #[repr(u32)]
 #[non_exhaustive]
 pub enum Op {
@@ -98,25 +109,10 @@ pub enum Op {
     Status = 6,
 }
 
-impl Op {
-    /// Decode a wire value.
-    pub fn from_u32(v: u32) -> Option<Self> {
-        Some(match v {
-            1 => Self::Check,
-            2 => Self::Identify,
-            3 => Self::Enroll,
-            4 => Self::Forget,
-            5 => Self::Classes,
-            6 => Self::Status,
-            _ => return None,
-        })
-    }
-}
-
 /// Outcome of a request ([`ResponseHeader::status`]). A check answered with a verdict, `Go`
 /// or `NoGo`, has status [`Status::Ok`]; every other status is an error and carries no
 /// verdict.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, num_enum::TryFromPrimitive)]
 #[repr(u32)]
 #[non_exhaustive]
 pub enum Status {
@@ -144,26 +140,8 @@ pub enum Status {
     NotPermitted = 8,
 }
 
-impl Status {
-    /// Decode a wire value.
-    pub fn from_u32(v: u32) -> Option<Self> {
-        Some(match v {
-            0 => Self::Ok,
-            1 => Self::BadRequest,
-            2 => Self::InvalidTrajectory,
-            3 => Self::InvalidClassName,
-            4 => Self::UnknownClass,
-            5 => Self::EmptyBank,
-            6 => Self::Internal,
-            7 => Self::LimitExceeded,
-            8 => Self::NotPermitted,
-            _ => return None,
-        })
-    }
-}
-
 /// Verdict codes ([`ResponseHeader::verdict`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, num_enum::TryFromPrimitive)]
 #[repr(u32)]
 #[non_exhaustive]
 pub enum VerdictCode {
@@ -175,20 +153,8 @@ pub enum VerdictCode {
     NoGo = 2,
 }
 
-impl VerdictCode {
-    /// Decode a wire value.
-    pub fn from_u32(v: u32) -> Option<Self> {
-        Some(match v {
-            0 => Self::None,
-            1 => Self::Go,
-            2 => Self::NoGo,
-            _ => return None,
-        })
-    }
-}
-
 /// Why a check answered no-go ([`ResponseHeader::reason`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, num_enum::TryFromPrimitive)]
 #[repr(u32)]
 #[non_exhaustive]
 pub enum ReasonCode {
@@ -212,24 +178,8 @@ pub enum ReasonCode {
     GeometryMismatch = 6,
 }
 
-impl ReasonCode {
-    /// Decode a wire value.
-    pub fn from_u32(v: u32) -> Option<Self> {
-        Some(match v {
-            0 => Self::None,
-            1 => Self::WrongTask,
-            2 => Self::Outlier,
-            3 => Self::UnknownClass,
-            4 => Self::InvalidTrajectory,
-            5 => Self::Workcell,
-            6 => Self::GeometryMismatch,
-            _ => return None,
-        })
-    }
-}
-
 /// Which configured bank limit refused an enroll ([`ResponseHeader::limit_kind`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, num_enum::TryFromPrimitive)]
 #[serde(rename_all = "kebab-case")]
 #[repr(u32)]
 #[non_exhaustive]
@@ -243,16 +193,6 @@ pub enum LimitKind {
 }
 
 impl LimitKind {
-    /// Decode a wire value.
-    pub fn from_u32(v: u32) -> Option<Self> {
-        Some(match v {
-            1 => Self::Classes,
-            2 => Self::ExamplesPerClass,
-            3 => Self::BankBytes,
-            _ => return None,
-        })
-    }
-
     /// The config key of the limit.
     pub fn key(self) -> &'static str {
         match self {
@@ -447,19 +387,17 @@ impl ResponseHeader {
 
     /// The workcell rule broken, if any.
     pub fn workcell(&self) -> Option<WorkcellKind> {
-        WorkcellKind::from_u32(self.workcell_kind)
+        decode_code::<WorkcellKind>(self.workcell_kind)
     }
 
     /// The geometry feature behind `geometry_score`, if any.
     pub fn geometry(&self) -> Option<GeometryFeature> {
-        GeometryFeature::from_u32(self.geometry_feature)
+        decode_code::<GeometryFeature>(self.geometry_feature)
     }
 
     /// The invalid-trajectory kind, if any.
     pub fn invalid(&self) -> Option<InvalidKind> {
-        u8::try_from(self.invalid_kind)
-            .ok()
-            .and_then(InvalidKind::from_u8)
+        decode_code(self.invalid_kind)
     }
 }
 
@@ -667,19 +605,19 @@ mod tests {
     #[test]
     fn codes_round_trip_and_text_is_cut_on_char_boundaries() {
         for v in 1..=6 {
-            assert_eq!(Op::from_u32(v).map(|o| o as u32), Some(v));
+            assert_eq!(decode_code::<Op>(v).map(|o| o as u32), Some(v));
         }
-        assert_eq!(Op::from_u32(7), None);
+        assert_eq!(decode_code::<Op>(7), None);
         for v in 0..=8 {
-            assert_eq!(Status::from_u32(v).map(|s| s as u32), Some(v));
+            assert_eq!(decode_code::<Status>(v).map(|s| s as u32), Some(v));
         }
-        assert_eq!(Status::from_u32(9), None);
+        assert_eq!(decode_code::<Status>(9), None);
         for v in 1..=3 {
-            assert_eq!(LimitKind::from_u32(v).map(|s| s as u32), Some(v));
+            assert_eq!(decode_code::<LimitKind>(v).map(|s| s as u32), Some(v));
         }
-        assert_eq!(LimitKind::from_u32(0), None);
+        assert_eq!(decode_code::<LimitKind>(0), None);
         for v in 0..=6 {
-            assert_eq!(ReasonCode::from_u32(v).map(|s| s as u32), Some(v));
+            assert_eq!(decode_code::<ReasonCode>(v).map(|s| s as u32), Some(v));
         }
         let t: [u8; 4] = encode_text("aéé");
         assert_eq!(decode_text(&t), "aé");

@@ -3,6 +3,7 @@
 //! ([`RequestError`]). The daemon decodes with [`Request::decode`]; the client builds
 //! headers with [`RequestHeader::encode`].
 
+use super::decode_code;
 use super::{
     ClassNameError, MAX_EXAMPLES, Op, RequestHeader, Status, decode_class_name, encode_class_name,
 };
@@ -121,7 +122,7 @@ impl<'a> Request<'a> {
         payload: &[f32],
         limits: &JointLimits,
     ) -> Result<Self, RequestError> {
-        let Some(op) = Op::from_u32(header.op) else {
+        let Some(op) = decode_code::<Op>(header.op) else {
             return Err(RequestError::UnknownOp { op: header.op });
         };
         let class = || decode_class_name(&header.class_name);

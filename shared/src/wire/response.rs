@@ -3,6 +3,7 @@
 //! check verdict ([`CheckAnswer`]) and the daemon's state sent with every answer
 //! ([`DaemonState`]).
 
+use super::decode_code;
 use std::borrow::Cow;
 
 use super::{
@@ -171,7 +172,7 @@ pub fn encode_failure(r: &mut ResponseHeader, failure: &Failure) {
 /// Read `r`'s status: `Ok(None)` when the request succeeded, else the failure.
 pub fn decode_failure(r: &ResponseHeader) -> Result<Option<Failure>, ProtocolError> {
     let message = decode_text(&r.message);
-    Ok(Some(match Status::from_u32(r.status) {
+    Ok(Some(match decode_code::<Status>(r.status) {
         Some(Status::Ok) => return Ok(None),
         Some(Status::BadRequest) => Failure::BadRequest { message },
         Some(Status::InvalidTrajectory) => Failure::InvalidTrajectory {
@@ -188,7 +189,7 @@ pub fn decode_failure(r: &ResponseHeader) -> Result<Option<Failure>, ProtocolErr
         Some(Status::Internal) => Failure::Internal { message },
         Some(Status::LimitExceeded) => Failure::LimitExceeded {
             limit: Limit {
-                kind: LimitKind::from_u32(r.limit_kind)
+                kind: decode_code::<LimitKind>(r.limit_kind)
                     .ok_or(ProtocolError::UnknownLimitKind(r.limit_kind))?,
                 max: r.limit_max,
                 requested: r.limit_requested,
@@ -315,9 +316,9 @@ pub fn encode_check(r: &mut ResponseHeader, a: &CheckAnswer) {
 /// Read a check's answer from `r` (whose status is ok).
 pub fn decode_check(r: &ResponseHeader) -> Result<CheckAnswer, ProtocolError> {
     let opt = |v: f32| if v.is_nan() { None } else { Some(v) };
-    let verdict = match VerdictCode::from_u32(r.verdict) {
+    let verdict = match decode_code::<VerdictCode>(r.verdict) {
         Some(VerdictCode::Go) => CheckVerdict::Go,
-        Some(VerdictCode::NoGo) => CheckVerdict::NoGo(match ReasonCode::from_u32(r.reason) {
+        Some(VerdictCode::NoGo) => CheckVerdict::NoGo(match decode_code::<ReasonCode>(r.reason) {
             Some(ReasonCode::WrongTask) => NoGo::WrongTask,
             Some(ReasonCode::Outlier) => NoGo::Outlier,
             Some(ReasonCode::UnknownClass) => NoGo::UnknownClass,
@@ -512,7 +513,7 @@ mod tests {
                 geometry_feature: Some(GeometryFeature::CentreX),
             },
             CheckAnswer::early_no_go(NoGo::Workcell(WorkcellViolation {
-                kind: WorkcellKind::from_u32(1).unwrap(),
+                kind: decode_code::<WorkcellKind>(1).unwrap(),
                 index: 4,
             })),
             CheckAnswer::early_no_go(NoGo::InvalidTrajectory(InvalidTrajectory::new(
