@@ -202,21 +202,22 @@ impl RobotDescription {
                 message: e.to_string(),
             })?;
         let (urdf_path, urdf_text) = read_urdf(&file.urdf)?;
-        let chain = Robot::from_urdf_chain(
+        let tool = file.tool;
+        if tool.xyz.iter().chain(&tool.rpy).any(|v| !v.is_finite()) {
+            return Err(RobotLoadError::Tool { robot: source });
+        }
+        // Built with its tool at once: the specialised FK is built and verified once.
+        let robot = Robot::from_urdf_chain_with_tool(
             &urdf_text,
             &file.name,
             file.base_link.as_deref(),
             file.tip_link.as_deref(),
+            Frame::from_xyz_rpy(tool.xyz, tool.rpy),
         )
         .map_err(|error| RobotLoadError::Urdf {
             urdf: urdf_path,
             error,
         })?;
-        let tool = file.tool;
-        if tool.xyz.iter().chain(&tool.rpy).any(|v| !v.is_finite()) {
-            return Err(RobotLoadError::Tool { robot: source });
-        }
-        let robot = chain.with_tool_frame(Frame::from_xyz_rpy(tool.xyz, tool.rpy));
         let n = robot.joints();
         if file.home_seed.len() != n {
             return Err(RobotLoadError::HomeSeed {

@@ -109,8 +109,13 @@ impl Robot {
     /// ([`Robot::panda`] builds the same chain without parsing).
     pub fn from_embedded_urdf() -> Result<Self, UrdfLoadError> {
         Ok(
-            Self::from_urdf_chain(PANDA_URDF, "panda", None, Some("panda_link8"))?
-                .with_tool(super::PEN_LENGTH, super::PEN_YAW),
+            Self::from_urdf_chain_with_tool(
+                PANDA_URDF,
+                "panda",
+                None,
+                Some("panda_link8"),
+                Frame::from_xyz_rpy([0.0, 0.0, super::PEN_LENGTH], [0.0, 0.0, super::PEN_YAW]),
+            )?,
         )
     }
 
@@ -121,18 +126,31 @@ impl Robot {
         let robot = parse(text)?;
         let chain = walk_down(&robot, &root(&robot)?)?;
         let name = robot.name.clone();
-        build(text, name, &chain, true)
+        build(text, name, &chain, None)
     }
 
     /// Parse the serial chain of `text` from `base` (the root link if `None`) to `tip` (the
     /// one leaf if `None`; branches off the chain are allowed when a tip is named). Every
     /// fixed joint after the last movable one is composed into the flange; the tool is the
-    /// identity until [`Robot::with_tool_frame`] sets it.
+    /// identity ([`Robot::with_tool_frame`] sets another; [`Robot::from_urdf_chain_with_tool`]
+    /// builds the robot with its tool at once).
     pub fn from_urdf_chain(
         text: &str,
         name: &str,
         base: Option<&str>,
         tip: Option<&str>,
+    ) -> Result<Self, UrdfLoadError> {
+        Self::from_urdf_chain_with_tool(text, name, base, tip, Frame::identity())
+    }
+
+    /// [`Robot::from_urdf_chain`] with the tool frame (in the flange frame) given, so the
+    /// specialised FK is built and verified once, for the robot as it will serve.
+    pub fn from_urdf_chain_with_tool(
+        text: &str,
+        name: &str,
+        base: Option<&str>,
+        tip: Option<&str>,
+        tool: Frame,
     ) -> Result<Self, UrdfLoadError> {
         let robot = parse(text)?;
         let base = match base {
@@ -151,7 +169,7 @@ impl Robot {
             None => walk_down(&robot, &base)?,
             Some(tip) => walk_up(&robot, &base, tip)?,
         };
-        build(text, name.to_string(), &chain, false)
+        build(text, name.to_string(), &chain, Some(tool))
     }
 }
 
@@ -239,13 +257,14 @@ fn walk_up<'a>(
     Ok(chain)
 }
 
-/// The robot of a chain of URDF joints. With `split_tool`, the first fixed joint after the
-/// last movable one is the flange and the rest the tool; otherwise they are all the flange.
+/// The robot of a chain of URDF joints. Without a `given_tool`, the first fixed joint after
+/// the last movable one is the flange and the rest the tool; with one, they are all the
+/// flange and the tool is the one given.
 fn build(
     text: &str,
     name: String,
     chain: &[&urdf_rs::Joint],
-    split_tool: bool,
+    given_tool: Option<Frame>,
 ) -> Result<Robot, UrdfLoadError> {
     let mut joints: Vec<Joint> = Vec::new();
     let (mut lower, mut upper) = (Vec::new(), Vec::new());
@@ -334,21 +353,24 @@ fn build(
             got: joints.len(),
         });
     }
-    let (flange, tool) = if split_tool {
-        let flange = after_last.first().copied().unwrap_or_else(Frame::identity);
-        let tool = after_last
-            .iter()
-            .skip(1)
-            .fold(Frame::identity(), |acc, f| acc.compose(f));
-        (flange, tool)
-    } else {
-        // One fixed joint is taken as is (bit-identical to the published numbers).
-        let flange = match after_last.as_slice() {
-            [] => Frame::identity(),
-            [one] => *one,
-            _ => pending,
-        };
-        (flange, Frame::identity())
+    let (flange, tool) = match given_tool {
+        None => {
+            let flange = after_last.first().copied().unwrap_or_else(Frame::identity);
+            let tool = after_last
+                .iter()
+                .skip(1)
+                .fold(Frame::identity(), |acc, f| acc.compose(f));
+            (flange, tool)
+        }
+        Some(tool) => {
+            // One fixed joint is taken as is (bit-identical to the published numbers).
+            let flange = match after_last.as_slice() {
+                [] => Frame::identity(),
+                [one] => *one,
+                _ => pending,
+            };
+            (flange, tool)
+        }
     };
     let limits = JointLimits::new(lower, upper).map_err(|_| UrdfLoadError::JointCount {
         max: MAX_JOINTS,
