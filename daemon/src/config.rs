@@ -14,7 +14,11 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use guardian_models::kinematics::{DEFAULT_ROBOT, RobotDescription};
+use guardian_models::check::Station;
+use guardian_models::kinematics::{
+    DEFAULT_ROBOT, RobotDescription, RobotLoadError, WorkcellOverrideError,
+    apply_workcell_overrides,
+};
 use guardian_shared::workcell::Workcell;
 use serde::{Deserialize, Serialize};
 
@@ -184,13 +188,37 @@ pub enum LoadConfigError {
         source: Box<toml::de::Error>,
     },
     /// A value is out of range.
-    #[error("invalid config {path}: {detail}")]
+    #[error("invalid config {path}: {source}")]
     Invalid {
         /// The file.
         path: PathBuf,
         /// What is wrong.
-        detail: String,
+        source: ConfigError,
     },
+}
+
+/// What is wrong with a configuration's values (or with the robot it names).
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ConfigError {
+    /// A count that must be at least 1 is 0.
+    #[error("{key} must be at least 1")]
+    Zero {
+        /// The key.
+        key: &'static str,
+    },
+    /// An admin uid or gid is the overflow id.
+    #[error("[admin] uids and gids must not contain {OVERFLOW_ID}: unmapped callers appear as it")]
+    OverflowId,
+    /// `default-threshold` is negative or not finite.
+    #[error("default-threshold must be finite and >= 0, got {0}")]
+    DefaultThreshold(f32),
+    /// The robot cannot be loaded.
+    #[error("robot: {0}")]
+    Robot(#[from] RobotLoadError),
+    /// The `[workcell]` overrides do not fit.
+    #[error("[workcell]: {0}")]
+    Workcell(#[from] WorkcellOverrideError),
 }
 
 impl Config {
@@ -200,9 +228,9 @@ impl Config {
             path: path.to_owned(),
             source: Box::new(e),
         })?;
-        c.check().map_err(|detail| LoadConfigError::Invalid {
+        c.check().map_err(|source| LoadConfigError::Invalid {
             path: path.to_owned(),
-            detail,
+            source,
         })?;
         Ok(c)
     }
@@ -257,55 +285,44 @@ impl Config {
         )
     }
 
-    fn check(&self) -> Result<(), String> {
-        if self.k_nearest == 0 {
-            return Err("k-nearest must be at least 1".into());
+    /// Check the values. The robot is not resolved here (that reads files; it is done once,
+    /// by [`Config::station`], when the daemon loads its state); the `[workcell]` overrides
+    /// are checked against the built-in defaults, so an unknown key or a bad value fails
+    /// when the file is read.
+    fn check(&self) -> Result<(), ConfigError> {
+        let counts = [
+            ("k-nearest", self.k_nearest as u64),
+            ("tick-ms", self.tick_ms),
+            ("max-clients", self.max_clients as u64),
+            ("max-batch", self.max_batch as u64),
+            ("max-classes", self.max_classes as u64),
+            ("max-examples-per-class", self.max_examples_per_class as u64),
+            ("max-bank-bytes", self.max_bank_bytes),
+        ];
+        if let Some((key, _)) = counts.iter().find(|(_, v)| *v == 0) {
+            return Err(ConfigError::Zero { key });
         }
-        // The robot must load and the workcell overrides must fit it.
-        let robot = self.robot_description()?;
-        self.workcell_for(&robot)?;
-        if self.tick_ms == 0 {
-            return Err("tick-ms must be at least 1".into());
-        }
-        if self.max_clients == 0 {
-            return Err("max-clients must be at least 1".into());
-        }
-        if self.max_batch == 0 {
-            return Err("max-batch must be at least 1".into());
-        }
-        if self.max_classes == 0 || self.max_examples_per_class == 0 || self.max_bank_bytes == 0 {
-            return Err(
-                "max-classes, max-examples-per-class and max-bank-bytes must be at least 1".into(),
-            );
-        }
+        apply_workcell_overrides(Workcell::DEFAULT, self.workcell.as_ref())?;
         // A caller whose uid or gid the daemon's user namespace does not map (systemd
         // PrivateUsers=) is reported as the overflow id 65534: never an admin.
         if self.admin.uids.contains(&OVERFLOW_ID) || self.admin.gids.contains(&OVERFLOW_ID) {
-            return Err(format!(
-                "[admin] uids and gids must not contain {OVERFLOW_ID}: unmapped callers appear as it"
-            ));
+            return Err(ConfigError::OverflowId);
         }
         if let Some(t) = self.default_threshold
             && !(t.is_finite() && t >= 0.0)
         {
-            return Err(format!(
-                "default-threshold must be finite and >= 0, got {t}"
-            ));
+            return Err(ConfigError::DefaultThreshold(t));
         }
         Ok(())
     }
 
-    /// The robot served ([`Config::robot`]).
-    pub fn robot_description(&self) -> Result<RobotDescription, String> {
-        RobotDescription::resolve(&self.robot).map_err(|e| format!("robot: {e}"))
-    }
-
-    /// The workcell rules for `robot`: its description's defaults with this config's
-    /// `[workcell]` keys applied.
-    pub fn workcell_for(&self, robot: &RobotDescription) -> Result<Workcell, String> {
-        robot
-            .workcell_with(self.workcell.as_ref())
-            .map_err(|e| format!("[workcell]: {e}"))
+    /// The robot served ([`Config::robot`]) and its workcell rules (its description's
+    /// defaults with this config's `[workcell]` keys applied), resolved once: the daemon
+    /// calls this at start and on reload, and the screen owns the result.
+    pub fn station(&self) -> Result<Station, ConfigError> {
+        let description = RobotDescription::resolve(&self.robot)?;
+        let workcell = description.workcell_with(self.workcell.as_ref())?;
+        Ok(Station::new(description.robot, workcell))
     }
 
     /// The serving loop's longest sleep.
@@ -429,22 +446,31 @@ mod tests {
             Path::new("t"),
         )
         .unwrap();
-        let d = c.robot_description().unwrap();
-        assert_eq!(d.robot.joints(), 6);
-        let cell = c.workcell_for(&d).unwrap();
+        let station = c.station().unwrap();
+        assert_eq!(station.robot().joints(), 6);
+        let cell = station.workcell();
         assert_eq!((cell.canvas_z, cell.canvas_side), (0.2, 0.15));
-        let e = Config::from_toml("robot = \"kuka\"\n", Path::new("t")).unwrap_err();
+        // An unknown robot is refused when it is resolved, naming it.
+        let c = Config::from_toml("robot = \"kuka\"\n", Path::new("t")).unwrap();
+        let e = c.station().unwrap_err();
+        assert!(matches!(e, ConfigError::Robot(_)), "{e}");
         assert!(e.to_string().contains("kuka"), "{e}");
         let e = Config::from_toml("[workcell]\ncanvas-zz = 0.2\n", Path::new("t")).unwrap_err();
         assert!(e.to_string().contains("canvas-zz"), "{e}");
-        assert!(Config::from_toml("[workcell]\nhover = -1.0\n", Path::new("t")).is_err());
+        assert!(matches!(
+            Config::from_toml("[workcell]\nhover = -1.0\n", Path::new("t")),
+            Err(LoadConfigError::Invalid {
+                source: ConfigError::Workcell(_),
+                ..
+            })
+        ));
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/robots/ur5e.toml");
         let c = Config::from_toml(
             &format!("robot = {:?}\n", path.display().to_string()),
             Path::new("t"),
         )
         .unwrap();
-        assert_eq!(c.robot_description().unwrap().robot.name(), "ur5e");
+        assert_eq!(c.station().unwrap().robot().name(), "ur5e");
     }
 
     #[test]

@@ -5,7 +5,6 @@
 
 pub mod admin;
 pub mod config;
-pub mod engine;
 pub mod locator;
 pub mod notify;
 pub mod recovery;

@@ -43,19 +43,20 @@ fn main() -> anyhow::Result<()> {
         None => tracing::info!("no config file; using built-in defaults"),
     }
     if args.check {
-        let (engine, _) = guardian_daemon::state::load_engine(&config)?;
+        let (embedder, station) = guardian_daemon::state::load_model(&config)?;
         // A bank of another model is re-embedded in memory (and logged), not saved.
         let (bank, src) = guardian_daemon::state::load_bank_with(
             &config,
-            &engine,
+            &embedder,
+            &station,
             guardian_daemon::state::Persist::No,
         )?;
         println!(
             "ok: model {} ({}), robot {} ({} joints), {} with {} classes",
-            engine.version(),
+            embedder.version(),
             config.model_path().display(),
-            engine.robot().name(),
-            engine.robot().joints(),
+            station.robot().name(),
+            station.robot().joints(),
             src,
             bank.len()
         );

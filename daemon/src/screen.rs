@@ -7,32 +7,29 @@ use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use guardian_models::bank::{
-    BankLimits, Class, ClassBank, Decision, Example, Outcome, journal_path,
-};
-use guardian_models::check::{self, PlanCheck, Prepared};
-use guardian_models::embedder::EmbedError;
+use guardian_models::bank::{BankLimits, Class, ClassBank, Decision, Outcome, journal_path};
+use guardian_models::check::{self, EnrollmentError, PlanCheck, Prepared, Station};
+use guardian_models::embedder::{EmbedError, Embedder};
 use guardian_shared::trajectory::{InvalidTrajectory, Waypoint};
 use guardian_shared::wire::{
     CheckAnswer, CheckVerdict, ClassEntry, DaemonState, Failure, Limit, NoGo, Op, Request,
     RequestHeader, ResponseHeader, RobotInfo, decode_code, encode_check, encode_failure,
     encode_state, encode_text,
 };
-use guardian_shared::workcell::Workcell;
 
-use crate::engine::{EmbedFailure, Engine};
 use crate::stats::Stats;
 
-/// Model, bank and statistics of a running daemon.
+/// Model, robot, bank and statistics of a running daemon.
 #[derive(Debug)]
 pub struct Screen {
-    engine: Engine,
+    /// The embedding network.
+    embedder: Embedder,
+    /// The robot served and its workcell rules, resolved once (at start and on reload).
+    station: Station,
     bank: ClassBank,
     bank_path: PathBuf,
     k: usize,
     stats: Stats,
-    /// The workcell rules applied to every check.
-    workcell: Workcell,
     /// Bounds checked before an enroll changes anything.
     limits: BankLimits,
     /// Enroll and forget only through the admin endpoint ([`Screen::handle_admin`]).
@@ -63,17 +60,24 @@ pub const DEFAULT_LIMITS: BankLimits = BankLimits {
 type PreparedPlan = Result<Prepared, EmbedError>;
 
 impl Screen {
-    /// A screen serving `bank` with `engine`, persisting the bank to `bank_path`.
-    pub fn new(engine: Engine, bank: ClassBank, bank_path: PathBuf, k: usize) -> Self {
+    /// A screen serving `bank` with `embedder` for `station`'s robot and workcell,
+    /// persisting the bank to `bank_path`.
+    pub fn new(
+        embedder: Embedder,
+        station: Station,
+        bank: ClassBank,
+        bank_path: PathBuf,
+        k: usize,
+    ) -> Self {
         let mut s = Self {
-            engine,
+            embedder,
+            station,
             bank_bytes: bank.classes_bytes(),
             bank,
             journal_bytes: 0,
             bank_path,
             k,
             stats: Stats::default(),
-            workcell: Workcell::default(),
             limits: DEFAULT_LIMITS,
             admin_separation: false,
             journal_ok: true,
@@ -98,19 +102,14 @@ impl Screen {
         std::fs::metadata(journal_path(&self.bank_path)).map_or(0, |m| m.len())
     }
 
-    /// Set the workcell rules (default: [`Workcell::default`], enabled).
-    pub fn set_workcell(&mut self, workcell: Workcell) {
-        self.workcell = workcell;
-    }
-
-    /// The workcell rules in use.
-    pub fn workcell(&self) -> &Workcell {
-        &self.workcell
+    /// The robot and workcell rules in use.
+    pub fn station(&self) -> &Station {
+        &self.station
     }
 
     /// The model in use.
-    pub fn engine(&self) -> &Engine {
-        &self.engine
+    pub fn embedder(&self) -> &Embedder {
+        &self.embedder
     }
     /// The bank in use.
     pub fn bank(&self) -> &ClassBank {
@@ -121,9 +120,10 @@ impl Screen {
         &self.bank_path
     }
 
-    /// Replace model and bank (after a successful reload).
-    pub fn replace(&mut self, engine: Engine, bank: ClassBank, k: usize) {
-        self.engine = engine;
+    /// Replace model, robot and bank (after a successful reload).
+    pub fn replace(&mut self, embedder: Embedder, station: Station, bank: ClassBank, k: usize) {
+        self.embedder = embedder;
+        self.station = station;
         self.bank_bytes = bank.classes_bytes();
         self.bank = bank;
         self.k = k;
@@ -142,7 +142,7 @@ impl Screen {
             "serving {} classes (bank v{}), model {}",
             self.bank.len(),
             self.bank.generation(),
-            self.engine.version()
+            self.embedder.version()
         )
     }
 
@@ -160,8 +160,7 @@ impl Screen {
             .map(|(h, p)| self.decode(h, p, false))
             .collect();
         let plans: Vec<&[Waypoint]> = requests.iter().filter_map(plan_of).collect();
-        let mut prepared =
-            check::prepare_batch(self.engine.embedder(), &self.workcell, &plans).into_iter();
+        let mut prepared = check::prepare_batch(&self.embedder, &self.station, &plans).into_iter();
         items
             .iter()
             .zip(requests)
@@ -209,7 +208,7 @@ impl Screen {
                 message: "enroll and forget are admin operations here: use the admin socket".into(),
             });
         }
-        Request::decode(h, payload, self.engine.robot().limits()).map_err(|e| Failure::from(&e))
+        Request::decode(h, payload, self.station.robot().joints()).map_err(|e| Failure::from(&e))
     }
 
     /// Dispatch a decoded request to its operation and write the response.
@@ -253,7 +252,7 @@ impl Screen {
         encode_state(
             &mut r,
             &DaemonState {
-                model_version: Cow::Borrowed(self.engine.version()),
+                model_version: Cow::Borrowed(self.embedder.version()),
                 bank_version: self.bank.generation(),
                 class_count: u32::try_from(self.bank.len()).unwrap_or(u32::MAX),
                 uptime_ms: self.stats.uptime_ms(),
@@ -263,9 +262,9 @@ impl Screen {
                 no_go: counters.no_go,
                 latency_us,
                 robot: RobotInfo {
-                    name: Cow::Borrowed(self.engine.robot().name()),
-                    joints: self.engine.robot().joints() as u32,
-                    urdf_sha256: *self.engine.robot().urdf_sha256(),
+                    name: Cow::Borrowed(self.station.robot().name()),
+                    joints: self.station.robot().joints() as u32,
+                    urdf_sha256: *self.station.robot().urdf_sha256(),
                 },
             },
         );
@@ -284,7 +283,7 @@ impl Screen {
             Err(inv) => return early(NoGo::InvalidTrajectory(inv)),
         };
         let prepared = prepared
-            .unwrap_or_else(|| check::prepare(self.engine.embedder(), &self.workcell, &t))
+            .unwrap_or_else(|| check::prepare(&self.embedder, &self.station, &t))
             .map_err(|e| {
                 tracing::error!(error = %e, "embedding failed");
                 embedding_failed(&e)
@@ -305,13 +304,13 @@ impl Screen {
     }
 
     fn identify(&self, t: &[Waypoint]) -> Result<Vec<ClassEntry>, Failure> {
-        let e = self.engine.embed(t).map_err(|e| match e {
-            EmbedFailure::Invalid(inv) => invalid(inv, 0),
-            EmbedFailure::Internal(e) => {
+        let e = check::embed_plan(&self.embedder, &self.station, t)
+            .map_err(|e| {
                 tracing::error!(error = %e, "embedding failed");
                 embedding_failed(&e)
-            }
-        })?;
+            })?
+            .map_err(|inv| invalid(inv, 0))?
+            .embedding;
         if self.bank.is_empty() {
             return Err(Failure::EmptyBank {
                 message: "no classes enrolled".into(),
@@ -330,31 +329,31 @@ impl Screen {
         self.limits
             .check_counts(&self.bank, name, ts.len())
             .map_err(limit_exceeded)?;
-        let mut xs = Vec::with_capacity(ts.len());
-        for (i, t) in ts.iter().enumerate() {
-            xs.push(
-                self.engine
-                    .preprocess(t)
-                    .map_err(|inv| invalid(inv, i as u32))?,
-            );
-        }
-        // Embeddings and geometry descriptors (only if every example draws on the canvas),
-        // as a re-embedding for a new model computes them; the resampled plans are kept so
-        // that the class survives a new model.
-        let (embeddings, geometry) = guardian_models::bank::enrollment(self.engine.embedder(), &xs)
-            .map_err(|e| embedding_failed(&e))?;
-        let joints = self.engine.robot().joints();
-        let examples: Vec<Example> = xs
-            .iter()
-            .map(|x| Example::from_resampled(x, joints))
-            .collect();
+        // Validated, resampled and embedded by the models' pipeline (rules off); the
+        // resampled plans are kept so that the class survives a new model.
+        let enrollment =
+            check::enrollment(&self.embedder, &self.station, ts).map_err(|e| match e {
+                EnrollmentError::Invalid { index, source } => invalid(source, index),
+                EnrollmentError::Embed(e) => {
+                    tracing::error!(error = %e, "embedding failed");
+                    embedding_failed(&e)
+                }
+                other => Failure::Internal {
+                    message: other.to_string(),
+                },
+            })?;
         // The change is made in place (no copy of the bank) and undone if it breaks the
         // size limit or cannot be persisted.
         let previous = self.bank.class(name).cloned();
         let generation = self.bank.generation();
         let before = self.bank.class_bytes(name);
         self.bank
-            .enroll_plans(name, &embeddings, &geometry, &examples)
+            .enroll_plans(
+                name,
+                &enrollment.embeddings,
+                &enrollment.geometry,
+                &enrollment.examples,
+            )
             .map_err(|e| Failure::Internal {
                 message: e.to_string(),
             })?;
@@ -364,7 +363,7 @@ impl Screen {
             return Err(limit_exceeded(limit));
         }
         self.persist(name, previous, generation, after)?;
-        tracing::info!(class = %name, examples = embeddings.len(), bank = self.bank.generation(), "enrolled");
+        tracing::info!(class = %name, examples = enrollment.embeddings.len(), bank = self.bank.generation(), "enrolled");
         Ok(vec![self.entry(name, f32::NAN)])
     }
 
@@ -551,8 +550,8 @@ fn embedding_failed(e: &EmbedError) -> Failure {
 mod tests {
     use super::*;
     use guardian_client::samples::task;
-    use guardian_models::embedder::Embedder;
     use guardian_shared::wire::{ReasonCode, VerdictCode, encode_class_name};
+    use guardian_shared::workcell::Workcell;
 
     fn request(op: Op, class: &str, t: &[Waypoint]) -> (RequestHeader, Vec<f32>) {
         let mut h = RequestHeader::new(7, op);
@@ -568,18 +567,20 @@ mod tests {
     #[test]
     fn batched_checks_answer_like_single_ones() {
         let dir = tempfile::tempdir().unwrap();
-        let engine = Engine::from_embedder(Embedder::random(3));
-        let mut bank = ClassBank::new(engine.dim(), engine.version(), 0.8);
+        let embedder = Embedder::random(3);
+        // The synthetic tasks are joint-space patterns, not drawings on the canvas.
+        let station = Station::panda().with_workcell(Workcell::OFF);
+        let mut bank = ClassBank::new(embedder.config().embed_dim, embedder.version(), 0.8);
         for c in 0..3 {
-            let es: Vec<Vec<f32>> = (0..4).map(|d| engine.embed(&task(c, d)).unwrap()).collect();
+            let es: Vec<Vec<f32>> = (0..4)
+                .map(|d| {
+                    let e = check::embed_plan(&embedder, &station, &task(c, d));
+                    e.unwrap().unwrap().embedding.to_vec()
+                })
+                .collect();
             bank.enroll(&format!("task{c}"), &es).unwrap();
         }
-        let mut screen = Screen::new(engine, bank, dir.path().join("bank.gcb"), 3);
-        // The synthetic tasks are joint-space patterns, not drawings on the canvas.
-        screen.set_workcell(Workcell {
-            enabled: false,
-            ..Workcell::default()
-        });
+        let mut screen = Screen::new(embedder, station, bank, dir.path().join("bank.gcb"), 3);
         let mut bad = task(1, 9);
         bad[5][0] = 99.0;
         let reqs = [

@@ -16,7 +16,7 @@ use crate::admin::{AdminEndpoint, AdminPolicy, WakerFactory};
 use crate::config::{Config, ServingMode};
 use crate::notify::SdNotify;
 use crate::screen::Screen;
-use crate::state::{LoadStateError, load_bank, load_engine};
+use crate::state::{LoadStateError, load_bank, load_model};
 use crate::wakers::{ClientWakers, Woken};
 
 /// Flags set from signal handlers (or a test harness) to steer the loop.
@@ -111,16 +111,16 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         Ok(_) => {}
         Err(e) => tracing::warn!(error = %e, "cannot remove stale bank temporaries"),
     }
-    let (engine, workcell) = load_engine(&config)?;
+    let (embedder, station) = load_model(&config)?;
     tracing::info!(
         model = %config.model_path().display(),
-        version = engine.version(),
-        robot = engine.robot().name(),
-        joints = engine.robot().joints(),
-        urdf_sha256 = %engine.robot().urdf_sha256_hex(),
+        version = embedder.version(),
+        robot = station.robot().name(),
+        joints = station.robot().joints(),
+        urdf_sha256 = %station.robot().urdf_sha256_hex(),
         "model loaded"
     );
-    let (bank, source) = load_bank(&config, &engine)?;
+    let (bank, source) = load_bank(&config, &embedder, &station)?;
     if bank.is_empty() {
         tracing::info!(%source, "class bank is empty: enroll classes before checking");
     } else {
@@ -129,8 +129,13 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     for w in crate::state::limit_warnings(&bank, &config.limits()) {
         tracing::warn!(%source, "configured limits below the loaded bank: {w}");
     }
-    let mut screen = Screen::new(engine, bank, config.bank_path(), config.k_nearest);
-    screen.set_workcell(workcell);
+    let mut screen = Screen::new(
+        embedder,
+        station,
+        bank,
+        config.bank_path(),
+        config.k_nearest,
+    );
     screen.set_limits(config.limits());
     screen.set_admin_separation(config.admin.separation);
     // Start from a snapshot alone: fold a journal left by the last run into it (an empty
@@ -359,17 +364,17 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
 fn reload(config: &Config, screen: &mut Screen, sd: &SdNotify) {
     tracing::info!("reload requested (SIGHUP)");
     sd.status("reloading");
-    let result = load_engine(config).and_then(|(engine, workcell)| {
-        let (bank, source) = load_bank(config, &engine)?;
-        Ok((engine, bank, source, workcell))
+    // A new model and a new station (the robot resolved again, once), then the bank for them.
+    let result = load_model(config).and_then(|(embedder, station)| {
+        let (bank, source) = load_bank(config, &embedder, &station)?;
+        Ok((embedder, station, bank, source))
     });
     match result {
-        Ok((engine, bank, source, workcell)) => {
+        Ok((embedder, station, bank, source)) => {
             for w in crate::state::limit_warnings(&bank, &config.limits()) {
                 tracing::warn!(%source, "configured limits below the loaded bank: {w}");
             }
-            screen.replace(engine, bank, config.k_nearest);
-            screen.set_workcell(workcell);
+            screen.replace(embedder, station, bank, config.k_nearest);
             tracing::info!(%source, "reload complete: {}", screen.summary());
         }
         Err(e) => {

@@ -5,12 +5,11 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use guardian_models::bank::{BankLimits, ClassBank, DEFAULT_THRESHOLD, ReembedError};
+use guardian_models::check::Station;
+use guardian_models::embedder::{EmbedError, Embedder, LoadModelError};
 use guardian_models::kinematics::{PANDA_JOINTS, RobotRecord};
 
-use guardian_shared::workcell::Workcell;
-
-use crate::config::Config;
-use crate::engine::Engine;
+use crate::config::{Config, ConfigError};
 
 /// Where the bank in use came from.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -38,12 +37,20 @@ impl std::fmt::Display for BankSource {
 #[non_exhaustive]
 pub enum LoadStateError {
     /// The model could not be loaded.
-    #[error("cannot load model {path}: {detail}")]
+    #[error("cannot load model {path}: {source}")]
     Model {
         /// The weights file.
         path: PathBuf,
         /// Why.
-        detail: String,
+        source: LoadModelError,
+    },
+    /// The model cannot embed plans of the configured robot.
+    #[error("model {path} cannot serve the configured robot: {source}")]
+    ModelRobot {
+        /// The weights file.
+        path: PathBuf,
+        /// Why.
+        source: EmbedError,
     },
     /// The bank could not be loaded.
     #[error("cannot load class bank {path}: {source}")]
@@ -53,12 +60,9 @@ pub enum LoadStateError {
         /// Why.
         source: guardian_models::bank::LoadBankError,
     },
-    /// The robot could not be loaded.
-    #[error("cannot load the robot: {detail}")]
-    Robot {
-        /// Why.
-        detail: String,
-    },
+    /// The robot (or its workcell) could not be loaded.
+    #[error("cannot load the robot: {0}")]
+    Robot(#[from] ConfigError),
     /// The bank's classes were enrolled on another robot.
     #[error(
         "class bank {path} holds plans of robot {bank_robot} but this daemon serves {robot}; \
@@ -111,38 +115,37 @@ pub enum Persist {
     No,
 }
 
-/// Load the model named by `config` for the robot it names, and that robot's workcell
-/// rules (its description's defaults with the config's `[workcell]` keys applied); the
-/// description is read once for both.
-pub fn load_engine(config: &Config) -> Result<(Engine, Workcell), LoadStateError> {
+/// Load the model named by `config` and resolve the robot it names with its workcell rules
+/// ([`Config::station`]), once; the model must be able to serve that robot.
+pub fn load_model(config: &Config) -> Result<(Embedder, Station), LoadStateError> {
+    let station = config.station()?;
     let path = config.model_path();
-    let robot = config
-        .robot_description()
-        .map_err(|detail| LoadStateError::Robot { detail })?;
-    let workcell = config
-        .workcell_for(&robot)
-        .map_err(|detail| LoadStateError::Robot { detail })?;
-    let engine = Engine::load(&path, robot.robot).map_err(|e| LoadStateError::Model {
-        path,
-        detail: e.to_string(),
+    let embedder = Embedder::load(&path).map_err(|source| LoadStateError::Model {
+        path: path.clone(),
+        source,
     })?;
-    Ok((engine, workcell))
+    embedder
+        .serves(station.robot())
+        .map_err(|source| LoadStateError::ModelRobot { path, source })?;
+    Ok((embedder, station))
 }
 
-/// Load the bank for `engine`: the persisted one, else the default one, else empty. A bank
-/// built with another model is embedded again from its kept examples ([`reembed`]) and
-/// saved as the state bank.
+/// Load the bank for `embedder` and `station`'s robot: the persisted one, else the default
+/// one, else empty. A bank built with another model is embedded again from its kept
+/// examples ([`reembed`]) and saved as the state bank.
 pub fn load_bank(
     config: &Config,
-    engine: &Engine,
+    embedder: &Embedder,
+    station: &Station,
 ) -> Result<(ClassBank, BankSource), LoadStateError> {
-    load_bank_with(config, engine, Persist::Yes)
+    load_bank_with(config, embedder, station, Persist::Yes)
 }
 
 /// [`load_bank`], persisting a re-embedded bank or not.
 pub fn load_bank_with(
     config: &Config,
-    engine: &Engine,
+    embedder: &Embedder,
+    station: &Station,
     persist: Persist,
 ) -> Result<(ClassBank, BankSource), LoadStateError> {
     let state = config.bank_path();
@@ -178,7 +181,7 @@ pub fn load_bank_with(
     } else {
         let t = config.default_threshold.unwrap_or(DEFAULT_THRESHOLD);
         (
-            ClassBank::new(engine.dim(), engine.version(), t),
+            ClassBank::new(embedder.config().embed_dim, embedder.version(), t),
             BankSource::Empty,
         )
     };
@@ -188,7 +191,7 @@ pub fn load_bank_with(
     };
     // A bank records the robot its plans came from; a bank file without a record (format
     // <= 2) was made with the Panda. A new, empty bank is the served robot's.
-    let served = RobotRecord::of(engine.robot());
+    let served = RobotRecord::of(station.robot());
     let compatible = match (bank.robot(), &source) {
         (Some(r), _) => r == &served,
         (None, BankSource::Empty) => true,
@@ -205,13 +208,13 @@ pub fn load_bank_with(
         });
     }
     bank.set_robot(served);
-    if bank.dim() != engine.dim() || bank.model_version() != engine.version() {
-        bank = reembed(config, engine, &bank, &path())?;
+    if bank.dim() != embedder.config().embed_dim || bank.model_version() != embedder.version() {
+        bank = reembed(config, embedder, station, &bank, &path())?;
         if persist == Persist::Yes {
             let state = config.bank_path();
             bank.save(&state)
                 .map_err(|source| LoadStateError::PersistReembedded {
-                    model: engine.version().to_owned(),
+                    model: embedder.version().to_owned(),
                     source,
                 })?;
             tracing::info!(bank = %state.display(), "saved the re-embedded class bank");
@@ -267,14 +270,15 @@ pub fn limit_warnings(bank: &ClassBank, limits: &BankLimits) -> Vec<String> {
     out
 }
 
-/// Embed `bank` (built with another model) again with `engine`'s model: every class from
+/// Embed `bank` (built with another model) again with `embedder` for `station`'s robot: every class from
 /// its kept examples, its thresholds from the calibration of the new model, which is the
 /// configured default bank's when that bank was built with the new model (the calibrated
 /// default bank shipped with it). Without one, only an uncalibrated bank is re-embedded:
 /// another model's thresholds are never kept. Logs what it did.
 pub fn reembed(
     config: &Config,
-    engine: &Engine,
+    embedder: &Embedder,
+    station: &Station,
     bank: &ClassBank,
     path: &Path,
 ) -> Result<ClassBank, LoadStateError> {
@@ -283,14 +287,16 @@ pub fn reembed(
         path: path.to_owned(),
         bank_model: bank.model_version().to_owned(),
         bank_dim: bank.dim(),
-        model: engine.version().to_owned(),
-        model_dim: engine.dim(),
+        model: embedder.version().to_owned(),
+        model_dim: embedder.config().embed_dim,
         reason: format!("{reason}; {remedy}"),
     };
     let default = config.default_bank_path();
     let calibrated = match &default {
         Some(p) if p.as_path() != path => match ClassBank::load(p) {
-            Ok(b) if b.model_version() == engine.version() && b.calibration().is_some() => Some(b),
+            Ok(b) if b.model_version() == embedder.version() && b.calibration().is_some() => {
+                Some(b)
+            }
             Ok(_) => None,
             Err(e) => {
                 tracing::warn!(default_bank = %p.display(), error = %e, "cannot read the default bank for the new model's calibration");
@@ -300,7 +306,7 @@ pub fn reembed(
         _ => None,
     };
     let (out, report) = bank
-        .reembedded(engine.embedder(), calibrated.as_ref())
+        .reembedded(embedder, station.robot(), calibrated.as_ref())
         .map_err(|e| match e {
             ReembedError::MissingExamples { .. } => mismatch(
                 e.to_string(),
@@ -310,7 +316,7 @@ pub fn reembed(
                 format!(
                     "{e}; the new model's calibration comes from the configured default bank, \
                      which must be a calibrated bank built with model {} ({})",
-                    engine.version(),
+                    embedder.version(),
                     default.as_ref().map_or_else(
                         || "none is configured".to_owned(),
                         |p| format!("{} is not", p.display())

@@ -2,7 +2,7 @@
 //! with the shipped model and carries the calibrated thresholds the decision uses.
 
 use guardian_daemon::config::Config;
-use guardian_daemon::state::{BankSource, LoadStateError, load_bank, load_engine};
+use guardian_daemon::state::{BankSource, LoadStateError, load_bank, load_model};
 use guardian_models::bank::MIN_CLASS_CALIBRATION;
 
 #[test]
@@ -12,8 +12,8 @@ fn shipped_default_bank_matches_the_shipped_model_and_is_calibrated() {
         state_dir: Some(state.path().to_owned()),
         ..Config::default()
     };
-    let (engine, _) = load_engine(&config).unwrap();
-    let (bank, source) = load_bank(&config, &engine).unwrap();
+    let (embedder, station) = load_model(&config).unwrap();
+    let (bank, source) = load_bank(&config, &embedder, &station).unwrap();
     // The shipped bank predates the robot record: it is the Panda's, and now says so.
     let robot = bank.robot().expect("recorded at load");
     assert_eq!((robot.name.as_str(), robot.joints), ("panda", 7));
@@ -44,9 +44,9 @@ fn a_ur5e_daemon_refuses_the_panda_bank() {
         state_dir: Some(state.path().to_owned()),
         ..Config::default()
     };
-    let (engine, _) = load_engine(&config).unwrap();
-    assert_eq!(engine.robot().joints(), 6);
-    let e = load_bank(&config, &engine).unwrap_err();
+    let (embedder, station) = load_model(&config).unwrap();
+    assert_eq!(station.robot().joints(), 6);
+    let e = load_bank(&config, &embedder, &station).unwrap_err();
     assert!(matches!(e, LoadStateError::BankRobotMismatch { .. }), "{e}");
     let text = e.to_string();
     assert!(text.contains("panda") && text.contains("ur5e"), "{text}");
@@ -62,14 +62,14 @@ fn shipped_default_bank_keeps_the_plans_its_embeddings_came_from() {
         state_dir: Some(state.path().to_owned()),
         ..Config::default()
     };
-    let (engine, _) = load_engine(&config).unwrap();
-    let (bank, _) = load_bank(&config, &engine).unwrap();
+    let (embedder, station) = load_model(&config).unwrap();
+    let (bank, _) = load_bank(&config, &embedder, &station).unwrap();
     assert!(bank.classes_without_examples().is_empty());
     let mut worst = 0.0f32;
     for (name, class) in bank.classes() {
         let xs: Vec<_> = class.examples.iter().map(|x| x.to_resampled()).collect();
         let (embeddings, geometry) =
-            guardian_models::bank::enrollment(engine.embedder(), &xs).unwrap();
+            guardian_models::bank::enrollment(&embedder, station.robot(), &xs).unwrap();
         assert_eq!(geometry, class.geometry, "{name}");
         for (e, stored) in embeddings.iter().zip(&class.embeddings) {
             worst = worst.max(guardian_models::bank::distance(e, stored));

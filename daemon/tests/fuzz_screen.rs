@@ -6,9 +6,9 @@
 //! well-formed check of an enrolled class whose distance is within the threshold.
 
 use guardian_client::samples::task;
-use guardian_daemon::engine::Engine;
 use guardian_daemon::screen::Screen;
 use guardian_models::bank::ClassBank;
+use guardian_models::check::{self, Station};
 use guardian_models::embedder::Embedder;
 use guardian_models::kinematics::{PANDA_JOINTS, Robot};
 use guardian_shared::trajectory::{Waypoint, from_flat};
@@ -41,24 +41,23 @@ fn with_screen<T>(f: impl FnOnce(&mut Screen) -> T) -> T {
 }
 
 fn screen(dir: &std::path::Path) -> Screen {
-    let engine = Engine::from_embedder(Embedder::random(5));
+    let embedder = Embedder::random(5);
+    // The synthetic tasks are joint-space patterns that do not draw on the canvas; the
+    // workcell rules would answer every one of them no-go and hide what is tested here.
+    let station = Station::panda().with_workcell(guardian_shared::workcell::Workcell::OFF);
     // A huge threshold: every well-formed genuine check would be `Go`, so garbage that got
     // through validation would show up as `Go`.
-    let mut bank = ClassBank::new(engine.dim(), engine.version(), 1e9);
+    let mut bank = ClassBank::new(embedder.config().embed_dim, embedder.version(), 1e9);
     for (c, name) in ENROLLED.iter().enumerate() {
         let es: Vec<Vec<f32>> = (0..3)
-            .map(|d| engine.embed(&task(c as u32, d)).expect("embed"))
+            .map(|d| {
+                let e = check::embed_plan(&embedder, &station, &task(c as u32, d));
+                e.expect("embed").expect("valid").embedding.to_vec()
+            })
             .collect();
         bank.enroll(name, &es).expect("enroll");
     }
-    let mut screen = Screen::new(engine, bank, dir.join("bank.gcb"), 3);
-    // The synthetic tasks are joint-space patterns that do not draw on the canvas; the
-    // workcell rules would answer every one of them no-go and hide what is tested here.
-    screen.set_workcell(guardian_shared::workcell::Workcell {
-        enabled: false,
-        ..Default::default()
-    });
-    screen
+    Screen::new(embedder, station, bank, dir.join("bank.gcb"), 3)
 }
 
 fn f32_any() -> impl Strategy<Value = f32> {

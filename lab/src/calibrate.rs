@@ -387,7 +387,7 @@ fn calibrate_on_alphabets(
     let cal = bank::calibrate(&scores, emb_target, &note)
         .with_context(|| format!("cannot calibrate: {} scores", scores.len()))?;
     let gcal = if args.geometry_share > 0.0 {
-        let cgeo = geometry_of(&cpool.xs, model.robot());
+        let cgeo = geometry_of(&cpool.xs, &cpool.robot);
         Some(calibrate_geometry_pool(
             &scores,
             &cal,
@@ -449,7 +449,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     };
     let pool = Pool::new(&data, &args.alphabets)?;
     let emb = pool.embed(&model)?;
-    let geo = geometry_of(&pool.xs, model.robot());
+    let geo = geometry_of(&pool.xs, &pool.robot);
     let mut rng = StdRng::seed_from_u64(args.seed ^ 0x5eed);
     let (support, _) = split(&pool.labels, args.shots, &mut rng);
     let dim = emb.first().map_or(0, Vec::len);

@@ -377,13 +377,14 @@ impl Dataset {
         self.trajectories.is_empty()
     }
 
-    /// The model file at `path`, serving the robot that drew these trajectories (its pen
-    /// paths by that robot's forward kinematics).
+    /// The model file at `path`, checked to serve the robot that drew these trajectories
+    /// ([`Dataset::robot`]; its forward kinematics gives the pen paths).
     pub fn embedder(&self, path: &Path) -> anyhow::Result<guardian_models::embedder::Embedder> {
         use anyhow::Context as _;
         let model = guardian_models::embedder::Embedder::load(path)
             .with_context(|| format!("loading {}", path.display()))?;
-        Ok(model.with_robot(self.robot()?)?)
+        model.serves(&self.robot()?)?;
+        Ok(model)
     }
 
     /// The robot that drew the trajectories, loaded from the geometry's robot and checked

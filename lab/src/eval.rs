@@ -14,6 +14,7 @@
 use std::path::PathBuf;
 
 use guardian_models::embedder::{EMBED_DIM, Embedder};
+use guardian_models::kinematics::Robot;
 use guardian_shared::trajectory::{Resampled, STEPS, TOOL};
 use rand::rngs::StdRng;
 use rand::seq::IndexedRandom;
@@ -259,6 +260,8 @@ pub struct Pool {
     pub alphabets: Vec<String>,
     /// Joints of the robot that drew the samples.
     pub joints: usize,
+    /// The robot that drew the samples (its forward kinematics gives the pen paths).
+    pub robot: Robot,
 }
 
 impl Pool {
@@ -279,6 +282,9 @@ impl Pool {
             class_names: Vec::new(),
             alphabets: names,
             joints: data.robot.joints,
+            robot: data
+                .robot()
+                .map_err(|e| EvalError::Invalid(e.to_string()))?,
         };
         for i in 0..data.len() {
             if !ids.contains(&data.alphabet_ids[i]) {
@@ -306,7 +312,7 @@ impl Pool {
         for chunk in self.xs.chunks(256) {
             out.extend(
                 model
-                    .embed_batch(chunk)?
+                    .embed_batch(&self.robot, chunk)?
                     .into_iter()
                     .map(|e: [f32; EMBED_DIM]| e.to_vec()),
             );

@@ -421,7 +421,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let embed = |m: &Embedder, xs: &[Resampled]| -> anyhow::Result<Vec<Embedded>> {
         let mut out = Vec::with_capacity(xs.len());
         for c in xs.chunks(256) {
-            out.extend(check::embed_resampled(m, c)?);
+            out.extend(check::embed_resampled(m, &pool.robot, c)?);
         }
         Ok(out)
     };

@@ -1020,10 +1020,12 @@ pub fn pseudo_labels(
 
 /// Embeddings of every pool drawing.
 pub fn embed_pool(model: &Embedder, pool: &Dataset) -> Result<Vec<Embedding>, PseudoLabelError> {
+    let robot =
+        crate::dataset::Dataset::robot(pool).map_err(|e| PseudoLabelError::Robot(e.to_string()))?;
     let chunks: Vec<&[Resampled]> = pool.trajectories.chunks(256).collect();
     let parts: Vec<Vec<Embedding>> = chunks
         .par_iter()
-        .map(|c| model.embed_batch(c))
+        .map(|c| model.embed_batch(&robot, c))
         .collect::<Result<_, _>>()?;
     Ok(parts.into_iter().flatten().collect())
 }
@@ -1038,6 +1040,9 @@ pub enum PseudoLabelError {
     /// The neighbour search.
     #[error("neighbour search: {0}")]
     Candle(#[from] candle_core::Error),
+    /// The pool's robot could not be loaded.
+    #[error("the pool's robot: {0}")]
+    Robot(String),
 }
 
 /// The classes a training run adds from the pool: pseudo-label clusters, or (SSL) every

@@ -97,8 +97,10 @@ fn embeddings_of_real_plans_do_not_change() {
         for (a, b) in x.iter().flatten().zip(x_ref.iter().flatten()) {
             worst_input = worst_input.max((a - b).abs());
         }
-        let e = embedder.embed(&x).expect("embed");
-        let e_ref = embedder.embed_reference(&x_ref).expect("embed reference");
+        let e = embedder.embed(panda, &x).expect("embed");
+        let e_ref = embedder
+            .embed_reference(panda, &x_ref)
+            .expect("embed reference");
         let diff: f32 = e
             .iter()
             .zip(&e_ref)

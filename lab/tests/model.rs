@@ -190,7 +190,9 @@ fn the_picture_network_learns_real_characters() {
     assert!(x1 / i1 > x0 / i0, "inter/intra {} -> {}", x0 / i0, x1 / i1);
     // The shipped form (an Embedder from the trained weights) embeds a plan as training did.
     let model = Embedder::from_trained(&learner.net().to_net().expect("net")).expect("model");
-    let e = model.embed(&set.raw()[0]).expect("embed");
+    let e = model
+        .embed(guardian_models::preprocess::default_panda(), &set.raw()[0])
+        .expect("embed");
     let want = &embs[0];
     let err: f32 = e
         .iter()
@@ -228,7 +230,12 @@ fn the_training_pipeline_checkpoints_resumes_and_ships_a_loadable_model() {
     // The best model loads through the serving API and embeds real trajectories.
     let model = Embedder::load(&dir.path().join("model.safetensors")).expect("load");
     assert_eq!(model.version(), s.model_version);
-    let e = model.embed_batch(&data.trajectories[..3]).expect("embed");
+    let e = model
+        .embed_batch(
+            guardian_models::preprocess::default_panda(),
+            &data.trajectories[..3],
+        )
+        .expect("embed");
     assert!(sq_dist(&e[0], &e[1]).is_finite());
 }
 

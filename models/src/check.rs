@@ -2,21 +2,66 @@
 //! workcell inspection (validation, resampling, workcell rules) → embedding, with the pen
 //! path computed once → plan geometry from that path → the bank's decision.
 //!
+//! The robot and its workcell are one value, a [`Station`], resolved once (the daemon
+//! builds it from its configuration at start and on reload) and passed to every stage that
+//! needs them; the embedder holds the network only.
+//!
 //! A check has two stages so that a micro-batch can share one forward pass while each plan
 //! is still decided against the bank as it stands when its turn comes: [`prepare`] (or
 //! [`prepare_batch`]) runs everything that depends only on the plan, [`decide`] everything
-//! that depends on the bank. [`check`] is both for one plan. Plans that are resampled
-//! already (the lab's data sets) enter at the embedding stage ([`embed_resampled`]); their
-//! plan geometry comes from the same pen path ([`Embedded::geometry`]).
+//! that depends on the bank. [`check`] is both for one plan. Identify ([`embed_plan`]) and
+//! enroll ([`enrollment`]) enter the same pipeline with the workcell rules off. Plans that
+//! are resampled already (the lab's data sets) enter at the embedding stage
+//! ([`embed_resampled`]); their plan geometry comes from the same pen path
+//! ([`Embedded::geometry`]). Every trajectory is validated once, by the inspection.
 
 use guardian_shared::trajectory::{InvalidTrajectory, Resampled, STEPS, Waypoint};
 use guardian_shared::workcell::{Workcell, WorkcellViolation};
 
-use crate::bank::{ClassBank, Decision};
+use crate::bank::{ClassBank, Decision, Example};
 use crate::embedder::{EmbedError, Embedder, Embedding};
 use crate::features::PenPoint;
 use crate::geometry::PlanGeometry;
+use crate::kinematics::Robot;
 use crate::workcell::{self, Inspection};
+
+/// The robot served and the workcell it works in: what a check needs of the physical
+/// world, resolved once.
+#[derive(Debug, Clone)]
+pub struct Station {
+    robot: Robot,
+    workcell: Workcell,
+}
+
+impl Station {
+    /// `robot` working under `workcell`'s rules.
+    pub fn new(robot: Robot, workcell: Workcell) -> Self {
+        Self { robot, workcell }
+    }
+
+    /// The published Panda with the default pen, in the paper's workcell (rules on).
+    pub fn panda() -> Self {
+        Self::new(
+            crate::preprocess::default_panda().clone(),
+            Workcell::default(),
+        )
+    }
+
+    /// The robot.
+    pub fn robot(&self) -> &Robot {
+        &self.robot
+    }
+
+    /// The workcell rules.
+    pub fn workcell(&self) -> &Workcell {
+        &self.workcell
+    }
+
+    /// The same robot under other workcell rules.
+    pub fn with_workcell(self, workcell: Workcell) -> Self {
+        Self { workcell, ..self }
+    }
+}
 
 /// A plan after the stages that do not depend on the bank.
 #[derive(Debug, Clone)]
@@ -56,15 +101,11 @@ pub enum PlanCheck {
     Decided(Decision),
 }
 
-/// Inspect `waypoints` of the embedder's robot against `cell`: the early outcome, or the
+/// Inspect `waypoints` against `station`'s robot and rules: the early outcome, or the
 /// inspection to embed.
-fn inspect(
-    embedder: &Embedder,
-    cell: &Workcell,
-    waypoints: &[Waypoint],
-) -> Result<Inspection, Prepared> {
-    let inspection =
-        workcell::inspect_with(embedder.robot(), cell, waypoints).map_err(Prepared::Invalid)?;
+fn inspect(station: &Station, waypoints: &[Waypoint]) -> Result<Inspection, Prepared> {
+    let inspection = workcell::inspect_with(&station.robot, &station.workcell, waypoints)
+        .map_err(Prepared::Invalid)?;
     match inspection.violation {
         Some(v) => Err(Prepared::Workcell(v)),
         None => Ok(inspection),
@@ -74,23 +115,27 @@ fn inspect(
 /// Inspect and embed one plan. An embedding failure is an error, never a verdict.
 pub fn prepare(
     embedder: &Embedder,
-    cell: &Workcell,
+    station: &Station,
     waypoints: &[Waypoint],
 ) -> Result<Prepared, EmbedError> {
-    let inspection = match inspect(embedder, cell, waypoints) {
+    let inspection = match inspect(station, waypoints) {
         Ok(i) => i,
         Err(early) => return Ok(early),
     };
-    let (embedding, path) = embedder.embed_with_pen_path(&inspection.resampled)?;
+    let (embedding, path) = embedder.embed_with_pen_path(&station.robot, &inspection.resampled)?;
     Ok(Prepared::Embedded(Box::new(Embedded { embedding, path })))
 }
 
-/// The embedding stage alone, for plans that are already resampled (the lab's data sets hold
-/// resampled plans, so there is nothing to inspect first): `xs` in one forward pass, each
-/// with the pen path its features came from.
-pub fn embed_resampled(embedder: &Embedder, xs: &[Resampled]) -> Result<Vec<Embedded>, EmbedError> {
+/// The embedding stage alone, for plans of `robot` that are already resampled (the lab's
+/// data sets hold resampled plans, so there is nothing to inspect first): `xs` in one
+/// forward pass, each with the pen path its features came from.
+pub fn embed_resampled(
+    embedder: &Embedder,
+    robot: &Robot,
+    xs: &[Resampled],
+) -> Result<Vec<Embedded>, EmbedError> {
     let mut paths = vec![[[0.0f32; 3]; STEPS]; xs.len()];
-    let embeddings = embedder.embed_batch_with_pen_paths(xs, &mut paths)?;
+    let embeddings = embedder.embed_batch_with_pen_paths(robot, xs, &mut paths)?;
     Ok(embeddings
         .into_iter()
         .zip(paths)
@@ -103,17 +148,17 @@ pub fn embed_resampled(embedder: &Embedder, xs: &[Resampled]) -> Result<Vec<Embe
 /// that caused it.
 pub fn prepare_batch(
     embedder: &Embedder,
-    cell: &Workcell,
+    station: &Station,
     plans: &[&[Waypoint]],
 ) -> Vec<Result<Prepared, EmbedError>> {
     let inspected: Vec<Result<Inspection, Prepared>> =
-        plans.iter().map(|w| inspect(embedder, cell, w)).collect();
+        plans.iter().map(|w| inspect(station, w)).collect();
     let xs: Vec<_> = inspected
         .iter()
         .filter_map(|i| i.as_ref().ok().map(|i| i.resampled))
         .collect();
     let batch = if xs.len() >= 2 {
-        embed_resampled(embedder, &xs).ok()
+        embed_resampled(embedder, &station.robot, &xs).ok()
     } else {
         None
     };
@@ -125,7 +170,7 @@ pub fn prepare_batch(
             Err(early) => Ok(early),
             Ok(_) => match embedded.as_mut().and_then(Iterator::next) {
                 Some(e) => Ok(Prepared::Embedded(Box::new(e))),
-                None => prepare(embedder, cell, w),
+                None => prepare(embedder, station, w),
             },
         })
         .collect()
@@ -153,17 +198,93 @@ pub fn decide(bank: &ClassBank, prepared: &Prepared, claimed: &str, k: usize) ->
 pub fn check(
     embedder: &Embedder,
     bank: &ClassBank,
-    cell: &Workcell,
+    station: &Station,
     waypoints: &[Waypoint],
     claimed: &str,
     k: usize,
 ) -> Result<PlanCheck, EmbedError> {
     Ok(decide(
         bank,
-        &prepare(embedder, cell, waypoints)?,
+        &prepare(embedder, station, waypoints)?,
         claimed,
         k,
     ))
+}
+
+/// Validate, resample and embed one plan of `station`'s robot with the workcell rules off
+/// (identify: which classes a plan is nearest to, wherever it is drawn). `Ok(Err(_))`: the
+/// trajectory is invalid; `Err(_)`: the network failed (never a verdict).
+pub fn embed_plan(
+    embedder: &Embedder,
+    station: &Station,
+    waypoints: &[Waypoint],
+) -> Result<Result<Embedded, InvalidTrajectory>, EmbedError> {
+    let x = match workcell::inspect_with(&station.robot, &Workcell::OFF, waypoints) {
+        Ok(i) => i.resampled,
+        Err(inv) => return Ok(Err(inv)),
+    };
+    let (embedding, path) = embedder.embed_with_pen_path(&station.robot, &x)?;
+    Ok(Ok(Embedded { embedding, path }))
+}
+
+/// What an enrollment adds to a class: per example its embedding, its kept plan and (only
+/// if every example draws on the canvas) its geometry descriptor.
+#[derive(Debug, Clone)]
+pub struct Enrollment {
+    /// One embedding per example.
+    pub embeddings: Vec<Vec<f32>>,
+    /// One descriptor per example, or none.
+    pub geometry: Vec<PlanGeometry>,
+    /// The resampled plans, kept so that the class survives a new model.
+    pub examples: Vec<Example>,
+}
+
+/// An enrollment's examples could not be embedded.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum EnrollmentError {
+    /// Example `index` failed validation (the first one that did).
+    #[error("example {index}: {source}")]
+    Invalid {
+        /// Its position in the request.
+        index: u32,
+        /// What is wrong.
+        source: InvalidTrajectory,
+    },
+    /// The network failed.
+    #[error(transparent)]
+    Embed(#[from] EmbedError),
+}
+
+/// Validate and resample every example of `station`'s robot (rules off, as for identify),
+/// then embed them as [`crate::bank::enrollment`] does (the same function a re-embedding
+/// for a new model uses).
+pub fn enrollment(
+    embedder: &Embedder,
+    station: &Station,
+    plans: &[Vec<Waypoint>],
+) -> Result<Enrollment, EnrollmentError> {
+    let mut xs = Vec::with_capacity(plans.len());
+    for (i, t) in plans.iter().enumerate() {
+        let x = workcell::inspect_with(&station.robot, &Workcell::OFF, t).map_err(|source| {
+            EnrollmentError::Invalid {
+                index: u32::try_from(i).unwrap_or(u32::MAX),
+                source,
+            }
+        })?;
+        xs.push(x.resampled);
+    }
+    let (embeddings, geometry) = crate::bank::enrollment(embedder, &station.robot, &xs)?;
+    let joints = station.robot.joints();
+    let examples = xs
+        .iter()
+        .map(|x| Example::from_resampled(x, joints))
+        .collect();
+    Ok(Enrollment {
+        embeddings,
+        geometry,
+        examples,
+    })
 }
 
 #[cfg(test)]
@@ -197,10 +318,7 @@ mod tests {
         let mut bad = a.clone();
         bad[3][0] = f32::NAN;
         // Joint-space sweeps, not drawings on the canvas: the rules are off.
-        let off = Workcell {
-            enabled: false,
-            ..Workcell::default()
-        };
+        let off = Station::panda().with_workcell(Workcell::OFF);
         let plans: Vec<&[Waypoint]> = vec![&a, &bad, &b];
         let batch = prepare_batch(&embedder, &off, &plans);
         for (p, got) in plans.iter().zip(batch) {

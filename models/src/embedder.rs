@@ -1,9 +1,10 @@
 //! The inference-side embedder: load/save a trained network, embed resampled trajectories.
 //!
-//! An embedder serves one robot ([`Embedder::with_robot`], the Panda unless set): the
-//! network sees the pen-tip path that robot's forward kinematics makes of a trajectory, so
-//! one trained model screens any arm drawing the same tasks. Models on joint features
-//! ([`FeatureKind::Joints`], the paper's baseline) are Panda-only.
+//! An embedder holds a network, not a robot: every call names the robot whose forward
+//! kinematics turns a trajectory into the pen-tip path the network sees (the daemon's
+//! [`crate::check::Station`] owns it), so one trained model screens any arm drawing the same
+//! tasks. Models on joint features ([`FeatureKind::Joints`], the paper's baseline) are
+//! Panda-only ([`Embedder::serves`]).
 //!
 //! File format: safetensors with one f32 tensor per parameter and `__metadata__`:
 //! `format` (`guardian-embedder/1`), `config` (the [`NetConfig`] as JSON), `input-shape`
@@ -186,8 +187,6 @@ pub struct Embedder {
     fast: Arc<FastNet>,
     version: String,
     checksum: String,
-    /// The robot whose forward kinematics turns trajectories into pen paths.
-    robot: Arc<Robot>,
 }
 
 impl Embedder {
@@ -356,25 +355,19 @@ impl Embedder {
             net,
             version: checksum[..16].to_string(),
             checksum,
-            robot: Arc::new(crate::preprocess::default_panda().clone()),
         })
     }
 
-    /// The same model serving `robot`: pen paths by its forward kinematics. A model on
-    /// joint features serves only a 7-joint robot (the Panda whose limits scale them).
-    pub fn with_robot(mut self, robot: Robot) -> Result<Self, EmbedError> {
+    /// Whether this model can embed plans of `robot`: pen-path models serve any arm; a model
+    /// on joint features serves only a 7-joint robot (the Panda whose limits scale them).
+    /// Every embedding call checks it.
+    pub fn serves(&self, robot: &Robot) -> Result<(), EmbedError> {
         if self.net.config().features == FeatureKind::Joints && robot.joints() != PANDA_JOINTS {
             return Err(EmbedError::JointFeaturesNeedPanda {
                 robot: robot.name().to_string(),
             });
         }
-        self.robot = Arc::new(robot);
-        Ok(self)
-    }
-
-    /// The robot this embedder serves.
-    pub fn robot(&self) -> &Robot {
-        &self.robot
+        Ok(())
     }
 
     /// Write the model atomically: a temporary file beside `path`, fsync, rename.
@@ -440,25 +433,39 @@ impl Embedder {
             .map_err(|e| SaveModelError::Serialize(e.to_string()))
     }
 
-    /// Embed one resampled trajectory (fast path, see [`crate::fast`]).
-    pub fn embed(&self, x: &Resampled) -> Result<Embedding, EmbedError> {
+    /// Embed one resampled trajectory of `robot` (fast path, see [`crate::fast`]).
+    pub fn embed(&self, robot: &Robot, x: &Resampled) -> Result<Embedding, EmbedError> {
         let mut out = [[0.0f32; EMBED_DIM]];
-        self.embed_into(std::slice::from_ref(x), &mut out)?;
+        self.embed_into(robot, std::slice::from_ref(x), &mut out)?;
         Ok(out[0])
     }
 
-    /// Embed a batch of resampled trajectories (fast path, see [`crate::fast`]).
-    pub fn embed_batch(&self, xs: &[Resampled]) -> Result<Vec<Embedding>, EmbedError> {
+    /// Embed a batch of resampled trajectories of `robot` (fast path, see [`crate::fast`]).
+    pub fn embed_batch(
+        &self,
+        robot: &Robot,
+        xs: &[Resampled],
+    ) -> Result<Vec<Embedding>, EmbedError> {
         let mut out = vec![[0.0f32; EMBED_DIM]; xs.len()];
-        self.embed_into(xs, &mut out)?;
+        self.embed_into(robot, xs, &mut out)?;
         Ok(out)
     }
 
     /// Embed `xs` into `out` (same length) with the fast path, using per-thread scratch
     /// buffers: after the first call with the largest batch, no allocation.
-    pub fn embed_into(&self, xs: &[Resampled], out: &mut [Embedding]) -> Result<(), EmbedError> {
-        let robot = &*self.robot;
-        self.embed_into_with(xs, out, |x: &Resampled| pen_path_with(robot, x), None)
+    pub fn embed_into(
+        &self,
+        robot: &Robot,
+        xs: &[Resampled],
+        out: &mut [Embedding],
+    ) -> Result<(), EmbedError> {
+        self.embed_into_with(
+            robot,
+            xs,
+            out,
+            |x: &Resampled| pen_path_with(robot, x),
+            None,
+        )
     }
 
     /// [`Embedder::embed`], also returning the pen path ([`crate::features::pen_path`]) the
@@ -466,12 +473,13 @@ impl Embedder {
     /// does not run the forward kinematics of the 128 points a second time.
     pub fn embed_with_pen_path(
         &self,
+        robot: &Robot,
         x: &Resampled,
     ) -> Result<(Embedding, [PenPoint; STEPS]), EmbedError> {
         let mut out = [[0.0f32; EMBED_DIM]];
         let mut path = [[[0.0f32; 3]; STEPS]];
-        let robot = &*self.robot;
         self.embed_into_with(
+            robot,
             std::slice::from_ref(x),
             &mut out,
             |x: &Resampled| pen_path_with(robot, x),
@@ -484,6 +492,7 @@ impl Embedder {
     /// length as `xs`), as [`Embedder::embed_with_pen_path`] does for one trajectory.
     pub fn embed_batch_with_pen_paths(
         &self,
+        robot: &Robot,
         xs: &[Resampled],
         paths: &mut [[PenPoint; STEPS]],
     ) -> Result<Vec<Embedding>, EmbedError> {
@@ -494,8 +503,8 @@ impl Embedder {
             });
         }
         let mut out = vec![[0.0f32; EMBED_DIM]; xs.len()];
-        let robot = &*self.robot;
         self.embed_into_with(
+            robot,
             xs,
             &mut out,
             |x: &Resampled| pen_path_with(robot, x),
@@ -509,10 +518,10 @@ impl Embedder {
     /// the path as it was before the specialised FK, kept as the reference the fast path is
     /// tested against (`lab/tests/embed_equivalence.rs`; feature `test-support`).
     #[cfg(any(test, feature = "test-support"))]
-    pub fn embed_reference(&self, x: &Resampled) -> Result<Embedding, EmbedError> {
+    pub fn embed_reference(&self, robot: &Robot, x: &Resampled) -> Result<Embedding, EmbedError> {
         let mut out = [[0.0f32; EMBED_DIM]];
-        let robot = &*self.robot;
         self.embed_into_with(
+            robot,
             std::slice::from_ref(x),
             &mut out,
             |x: &Resampled| crate::features::pen_path_reference_with(robot, x),
@@ -525,6 +534,7 @@ impl Embedder {
     /// `xs`), the pen path of `xs[i]` is written to `path[i]`.
     fn embed_into_with<P: PenPathFn>(
         &self,
+        robot: &Robot,
         xs: &[Resampled],
         out: &mut [Embedding],
         pen_path: P,
@@ -536,26 +546,28 @@ impl Embedder {
                 got: out.len(),
             });
         }
+        self.serves(robot)?;
         if xs.is_empty() {
             return Ok(());
         }
         check_finite(xs)?;
         SCRATCH.with(|cell| match cell.try_borrow_mut() {
-            Ok(mut s) => self.embed_fast(xs, out, &mut s, pen_path, path),
+            Ok(mut s) => self.embed_fast(robot, xs, out, &mut s, pen_path, path),
             // Re-entered on this thread (cannot happen today): use a fresh scratch.
-            Err(_) => self.embed_fast(xs, out, &mut EmbedScratch::default(), pen_path, path),
+            Err(_) => self.embed_fast(robot, xs, out, &mut EmbedScratch::default(), pen_path, path),
         })
     }
 
     fn embed_fast<P: PenPathFn>(
         &self,
+        robot: &Robot,
         xs: &[Resampled],
         out: &mut [Embedding],
         s: &mut EmbedScratch,
         pen_path: P,
         path: Option<&mut [[PenPoint; STEPS]]>,
     ) -> Result<(), EmbedError> {
-        let copies = self.features_into(xs, &mut s.feats, pen_path, path);
+        let copies = self.features_into(robot, xs, &mut s.feats, pen_path, path);
         let rows = copies * xs.len();
         let raw = if s.raw.len() < rows * EMBED_DIM {
             s.raw.resize(rows * EMBED_DIM, 0.0);
@@ -605,6 +617,7 @@ impl Embedder {
     /// written to `path_out[i]`.
     fn features_into<P: PenPathFn>(
         &self,
+        robot: &Robot,
         xs: &[Resampled],
         feats: &mut Vec<f32>,
         pen_path: P,
@@ -632,7 +645,7 @@ impl Embedder {
             if kind == FeatureKind::Joints {
                 crate::features::compute(kind, x, out);
                 if let Some(p) = path_slot {
-                    *p = pen_path_with(&self.robot, x);
+                    *p = pen_path_with(robot, x);
                 }
                 continue;
             }
@@ -652,15 +665,20 @@ impl Embedder {
     /// Embed a batch with candle's forward pass — the reference the fast path is tested
     /// against (feature `test-support`).
     #[cfg(any(test, feature = "test-support"))]
-    pub fn embed_batch_reference(&self, xs: &[Resampled]) -> Result<Vec<Embedding>, EmbedError> {
+    pub fn embed_batch_reference(
+        &self,
+        robot: &Robot,
+        xs: &[Resampled],
+    ) -> Result<Vec<Embedding>, EmbedError> {
+        self.serves(robot)?;
         if xs.is_empty() {
             return Ok(Vec::new());
         }
         check_finite(xs)?;
         let kind = self.net.config().features;
         let mut feats = Vec::new();
-        let robot = &*self.robot;
         let copies = self.features_into(
+            robot,
             xs,
             &mut feats,
             |x: &Resampled| pen_path_with(robot, x),
@@ -813,10 +831,17 @@ mod tests {
         let back = Embedder::load(&path).unwrap();
         assert_eq!(back.version(), e.version());
         let xs = [sample(0.0), sample(1.0)];
-        let a = e.embed_batch(&xs).unwrap();
-        let b = back.embed_batch(&xs).unwrap();
+        let a = e
+            .embed_batch(crate::preprocess::default_panda(), &xs)
+            .unwrap();
+        let b = back
+            .embed_batch(crate::preprocess::default_panda(), &xs)
+            .unwrap();
         assert_eq!(a, b);
-        assert_eq!(e.embed(&xs[1]).unwrap(), a[1]);
+        assert_eq!(
+            e.embed(crate::preprocess::default_panda(), &xs[1]).unwrap(),
+            a[1]
+        );
         let norm: f32 = a[0].iter().map(|v| v * v).sum();
         assert!((norm - 1.0).abs() < 1e-4);
         assert!(sq_dist(&a[0], &a[1]) > 0.0);
@@ -831,17 +856,24 @@ mod tests {
         let x = sample(0.3);
         let mut rev = x;
         rev.reverse();
-        let plain = e.embed_batch(&[x, rev]).unwrap();
+        let plain = e
+            .embed_batch(crate::preprocess::default_panda(), &[x, rev])
+            .unwrap();
         assert!(sq_dist(&plain[0], &plain[1]) > 1e-6);
         e.set_reverse_average(true);
         let version = e.version().to_string();
-        let avg = e.embed_batch(&[x, rev]).unwrap();
+        let avg = e
+            .embed_batch(crate::preprocess::default_panda(), &[x, rev])
+            .unwrap();
         assert!(sq_dist(&avg[0], &avg[1]) < 1e-8);
         assert_eq!(e.version(), version);
         // The option survives a save/load round trip.
         let back = Embedder::from_bytes(&e.to_bytes().unwrap()).unwrap();
         assert!(back.config().reverse_average);
-        assert_eq!(back.embed(&x).unwrap(), avg[0]);
+        assert_eq!(
+            back.embed(crate::preprocess::default_panda(), &x).unwrap(),
+            avg[0]
+        );
     }
 
     #[test]

@@ -760,8 +760,12 @@ mod tests {
         }
         let xs = trajectories(5, 2);
         for (i, e) in embedders.iter().enumerate() {
-            let want = e.embed_batch_reference(&xs).unwrap();
-            let got = e.embed_batch(&xs).unwrap();
+            let want = e
+                .embed_batch_reference(crate::preprocess::default_panda(), &xs)
+                .unwrap();
+            let got = e
+                .embed_batch(crate::preprocess::default_panda(), &xs)
+                .unwrap();
             for (k, (g, w)) in got.iter().zip(&want).enumerate() {
                 let err = rel_err(g, w);
                 assert!(
@@ -770,7 +774,7 @@ mod tests {
                 );
             }
             // Batch 1 through `embed` gives the same as the batched fast path.
-            let one = e.embed(&xs[3]).unwrap();
+            let one = e.embed(crate::preprocess::default_panda(), &xs[3]).unwrap();
             assert!(rel_err(&one, &got[3]) <= 1e-6);
         }
     }

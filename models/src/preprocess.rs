@@ -2,10 +2,10 @@
 //! planner trajectory, measure its pen-tip path length by forward kinematics and resample it
 //! to [`STEPS`](guardian_shared::trajectory::STEPS) samples uniform in that length.
 
-use std::cell::RefCell;
 use std::sync::LazyLock;
 
-use guardian_shared::trajectory::{self, InvalidTrajectory, Resampled, Waypoint};
+use guardian_shared::trajectory::{InvalidTrajectory, Resampled, Waypoint};
+use guardian_shared::workcell::Workcell;
 use nalgebra::Vector3;
 
 use crate::kinematics::{JointVector, Robot};
@@ -47,20 +47,9 @@ pub fn pen_path_lengths(waypoints: &[Waypoint]) -> Vec<f64> {
 pub fn pen_path_lengths_with(robot: &Robot, waypoints: &[Waypoint]) -> Vec<f64> {
     let mut positions = vec![[0.0; 3]; waypoints.len()];
     let mut out = vec![0.0; waypoints.len()];
-    path_lengths_into(robot, waypoints, &mut positions, &mut out);
+    robot.pen_tip_positions_into(waypoints, &mut positions);
+    cumulative_lengths(&positions, &mut out);
     out
-}
-
-/// Pen-tip positions into `positions`, cumulative lengths into `out` (both as long as
-/// `waypoints`).
-fn path_lengths_into(
-    robot: &Robot,
-    waypoints: &[Waypoint],
-    positions: &mut [[f64; 3]],
-    out: &mut [f64],
-) {
-    robot.pen_tip_positions_into(waypoints, positions);
-    cumulative_lengths(positions, out);
 }
 
 /// Cumulative polyline length through `positions` into `out` (element 0 is 0): the one
@@ -96,45 +85,21 @@ pub fn pen_path_lengths_reference(robot: &Robot, waypoints: &[Waypoint]) -> Vec<
     out
 }
 
-/// Per-thread buffers of [`preprocess_with`] (grown to the longest trajectory seen).
-#[derive(Default)]
-struct Scratch {
-    positions: Vec<[f64; 3]>,
-    lengths: Vec<f64>,
-}
-
-thread_local! {
-    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
-}
-
 /// [`preprocess_with`] the default robot, the Panda: validate `raw` against its limits
-/// ([`trajectory::validate`]) and resample it to [`STEPS`](guardian_shared::trajectory::STEPS)
-/// waypoints uniformly in pen-tip path length ([`trajectory::resample`]).
+/// ([`guardian_shared::trajectory::validate`]) and resample it to [`STEPS`](guardian_shared::trajectory::STEPS)
+/// waypoints uniformly in pen-tip path length ([`guardian_shared::trajectory::resample`]).
 pub fn preprocess(raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
     preprocess_with(&PANDA, raw)
 }
 
 /// [`preprocess`] with a given robot (another arm, or another pen length): validated
-/// against its limits, path length by its forward kinematics. The daemon (its served robot)
-/// and the dataset generator both call this, so a trajectory is seen the same way in
-/// training and in service. Uses per-thread buffers:
-/// after the longest trajectory has been seen once, nothing is allocated.
+/// against its limits, path length by its forward kinematics. This is the one
+/// preprocessing path, [`crate::workcell::inspect_with`], with the workcell rules off: the
+/// daemon's checks (rules on), its identify and enroll, and the dataset generator all
+/// resample a trajectory with the same code, so it is seen the same way in training and in
+/// service.
 pub fn preprocess_with(robot: &Robot, raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
-    trajectory::validate(raw, robot.limits())?;
-    let n = raw.len();
-    let resample = |s: &mut Scratch| {
-        if s.positions.len() < n {
-            s.positions.resize(n, [0.0; 3]);
-            s.lengths.resize(n, 0.0);
-        }
-        let (positions, lengths) = (&mut s.positions[..n], &mut s.lengths[..n]);
-        path_lengths_into(robot, raw, positions, lengths);
-        trajectory::resample(raw, lengths, robot.joints())
-    };
-    Ok(SCRATCH.with(|cell| match cell.try_borrow_mut() {
-        Ok(mut s) => resample(&mut s),
-        Err(_) => resample(&mut Scratch::default()),
-    }))
+    crate::workcell::inspect_with(robot, &Workcell::OFF, raw).map(|i| i.resampled)
 }
 
 /// [`preprocess_with`] as it was before the specialised FK: path lengths through the
@@ -145,9 +110,13 @@ pub fn preprocess_reference(
     robot: &Robot,
     raw: &[Waypoint],
 ) -> Result<Resampled, InvalidTrajectory> {
-    trajectory::validate(raw, robot.limits())?;
+    guardian_shared::trajectory::validate(raw, robot.limits())?;
     let cumulative = pen_path_lengths_reference(robot, raw);
-    Ok(trajectory::resample(raw, &cumulative, robot.joints()))
+    Ok(guardian_shared::trajectory::resample(
+        raw,
+        &cumulative,
+        robot.joints(),
+    ))
 }
 
 #[cfg(test)]

@@ -38,18 +38,29 @@ pub struct Workcell {
 
 impl Default for Workcell {
     fn default() -> Self {
-        Self {
-            enabled: true,
-            canvas_x: 0.50,
-            canvas_y: 0.00,
-            canvas_side: 0.15,
-            canvas_z: 0.15,
-            hover: 0.02,
-            orientation_tolerance: 0.002,
-            height_tolerance: 0.002,
-            margin: 0.01,
-        }
+        Self::DEFAULT
     }
+}
+
+impl Workcell {
+    /// The paper's workcell, rules on: a 0.15 m canvas 0.5 m in front of the base.
+    pub const DEFAULT: Self = Self {
+        enabled: true,
+        canvas_x: 0.50,
+        canvas_y: 0.00,
+        canvas_side: 0.15,
+        canvas_z: 0.15,
+        hover: 0.02,
+        orientation_tolerance: 0.002,
+        height_tolerance: 0.002,
+        margin: 0.01,
+    };
+
+    /// No rules: what plain preprocessing (validation and resampling, no workcell) uses.
+    pub const OFF: Self = Self {
+        enabled: false,
+        ..Self::DEFAULT
+    };
 }
 
 /// A workcell configuration is unusable.

@@ -34,7 +34,7 @@ use anyhow::{Context, Result, bail};
 use guardian_client::{Client, ClientConfig, Trajectory, Verdict};
 use guardian_daemon::config::Config;
 use guardian_daemon::screen::Screen;
-use guardian_daemon::state::{load_bank, load_engine};
+use guardian_daemon::state::{load_bank, load_model};
 use guardian_lab::dataset::convert_strokes;
 use guardian_lab::path::{Geometry, PathSolver};
 use guardian_lab::strokes::read_strokes;
@@ -436,13 +436,18 @@ fn in_process_screen(
     name: &str,
 ) -> Result<(Screen, Config, Requests)> {
     let config = Config::from_file(&dep.write_config("event", 16)?)?;
-    let (engine, workcell) = load_engine(&config)?;
-    let panda = engine.robot().clone();
-    let (bank, _) = load_bank(&config, &engine)?;
+    let (embedder, station) = load_model(&config)?;
+    let panda = station.robot().clone();
+    let (bank, _) = load_bank(&config, &embedder, &station)?;
     let state = dep.dir.join(name);
     std::fs::create_dir_all(&state)?;
-    let mut screen = Screen::new(engine, bank, state.join("bank.gcb"), config.k_nearest);
-    screen.set_workcell(workcell);
+    let mut screen = Screen::new(
+        embedder,
+        station,
+        bank,
+        state.join("bank.gcb"),
+        config.k_nearest,
+    );
     for (class, ex) in &drawings.enroll {
         let ws: Vec<Vec<Waypoint>> = ex
             .iter()
@@ -500,16 +505,16 @@ fn compute_breakdown(
     n: usize,
 ) -> Result<Vec<(&'static str, Vec<Duration>)>> {
     use guardian_models::check::{self, Embedded, Prepared};
-    use guardian_models::workcell::inspect;
+    use guardian_models::workcell::inspect_with;
     let (mut screen, config, reqs) = in_process_screen(dep, drawings, "in-process")?;
-    let panda = screen.engine().robot().clone();
     let len = reqs.len();
-    let (cell, bank, engine, k) = (
-        *screen.workcell(),
+    let (station, bank, embedder, k) = (
+        screen.station().clone(),
         screen.bank().clone(),
-        screen.engine().clone(),
+        screen.embedder().clone(),
         config.k_nearest,
     );
+    let (panda, cell) = (station.robot(), station.workcell());
     // Each stage's input, computed once so each stage is timed alone.
     let waypoints: Vec<Vec<Waypoint>> = reqs
         .iter()
@@ -517,12 +522,12 @@ fn compute_breakdown(
         .collect::<Result<_, _>>()?;
     let resampled: Vec<_> = waypoints
         .iter()
-        .map(|w| inspect(&cell, w).map(|i| i.resampled))
+        .map(|w| inspect_with(panda, cell, w).map(|i| i.resampled))
         .collect::<Result<_, _>>()?;
     // The check pipeline's plan-only stages: the embedding and the pen path of each check.
     let embedded: Vec<Embedded> = waypoints
         .iter()
-        .map(|w| match check::prepare(engine.embedder(), &cell, w) {
+        .map(|w| match check::prepare(&embedder, &station, w) {
             Ok(Prepared::Embedded(e)) => Ok(*e),
             Ok(early) => bail!("a bench check stopped before the embedding: {early:?}"),
             Err(e) => Err(anyhow::anyhow!(e)),
@@ -549,14 +554,14 @@ fn compute_breakdown(
         (
             "  validate, FK poses, workcell rules, resample",
             cycling(&mut |j| {
-                std::hint::black_box(inspect(&cell, &waypoints[j])?);
+                std::hint::black_box(inspect_with(panda, cell, &waypoints[j])?);
                 Ok(())
             })?,
         ),
         (
             "  embed (pen path, features, fast forward)",
             cycling(&mut |j| {
-                let e = engine.embed_with_pen_path(&resampled[j]);
+                let e = embedder.embed_with_pen_path(panda, &resampled[j]);
                 std::hint::black_box(e.map_err(|e| anyhow::anyhow!(e))?);
                 Ok(())
             })?,
@@ -624,10 +629,15 @@ struct JsonResponse {
 /// check) behind a Unix socket speaking one JSON object per line.
 fn uds_server(socket: &Path, config: &Path) -> Result<()> {
     let config = Config::from_file(config)?;
-    let (engine, workcell) = load_engine(&config)?;
-    let (bank, _) = load_bank(&config, &engine)?;
-    let mut screen = Screen::new(engine, bank, config.bank_path(), config.k_nearest);
-    screen.set_workcell(workcell);
+    let (embedder, station) = load_model(&config)?;
+    let (bank, _) = load_bank(&config, &embedder, &station)?;
+    let mut screen = Screen::new(
+        embedder,
+        station,
+        bank,
+        config.bank_path(),
+        config.k_nearest,
+    );
     let listener = UnixListener::bind(socket)?;
     // One connection at a time, served until it closes; "quit" ends the server.
     for stream in listener.incoming() {
@@ -856,15 +866,15 @@ fn run(o: Opts) -> Result<()> {
             fast_fwd.extend(f);
         }
     }
+    let panda = guardian_models::preprocess::default_panda();
     let mut k = 0usize;
     let embed = time_n(50, n_fwd, || {
         k += 1;
-        std::hint::black_box(embedder.embed(&samples[k % samples.len()])?);
+        std::hint::black_box(embedder.embed(panda, &samples[k % samples.len()])?);
         Ok(())
     })?;
     // Preprocessing and the pen path alone, with the specialised position FK (serving) and
     // through the general chain with full frames (the path before it, kept as reference).
-    let panda = guardian_models::preprocess::default_panda();
     let mut k = 0usize;
     let prep = time_n(50, n_fwd, || {
         k += 1;
@@ -899,7 +909,7 @@ fn run(o: Opts) -> Result<()> {
     let full = time_n(50, n_fwd, || {
         k += 1;
         let x = guardian_models::preprocess::preprocess(&drawings.checks[k % samples.len()].1)?;
-        std::hint::black_box(embedder.embed(&x)?);
+        std::hint::black_box(embedder.embed(panda, &x)?);
         Ok(())
     })?;
 

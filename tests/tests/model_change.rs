@@ -75,7 +75,11 @@ fn default_bank_for(model: &Path, out: &Path) {
         measured_rate: None,
     });
     let (bank, _) = shipped
-        .reembedded(&b, Some(&calibration))
+        .reembedded(
+            &b,
+            guardian_models::preprocess::default_panda(),
+            Some(&calibration),
+        )
         .expect("the shipped default bank keeps its examples");
     bank.save(out).expect("save B's default bank");
 }

@@ -41,7 +41,12 @@ fn real_drawings_are_embedded_exactly_as_the_lab_does() {
         let mut embs = Vec::new();
         for d in 1..=4 {
             let conv = convert_strokes(&solver, &read_strokes(&drawing(c, d)).unwrap()).unwrap();
-            embs.push(embedder.embed(&conv.sample).unwrap().to_vec());
+            embs.push(
+                embedder
+                    .embed(guardian_models::preprocess::default_panda(), &conv.sample)
+                    .unwrap()
+                    .to_vec(),
+            );
             examples.push(Trajectory::from_waypoints(
                 &conv.dense.waypoints,
                 PANDA_JOINTS,
@@ -61,7 +66,9 @@ fn real_drawings_are_embedded_exactly_as_the_lab_does() {
     // model), and its verdict follows the decision rule on them.
     for c in 1..=3u32 {
         let conv = convert_strokes(&solver, &read_strokes(&drawing(c, 10)).unwrap()).unwrap();
-        let e = embedder.embed(&conv.sample).unwrap();
+        let e = embedder
+            .embed(guardian_models::preprocess::default_panda(), &conv.sample)
+            .unwrap();
         let t = Trajectory::from_waypoints(&conv.dense.waypoints, PANDA_JOINTS);
         let v = client.check(&t, &format!("latin{c}")).expect("check");
         let expected = distance(&e, &prototypes[c as usize - 1]);

@@ -8,6 +8,7 @@ use guardian_shared::trajectory::Resampled;
 use super::{Calibration, ClassBank, EnrollError};
 use crate::embedder::{EmbedError, Embedder};
 use crate::geometry::PlanGeometry;
+use crate::kinematics::Robot;
 
 /// What [`ClassBank::reembedded`] did.
 #[derive(Debug, Clone, PartialEq)]
@@ -59,13 +60,13 @@ pub enum ReembedError {
         /// The calibration source's model.
         got: String,
     },
-    /// The model serves another robot than the bank's.
-    #[error("the bank holds plans of a {bank}-joint robot, the model serves {model} joints")]
+    /// The plans are to be embedded for another robot than the bank's.
+    #[error("the bank holds plans of a {bank}-joint robot, the served robot has {served} joints")]
     Robot {
         /// Joints of the bank's robot.
         bank: usize,
-        /// Joints of the model's robot.
-        model: usize,
+        /// Joints of the served robot.
+        served: usize,
     },
     /// The new model could not embed an example.
     #[error("class {class:?}: {source}")]
@@ -91,12 +92,13 @@ pub enum ReembedError {
 /// empty unless every plan draws on the canvas.
 pub fn enrollment(
     embedder: &Embedder,
+    robot: &Robot,
     xs: &[Resampled],
 ) -> Result<(Vec<Vec<f32>>, Vec<PlanGeometry>), EmbedError> {
     let mut embeddings = Vec::with_capacity(xs.len());
     let mut geometry = Vec::with_capacity(xs.len());
     for x in xs {
-        let (e, path) = embedder.embed_with_pen_path(x)?;
+        let (e, path) = embedder.embed_with_pen_path(robot, x)?;
         embeddings.push(e.to_vec());
         geometry.push(crate::workcell::plan_geometry_of_path(&path));
     }
@@ -122,10 +124,12 @@ impl ClassBank {
     /// model (its default threshold, calibration record, wrong-task tolerance and geometry
     /// calibration; per-class thresholds derived from them as for any enrollment). Without
     /// `calibrated`, only an uncalibrated bank can be re-embedded (its global default
-    /// threshold is kept). The robot record is kept; the generation moves past this bank's.
+    /// threshold is kept). The plans are the served `robot`'s (the bank's robot record is
+    /// kept); the generation moves past this bank's.
     pub fn reembedded(
         &self,
         embedder: &Embedder,
+        robot: &Robot,
         calibrated: Option<&ClassBank>,
     ) -> Result<(ClassBank, Reembedding), ReembedError> {
         let model = embedder.version().to_owned();
@@ -140,10 +144,10 @@ impl ClassBank {
                 total: self.len(),
             });
         }
-        if embedder.robot().joints() != self.robot_joints() {
+        if robot.joints() != self.robot_joints() {
             return Err(ReembedError::Robot {
                 bank: self.robot_joints(),
-                model: embedder.robot().joints(),
+                served: robot.joints(),
             });
         }
         if let Some(c) = calibrated
@@ -178,7 +182,7 @@ impl ClassBank {
         for (name, class) in &self.classes {
             let xs: Vec<Resampled> = class.examples.iter().map(|x| x.to_resampled()).collect();
             let (embeddings, geometry) =
-                enrollment(embedder, &xs).map_err(|source| ReembedError::Embed {
+                enrollment(embedder, robot, &xs).map_err(|source| ReembedError::Embed {
                     class: name.clone(),
                     source,
                 })?;
@@ -205,7 +209,8 @@ impl ClassBank {
 mod tests {
     use super::*;
     use crate::bank::{Example, LoadBankError};
-    use crate::kinematics::{PANDA_JOINTS, READY_POSE, Robot, RobotRecord};
+    use crate::kinematics::{PANDA_JOINTS, READY_POSE, RobotRecord};
+    use crate::preprocess::default_panda as panda;
     use guardian_shared::trajectory::{SLOTS, STEPS, TOOL};
     use sha2::{Digest, Sha256};
 
@@ -241,13 +246,13 @@ mod tests {
     /// calibrated with `cal`.
     fn enrolled(embedder: &Embedder, cal: Option<Calibration>) -> ClassBank {
         let mut b = ClassBank::new(embedder.config().embed_dim, embedder.version(), 0.5);
-        b.set_robot(RobotRecord::of(embedder.robot()));
+        b.set_robot(RobotRecord::of(panda()));
         if let Some(cal) = cal {
             b.apply_calibration(cal);
         }
         for c in 0..3 {
             let xs: Vec<Resampled> = (0..3 + c).map(|d| plan(c, d)).collect();
-            let (e, g) = enrollment(embedder, &xs).unwrap();
+            let (e, g) = enrollment(embedder, panda(), &xs).unwrap();
             let ex: Vec<Example> = xs
                 .iter()
                 .map(|x| Example::from_resampled(x, PANDA_JOINTS))
@@ -256,7 +261,7 @@ mod tests {
         }
         // A class enrolled in two calls.
         let more = [plan(0, 9)];
-        let (e, g) = enrollment(embedder, &more).unwrap();
+        let (e, g) = enrollment(embedder, panda(), &more).unwrap();
         b.enroll_plans("task0", &e, &g, &[Example::from_resampled(&more[0], 7)])
             .unwrap();
         b
@@ -277,7 +282,7 @@ mod tests {
             wrong_task_tolerance: Some(0.1),
             ..calibration("model B")
         });
-        let (new, report) = old.reembedded(&b_model, Some(&reference)).unwrap();
+        let (new, report) = old.reembedded(&b_model, panda(), Some(&reference)).unwrap();
         assert_eq!(
             (
                 report.classes,
@@ -305,13 +310,13 @@ mod tests {
         assert_eq!(new.wrong_task_tolerance(), 0.1);
         // Decisions under B: the fresh bank's.
         for d in 0..4 {
-            let q = b_model.embed(&plan(1, 20 + d)).unwrap();
+            let q = b_model.embed(panda(), &plan(1, 20 + d)).unwrap();
             assert_eq!(new.decide(&q, "task1", 3), fresh.decide(&q, "task1", 3));
         }
         // Re-embedding with the first model again gives back the original classes.
         let mut ref_a = ClassBank::new(128, a.version(), 0.5);
         ref_a.apply_calibration(calibration("model A"));
-        let (back, _) = new.reembedded(&a, Some(&ref_a)).unwrap();
+        let (back, _) = new.reembedded(&a, panda(), Some(&ref_a)).unwrap();
         for ((n, c), (_, o)) in back.classes().zip(old.classes()) {
             assert_eq!(c.embeddings, o.embeddings, "{n}");
             assert_eq!(back.threshold(n), old.threshold(n), "{n}");
@@ -325,29 +330,29 @@ mod tests {
         let old = enrolled(&a, Some(calibration("model A")));
         // Calibrated for A, no calibration for B: refused, not kept with A's thresholds.
         assert!(matches!(
-            old.reembedded(&b_model, None),
+            old.reembedded(&b_model, panda(), None),
             Err(ReembedError::NoCalibration { .. })
         ));
         let uncalibrated_b = ClassBank::new(128, b_model.version(), 0.5);
         assert!(matches!(
-            old.reembedded(&b_model, Some(&uncalibrated_b)),
+            old.reembedded(&b_model, panda(), Some(&uncalibrated_b)),
             Err(ReembedError::NoCalibration { .. })
         ));
         // A calibration of another model (A's own) is refused.
         assert!(matches!(
-            old.reembedded(&b_model, Some(&old)),
+            old.reembedded(&b_model, panda(), Some(&old)),
             Err(ReembedError::CalibrationModel { .. })
         ));
         // An uncalibrated bank keeps its global default threshold.
         let plain = enrolled(&a, None);
-        let (new, report) = plain.reembedded(&b_model, None).unwrap();
+        let (new, report) = plain.reembedded(&b_model, panda(), None).unwrap();
         assert_eq!(report.calibration, None);
         assert_eq!(new.default_threshold(), plain.default_threshold());
         assert!(!new.is_calibrated());
         // A class without examples (an old-format bank): refused, naming it.
         let mut old_format = plain.clone();
         old_format.enroll("legacy", &[vec![0.0; 128]]).unwrap();
-        let e = old_format.reembedded(&b_model, None).unwrap_err();
+        let e = old_format.reembedded(&b_model, panda(), None).unwrap_err();
         assert!(
             matches!(&e, ReembedError::MissingExamples { classes, total: 4 } if classes == &["legacy"]),
             "{e}"
@@ -357,15 +362,15 @@ mod tests {
         let ur5e = crate::kinematics::RobotDescription::named("ur5e")
             .unwrap()
             .robot;
-        let ur_model = Embedder::random(1).with_robot(ur5e.clone()).unwrap();
+        let ur_model = Embedder::random(1);
         let mut ur_bank = ClassBank::new(128, ur_model.version(), 0.5);
         ur_bank.set_robot(RobotRecord::of(&ur5e));
         let x = Example::from_resampled(&plan(0, 0), 6);
-        let (e6, _) = enrollment(&ur_model, &[x.to_resampled()]).unwrap();
+        let (e6, _) = enrollment(&ur_model, &ur5e, &[x.to_resampled()]).unwrap();
         ur_bank.enroll_plans("u", &e6, &[], &[x]).unwrap();
         assert!(matches!(
-            ur_bank.reembedded(&b_model.clone().with_robot(Robot::panda()).unwrap(), None),
-            Err(ReembedError::Robot { bank: 6, model: 7 })
+            ur_bank.reembedded(&b_model, &Robot::panda(), None),
+            Err(ReembedError::Robot { bank: 6, served: 7 })
         ));
         // Examples of another robot than the bank's are refused at enroll and at load.
         let panda_x = Example::from_resampled(&plan(0, 0), 7);
@@ -410,7 +415,7 @@ mod tests {
         // A change journalled after the snapshot keeps its examples too.
         let mut changed = loaded;
         let xs = [plan(5, 0), plan(5, 1), plan(5, 2)];
-        let (e, g) = enrollment(&a, &xs).unwrap();
+        let (e, g) = enrollment(&a, panda(), &xs).unwrap();
         let ex: Vec<Example> = xs.iter().map(|x| Example::from_resampled(x, 7)).collect();
         changed.enroll_plans("task5", &e, &g, &ex).unwrap();
         changed.append_change(&path, "task5").unwrap();

@@ -245,20 +245,45 @@ impl RobotDescription {
 
     /// This robot's workcell with `overrides` (a `[workcell]` table, kebab-case keys)
     /// applied key by key on top of the description's defaults.
-    pub fn workcell_with(&self, overrides: Option<&toml::Table>) -> Result<Workcell, String> {
-        let Some(overrides) = overrides else {
-            return Ok(self.workcell);
-        };
-        let mut table = toml::Table::try_from(self.workcell).map_err(|e| e.to_string())?;
-        for (k, v) in overrides {
-            table.insert(k.clone(), v.clone());
-        }
-        let cell: Workcell = table
-            .try_into()
-            .map_err(|e: toml::de::Error| e.to_string())?;
-        cell.validate().map_err(|e| e.to_string())?;
-        Ok(cell)
+    pub fn workcell_with(
+        &self,
+        overrides: Option<&toml::Table>,
+    ) -> Result<Workcell, WorkcellOverrideError> {
+        apply_workcell_overrides(self.workcell, overrides)
     }
+}
+
+/// A `[workcell]` override table does not fit.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum WorkcellOverrideError {
+    /// An unknown key or a value of the wrong type.
+    #[error(transparent)]
+    Key(#[from] Box<toml::de::Error>),
+    /// The resulting workcell is unusable.
+    #[error(transparent)]
+    Invalid(#[from] guardian_shared::workcell::InvalidWorkcell),
+    /// The base workcell could not be written as a table (not expected).
+    #[error(transparent)]
+    Encode(#[from] toml::ser::Error),
+}
+
+/// `base` with `overrides` (a `[workcell]` table, kebab-case keys) applied key by key,
+/// checked ([`Workcell::validate`]).
+pub fn apply_workcell_overrides(
+    base: Workcell,
+    overrides: Option<&toml::Table>,
+) -> Result<Workcell, WorkcellOverrideError> {
+    let Some(overrides) = overrides else {
+        return Ok(base);
+    };
+    let mut table = toml::Table::try_from(base)?;
+    for (k, v) in overrides {
+        table.insert(k.clone(), v.clone());
+    }
+    let cell: Workcell = table.try_into().map_err(Box::new)?;
+    cell.validate()?;
+    Ok(cell)
 }
 
 fn workcell_defaults(

@@ -48,6 +48,7 @@ use sha2::{Digest, Sha256};
 
 pub use description::{
     BUILTIN_ROBOTS, DEFAULT_ROBOT, RobotDescription, RobotLoadError, RobotSource, ToolSpec,
+    WorkcellOverrideError, apply_workcell_overrides,
 };
 pub use frame::Frame;
 pub use ik::{IkError, IkOptions, IkState};

@@ -7,9 +7,7 @@ use super::decode_code;
 use super::{
     ClassNameError, MAX_EXAMPLES, Op, RequestHeader, Status, decode_class_name, encode_class_name,
 };
-use crate::trajectory::{
-    InvalidKind, InvalidTrajectory, JointLimits, Waypoint, split_flat, validate,
-};
+use crate::trajectory::{InvalidKind, InvalidTrajectory, Waypoint, split_flat};
 
 /// One decoded request. Names are borrowed from the header; each trajectory is copied once
 /// from the payload (`joints + 1` floats per waypoint) into [`Waypoint`]s.
@@ -114,13 +112,13 @@ type Split = Result<Vec<Vec<Waypoint>>, (u32, InvalidTrajectory)>;
 impl<'a> Request<'a> {
     /// Decode `header` and `payload`. Errors come in the order a client can act on them:
     /// the op, then the class name (check, enroll, forget), then the example count and
-    /// payload length, then each trajectory in order. Trajectories must have the served
-    /// robot's channel count (`limits.joints() + 1`) and are validated against `limits`
-    /// (identify, enroll; a check's values are validated by the check pipeline).
+    /// payload length, then each trajectory's shape in order. Trajectories must have the
+    /// served robot's channel count (`joints + 1`); their values are validated once, by the
+    /// check pipeline that resamples them (`guardian_models::check`), for every op.
     pub fn decode(
         header: &'a RequestHeader,
         payload: &[f32],
-        limits: &JointLimits,
+        joints: usize,
     ) -> Result<Self, RequestError> {
         let Some(op) = decode_code::<Op>(header.op) else {
             return Err(RequestError::UnknownOp { op: header.op });
@@ -129,7 +127,7 @@ impl<'a> Request<'a> {
         Ok(match op {
             Op::Check => {
                 let claimed = class()?;
-                let trajectory = match split(header, payload, limits, 1, false)? {
+                let trajectory = match split(header, payload, joints, 1)? {
                     Ok(mut t) => Ok(t.pop().unwrap_or_default()),
                     Err((_, inv)) => Err(inv),
                 };
@@ -139,15 +137,14 @@ impl<'a> Request<'a> {
                 }
             }
             Op::Identify => {
-                let mut t = split(header, payload, limits, 1, true)?.map_err(invalid)?;
+                let mut t = split(header, payload, joints, 1)?.map_err(invalid)?;
                 Self::Identify {
                     trajectory: t.pop().unwrap_or_default(),
                 }
             }
             Op::Enroll => {
                 let class = class()?;
-                let examples =
-                    split(header, payload, limits, MAX_EXAMPLES, true)?.map_err(invalid)?;
+                let examples = split(header, payload, joints, MAX_EXAMPLES)?.map_err(invalid)?;
                 Self::Enroll { class, examples }
             }
             Op::Forget => Self::Forget { class: class()? },
@@ -173,14 +170,13 @@ fn invalid((example, source): (u32, InvalidTrajectory)) -> RequestError {
     RequestError::InvalidTrajectory { example, source }
 }
 
-/// Split the payload into the header's trajectories, validating each against `limits` when
-/// `check` (a caller passing `false` must validate them itself before using them).
+/// Split the payload into the header's trajectories, checking their shape only (the caller
+/// validates the values before using them).
 fn split(
     h: &RequestHeader,
     payload: &[f32],
-    limits: &JointLimits,
+    joints: usize,
     max_examples: usize,
-    check: bool,
 ) -> Result<Split, RequestError> {
     let n = h.examples as usize;
     if n == 0 || n > max_examples {
@@ -215,13 +211,7 @@ fn split(
             Err(InvalidTrajectory::new(InvalidKind::TooFewWaypoints, 0))
         } else {
             // `len` is a multiple of `channels`, so only the channel count can be wrong.
-            split_flat(slice, h.channels as usize, limits.joints()).and_then(|ws| {
-                if check {
-                    validate(&ws, limits).map(|()| ws)
-                } else {
-                    Ok(ws)
-                }
-            })
+            split_flat(slice, h.channels as usize, joints)
         };
         match parsed {
             Ok(t) => out.push(t),
@@ -267,16 +257,14 @@ mod tests {
         RequestHeader::encode(op, Some(class), CHANNELS, waypoints).unwrap()
     }
 
-    /// Seven joints with wide limits: the shapes matter here, not the values.
-    fn limits() -> JointLimits {
-        JointLimits::new(vec![-4.0; 7], vec![4.0; 7]).unwrap()
-    }
+    /// Seven joints: the shapes matter here, not the values.
+    const JOINTS: usize = 7;
 
     #[test]
     fn requests_decode_into_their_operation() {
         let t = vec![0.0f32; 3 * CHANNELS];
         let h = header(Op::Check, "c1", &[3]);
-        match Request::decode(&h, &t, &limits()).unwrap() {
+        match Request::decode(&h, &t, JOINTS).unwrap() {
             Request::Check {
                 claimed,
                 trajectory,
@@ -288,12 +276,12 @@ mod tests {
         }
         let h = header(Op::Forget, "c1", &[]);
         assert_eq!(
-            Request::decode(&h, &[], &limits()),
+            Request::decode(&h, &[], JOINTS),
             Ok(Request::Forget { class: "c1" })
         );
         let h = RequestHeader::new(0, Op::Status);
         assert_eq!(
-            Request::decode(&h, &[], &limits()).map(|r| r.op()),
+            Request::decode(&h, &[], JOINTS).map(|r| r.op()),
             Ok(Op::Status)
         );
     }
@@ -302,31 +290,30 @@ mod tests {
     fn malformed_requests_are_typed_errors_with_the_documented_text() {
         let mut h = RequestHeader::new(0, Op::Status);
         h.op = 9;
-        let e = Request::decode(&h, &[], &limits()).unwrap_err();
+        let e = Request::decode(&h, &[], JOINTS).unwrap_err();
         assert_eq!(e, RequestError::UnknownOp { op: 9 });
         assert_eq!(e.to_string(), "unknown op 9");
         assert_eq!(e.status(), Status::BadRequest);
 
         let h = header(Op::Check, "c1", &[3]);
-        let e = Request::decode(&h, &[0.0; 5], &limits()).unwrap_err();
+        let e = Request::decode(&h, &[0.0; 5], JOINTS).unwrap_err();
         assert_eq!(e.to_string(), "payload has 5 floats, header announces 24");
         let mut h = header(Op::Enroll, "c1", &[1; 16]);
         h.channels = u32::MAX;
         h.waypoints = [u32::MAX; MAX_EXAMPLES];
-        let e = Request::decode(&h, &[], &limits()).unwrap_err();
+        let e = Request::decode(&h, &[], JOINTS).unwrap_err();
         assert_eq!(
             e.to_string(),
             "payload has 0 floats, header announces more than 2^64"
         );
         let h = header(Op::Identify, "c1", &[3, 3]);
-        let e = Request::decode(&h, &[0.0; 48], &limits()).unwrap_err();
+        let e = Request::decode(&h, &[0.0; 48], JOINTS).unwrap_err();
         assert_eq!(e.to_string(), "examples is 2, expected 1..=1");
 
         // A check carries a shape problem instead of failing; identify fails with it.
         let mut h = header(Op::Check, "c1", &[3]);
         h.channels = 7;
-        let Ok(Request::Check { trajectory, .. }) = Request::decode(&h, &[0.0; 21], &limits())
-        else {
+        let Ok(Request::Check { trajectory, .. }) = Request::decode(&h, &[0.0; 21], JOINTS) else {
             panic!("a check with a wrong channel count decodes");
         };
         assert_eq!(
@@ -335,7 +322,7 @@ mod tests {
         );
         let mut h = header(Op::Identify, "c1", &[0]);
         h.channels = 7;
-        let e = Request::decode(&h, &[], &limits()).unwrap_err();
+        let e = Request::decode(&h, &[], JOINTS).unwrap_err();
         assert_eq!(
             e,
             RequestError::InvalidTrajectory {
@@ -347,7 +334,7 @@ mod tests {
 
         let mut h = header(Op::Enroll, "c1", &[3]);
         h.class_name = [0; super::super::NAME_BYTES];
-        let e = Request::decode(&h, &[0.0; 24], &limits()).unwrap_err();
+        let e = Request::decode(&h, &[0.0; 24], JOINTS).unwrap_err();
         assert_eq!(e, RequestError::InvalidClassName(ClassNameError::Empty));
         assert_eq!(e.status(), Status::InvalidClassName);
     }
