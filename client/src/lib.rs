@@ -265,6 +265,73 @@ impl Verdict {
     pub fn is_go(&self) -> bool {
         self.decision == Decision::Go
     }
+
+    /// The verdict a check response carries (header and entries, as any transport delivers
+    /// them) for a check that claimed `claimed_class`: the one conversion from the wire
+    /// back to a verdict (the daemon's `Decision::answer` is the one conversion to it).
+    /// A daemon error status, or a response that does not answer that check, is an error.
+    pub fn from_response(
+        r: &ResponseHeader,
+        entries: &[ClassEntry],
+        claimed_class: &str,
+    ) -> Result<Self, CheckError> {
+        status_ok(r)?;
+        if r.op != Op::Check as u32 || wire::decode_text(&r.class_name) != claimed_class {
+            return Err(CheckError::Protocol {
+                detail: "response does not echo the request's op and class".into(),
+            });
+        }
+        let nearest = neighbours(entries);
+        let answer = wire::decode_check(r).map_err(protocol)?;
+        let decision = match answer.verdict {
+            CheckVerdict::Go => Decision::Go,
+            CheckVerdict::NoGo(no_go) => Decision::NoGo {
+                reason: match no_go {
+                    NoGo::WrongTask => NoGoReason::WrongTask {
+                        nearest: nearest.first().map(|n| n.class.clone()).ok_or_else(|| {
+                            CheckError::Protocol {
+                                detail: "wrong-task verdict without a nearest class".into(),
+                            }
+                        })?,
+                    },
+                    NoGo::Outlier => NoGoReason::Outlier,
+                    NoGo::UnknownClass => NoGoReason::UnknownClass,
+                    NoGo::InvalidTrajectory(inv) => NoGoReason::InvalidTrajectory {
+                        kind: inv.kind,
+                        index: inv.index,
+                    },
+                    NoGo::Workcell(v) => NoGoReason::Workcell {
+                        kind: v.kind,
+                        index: v.index,
+                    },
+                    NoGo::GeometryMismatch(feature) => NoGoReason::GeometryMismatch {
+                        feature,
+                        score: answer.geometry_score.unwrap_or(f32::NAN),
+                        threshold: answer.geometry_threshold.unwrap_or(f32::NAN),
+                    },
+                    _ => {
+                        return Err(CheckError::Protocol {
+                            detail: format!("no-go with unknown reason {}", r.reason),
+                        });
+                    }
+                },
+            },
+        };
+        let state = wire::decode_state(r);
+        Ok(Verdict {
+            decision,
+            claimed_class: claimed_class.to_owned(),
+            claimed_distance: answer.claimed_distance,
+            threshold: answer.threshold,
+            margin: answer.margin,
+            gap: answer.gap,
+            geometry_score: answer.geometry_score,
+            geometry_threshold: answer.geometry_threshold,
+            nearest,
+            model_version: state.model_version.into_owned(),
+            bank_version: state.bank_version,
+        })
+    }
 }
 
 /// The answer to [`Client::identify`].
@@ -731,62 +798,7 @@ impl Client {
     ) -> Result<Verdict, CheckError> {
         let h = Self::single(Op::Check, trajectory, Some(claimed_class))?;
         let (r, entries) = self.call(h, trajectory.as_flat())?;
-        status_ok(&r)?;
-        if r.op != Op::Check as u32 || wire::decode_text(&r.class_name) != claimed_class {
-            return Err(CheckError::Protocol {
-                detail: "response does not echo the request's op and class".into(),
-            });
-        }
-        let nearest = neighbours(&entries);
-        let answer = wire::decode_check(&r).map_err(protocol)?;
-        let decision = match answer.verdict {
-            CheckVerdict::Go => Decision::Go,
-            CheckVerdict::NoGo(no_go) => Decision::NoGo {
-                reason: match no_go {
-                    NoGo::WrongTask => NoGoReason::WrongTask {
-                        nearest: nearest.first().map(|n| n.class.clone()).ok_or_else(|| {
-                            CheckError::Protocol {
-                                detail: "wrong-task verdict without a nearest class".into(),
-                            }
-                        })?,
-                    },
-                    NoGo::Outlier => NoGoReason::Outlier,
-                    NoGo::UnknownClass => NoGoReason::UnknownClass,
-                    NoGo::InvalidTrajectory(inv) => NoGoReason::InvalidTrajectory {
-                        kind: inv.kind,
-                        index: inv.index,
-                    },
-                    NoGo::Workcell(v) => NoGoReason::Workcell {
-                        kind: v.kind,
-                        index: v.index,
-                    },
-                    NoGo::GeometryMismatch(feature) => NoGoReason::GeometryMismatch {
-                        feature,
-                        score: answer.geometry_score.unwrap_or(f32::NAN),
-                        threshold: answer.geometry_threshold.unwrap_or(f32::NAN),
-                    },
-                    _ => {
-                        return Err(CheckError::Protocol {
-                            detail: format!("no-go with unknown reason {}", r.reason),
-                        });
-                    }
-                },
-            },
-        };
-        let state = wire::decode_state(&r);
-        Ok(Verdict {
-            decision,
-            claimed_class: claimed_class.to_owned(),
-            claimed_distance: answer.claimed_distance,
-            threshold: answer.threshold,
-            margin: answer.margin,
-            gap: answer.gap,
-            geometry_score: answer.geometry_score,
-            geometry_threshold: answer.geometry_threshold,
-            nearest,
-            model_version: state.model_version.into_owned(),
-            bank_version: state.bank_version,
-        })
+        Verdict::from_response(&r, &entries, claimed_class)
     }
 
     /// The nearest enrolled classes to `trajectory`.

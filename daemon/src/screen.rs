@@ -7,14 +7,14 @@ use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use guardian_models::bank::{BankLimits, Class, ClassBank, Decision, Outcome, journal_path};
+use guardian_models::bank::{BankLimits, Class, ClassBank, journal_path};
 use guardian_models::check::{self, EnrollmentError, PlanCheck, Prepared, Station};
 use guardian_models::embedder::{EmbedError, Embedder};
 use guardian_shared::trajectory::{InvalidTrajectory, Waypoint};
 use guardian_shared::wire::{
-    CheckAnswer, CheckVerdict, ClassEntry, DaemonState, Failure, Limit, NoGo, Op, Request,
-    RequestHeader, ResponseHeader, RobotInfo, decode_code, encode_check, encode_failure,
-    encode_state, encode_text,
+    CheckAnswer, ClassEntry, DaemonState, Failure, Limit, NoGo, Op, Request, RequestHeader,
+    ResponseHeader, RobotInfo, decode_code, encode_check, encode_failure, encode_state,
+    encode_text,
 };
 
 use crate::stats::Stats;
@@ -294,7 +294,7 @@ impl Screen {
             PlanCheck::Workcell(v) => early(NoGo::Workcell(v)),
             // With WrongTask the nearest class is the overall nearest, so it is entries[0].
             PlanCheck::Decided(d) => Ok((
-                check_answer(&d),
+                d.answer(),
                 d.nearest
                     .iter()
                     .map(|n| self.entry(&n.name, n.distance))
@@ -492,29 +492,6 @@ fn plan_of<'b>(request: &'b Result<Request<'_>, Failure>) -> Option<&'b [Waypoin
             trajectory: Ok(t), ..
         }) => Some(t.as_slice()),
         _ => None,
-    }
-}
-
-/// The wire answer of a bank decision.
-fn check_answer(d: &Decision) -> CheckAnswer {
-    let verdict = match &d.outcome {
-        Outcome::Go => CheckVerdict::Go,
-        Outcome::WrongTask { .. } => CheckVerdict::NoGo(NoGo::WrongTask),
-        Outcome::Outlier => CheckVerdict::NoGo(NoGo::Outlier),
-        Outcome::GeometryMismatch { feature } => {
-            CheckVerdict::NoGo(NoGo::GeometryMismatch(*feature))
-        }
-        Outcome::UnknownClass => CheckVerdict::NoGo(NoGo::UnknownClass),
-    };
-    CheckAnswer {
-        verdict,
-        claimed_distance: d.claimed_distance,
-        threshold: d.threshold,
-        margin: d.margin,
-        gap: d.gap,
-        geometry_score: d.geometry_score,
-        geometry_threshold: d.geometry_threshold,
-        geometry_feature: d.geometry_feature,
     }
 }
 

@@ -1,6 +1,7 @@
 //! The decision rule (see the module docs of [`crate::bank`]), written once: nearest-class
 //! search, [`is_wrong_task`] and [`is_outlier`], [`ClassBank::decide`] and the geometry step.
 
+use guardian_shared::wire::{CheckAnswer, CheckVerdict, NoGo};
 use guardian_shared::workcell::GeometryFeature;
 
 use super::distance::{Distances, distance};
@@ -62,6 +63,34 @@ pub struct Decision {
     pub geometry_threshold: Option<f32>,
     /// The feature behind `geometry_score`.
     pub geometry_feature: Option<GeometryFeature>,
+}
+
+impl Decision {
+    /// The decision as the wire carries it: the one conversion from the bank's decision to
+    /// the response (the client's `Verdict::from_response` is the one conversion back; a
+    /// test in `daemon/tests/verdict.rs` holds the two together). The nearest classes
+    /// travel as the response's entries, not in the header.
+    pub fn answer(&self) -> CheckAnswer {
+        let verdict = match &self.outcome {
+            Outcome::Go => CheckVerdict::Go,
+            Outcome::WrongTask { .. } => CheckVerdict::NoGo(NoGo::WrongTask),
+            Outcome::Outlier => CheckVerdict::NoGo(NoGo::Outlier),
+            Outcome::GeometryMismatch { feature } => {
+                CheckVerdict::NoGo(NoGo::GeometryMismatch(*feature))
+            }
+            Outcome::UnknownClass => CheckVerdict::NoGo(NoGo::UnknownClass),
+        };
+        CheckAnswer {
+            verdict,
+            claimed_distance: self.claimed_distance,
+            threshold: self.threshold,
+            margin: self.margin,
+            gap: self.gap,
+            geometry_score: self.geometry_score,
+            geometry_threshold: self.geometry_threshold,
+            geometry_feature: self.geometry_feature,
+        }
+    }
 }
 
 impl ClassBank {
