@@ -19,6 +19,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+#[cfg(feature = "train")]
 use candle_core::{DType, Device, Tensor};
 use guardian_shared::trajectory::{Resampled, STEPS};
 use safetensors::{Dtype, SafeTensors, tensor::TensorView};
@@ -27,7 +28,9 @@ use sha2::{Digest, Sha256};
 use crate::fast::{FastNet, FastNetError, Scratch};
 use crate::features::{Augment, FeatureKind, PenPoint, pen_path_with};
 use crate::kinematics::{PANDA_JOINTS, Robot};
-use crate::net::{Net, NetConfig};
+#[cfg(feature = "train")]
+use crate::net::Net;
+use crate::net::NetConfig;
 
 pub use crate::net::EMBED_DIM;
 
@@ -115,6 +118,7 @@ pub enum LoadModelError {
         name: String,
     },
     /// Building the network failed.
+    #[cfg(feature = "train")]
     #[error("building the network: {0}")]
     Candle(#[from] candle_core::Error),
     /// Building the fast path failed.
@@ -126,9 +130,6 @@ pub enum LoadModelError {
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum SaveModelError {
-    /// Reading the weights out of the network failed.
-    #[error("reading weights: {0}")]
-    Candle(#[from] candle_core::Error),
     /// Serialising failed.
     #[error("serialising safetensors: {0}")]
     Serialize(String),
@@ -147,6 +148,7 @@ pub enum SaveModelError {
 #[non_exhaustive]
 pub enum EmbedError {
     /// The network's forward pass failed.
+    #[cfg(feature = "train")]
     #[error("forward pass: {0}")]
     Candle(#[from] candle_core::Error),
     /// An input value is NaN or infinite.
@@ -181,9 +183,10 @@ pub enum EmbedError {
 }
 
 /// A trained (or random) embedding network with its feature computation. `Send + Sync`.
+/// The weights live in the fast path's buffers alone ([`FastNet`], loaded straight from the
+/// file); a candle network is built from them only on request (feature `train`).
 #[derive(Debug, Clone)]
 pub struct Embedder {
-    net: Net,
     fast: Arc<FastNet>,
     version: String,
     checksum: String,
@@ -264,7 +267,6 @@ impl Embedder {
                 return Err(LoadModelError::UnexpectedTensor { name: name.into() });
             }
         }
-        let mut tensors = Vec::with_capacity(shapes.len());
         let mut named: Vec<(String, Vec<usize>, Vec<f32>)> = Vec::with_capacity(shapes.len());
         for (name, shape) in &shapes {
             let view = st
@@ -292,69 +294,64 @@ impl Embedder {
                 got: got_sum,
             });
         }
-        for (name, shape, data) in named {
-            if data.iter().any(|v| !v.is_finite()) {
-                return Err(LoadModelError::NonFinite { name });
-            }
-            tensors.push(Tensor::from_vec(data, shape, &Device::Cpu)?);
+        if let Some((name, _, _)) = named
+            .iter()
+            .find(|(_, _, d)| d.iter().any(|v| !v.is_finite()))
+        {
+            return Err(LoadModelError::NonFinite { name: name.clone() });
         }
-        Self::from_net(Net::new(config, tensors)?, got_sum)
+        Self::from_named(config, named)
     }
 
-    /// A network with deterministic random weights (the default architecture) for tests.
+    /// A network with deterministic random weights (the default architecture) for tests
+    /// (feature `train`).
+    #[cfg(any(test, feature = "train"))]
     pub fn random(seed: u64) -> Self {
         Self::random_with(NetConfig::default(), seed)
             .expect("the default architecture builds; a failure is a bug in this crate")
     }
 
-    /// A network with deterministic random weights for a given architecture.
+    /// A network with deterministic random weights for a given architecture (feature
+    /// `train`).
+    #[cfg(any(test, feature = "train"))]
     pub fn random_with(config: NetConfig, seed: u64) -> Result<Self, LoadModelError> {
-        Self::from_params(config, |_| None, seed)
-    }
-
-    /// Build from a trained network (the lab's trainer uses this).
-    pub fn from_trained(net: &Net) -> Result<Self, LoadModelError> {
-        let params = net
-            .params()
-            .iter()
-            .map(|t| t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>())
-            .collect::<candle_core::Result<Vec<_>>>()?;
-        let mut it = params.into_iter();
-        Self::from_params(net.config().clone(), |_| it.next(), 0)
-    }
-
-    fn from_params(
-        config: NetConfig,
-        mut given: impl FnMut(&str) -> Option<Vec<f32>>,
-        seed: u64,
-    ) -> Result<Self, LoadModelError> {
         config.check().map_err(|e| LoadModelError::BadMetadata {
             key: "config",
             expected: "a valid network config".into(),
             got: e,
         })?;
-        let named: Vec<(String, Vec<usize>, Vec<f32>)> = config
-            .init(seed)
-            .into_iter()
-            .map(|(name, shape, init)| {
-                let data = given(&name).unwrap_or(init);
-                (name, shape, data)
-            })
-            .collect();
-        let sum = checksum(&named);
-        let tensors = named
-            .into_iter()
-            .map(|(_, shape, data)| Tensor::from_vec(data, shape, &Device::Cpu))
-            .collect::<candle_core::Result<Vec<_>>>()?;
-        Self::from_net(Net::new(config, tensors)?, sum)
+        let named = config.init(seed);
+        Self::from_named(config, named)
     }
 
-    fn from_net(net: Net, checksum: String) -> Result<Self, LoadModelError> {
+    /// Build from a trained network (the lab's trainer uses this; feature `train`).
+    #[cfg(feature = "train")]
+    pub fn from_trained(net: &Net) -> Result<Self, LoadModelError> {
+        let config = net.config().clone();
+        let named = config
+            .param_shapes()
+            .into_iter()
+            .zip(net.params())
+            .map(|((name, shape), t)| {
+                let data = t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+                Ok((name, shape, data))
+            })
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        Self::from_named(config, named)
+    }
+
+    /// The embedder of named parameters in [`NetConfig::param_shapes`] order: their values
+    /// go straight into the fast path's buffers; the version is their checksum.
+    fn from_named(
+        config: NetConfig,
+        named: Vec<(String, Vec<usize>, Vec<f32>)>,
+    ) -> Result<Self, LoadModelError> {
+        let sum = checksum(&named);
+        let params = named.into_iter().map(|(_, _, d)| d).collect();
         Ok(Self {
-            fast: Arc::new(FastNet::from_net(&net)?),
-            net,
-            version: checksum[..16].to_string(),
-            checksum,
+            fast: Arc::new(FastNet::from_params(config, params)?),
+            version: sum[..16].to_string(),
+            checksum: sum,
         })
     }
 
@@ -362,7 +359,7 @@ impl Embedder {
     /// on joint features serves only a 7-joint robot (the Panda whose limits scale them).
     /// Every embedding call checks it.
     pub fn serves(&self, robot: &Robot) -> Result<(), EmbedError> {
-        if self.net.config().features == FeatureKind::Joints && robot.joints() != PANDA_JOINTS {
+        if self.fast.config().features == FeatureKind::Joints && robot.joints() != PANDA_JOINTS {
             return Err(EmbedError::JointFeaturesNeedPanda {
                 robot: robot.name().to_string(),
             });
@@ -406,10 +403,9 @@ impl Embedder {
 
     /// The model file's bytes.
     pub fn to_bytes(&self) -> Result<Vec<u8>, SaveModelError> {
-        let shapes = self.net.config().param_shapes();
+        let shapes = self.fast.config().param_shapes();
         let mut buffers = Vec::with_capacity(shapes.len());
-        for ((name, shape), t) in shapes.into_iter().zip(self.net.params()) {
-            let data = t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+        for ((name, shape), data) in shapes.into_iter().zip(self.fast.params()) {
             let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
             buffers.push((name, shape, bytes));
         }
@@ -420,7 +416,7 @@ impl Embedder {
             })
             .collect::<Result<Vec<_>, _>>()
             .map_err(|e| SaveModelError::Serialize(e.to_string()))?;
-        let config = serde_json::to_string(self.net.config())
+        let config = serde_json::to_string(self.fast.config())
             .map_err(|e| SaveModelError::Serialize(e.to_string()))?;
         let meta = HashMap::from([
             ("format".to_string(), FORMAT.to_string()),
@@ -575,7 +571,7 @@ impl Embedder {
         } else {
             &mut s.raw[..rows * EMBED_DIM]
         };
-        let kind = self.net.config().features;
+        let kind = self.fast.config().features;
         self.fast.forward(
             &s.feats[..rows * kind.values()],
             rows,
@@ -593,7 +589,7 @@ impl Embedder {
                 for ((v, x), y) in o.iter_mut().zip(a).zip(b) {
                     *v = (x + y) / 2.0;
                 }
-                if self.net.config().l2_normalize {
+                if self.fast.config().l2_normalize {
                     let norm = (o.iter().map(|v| v * v).sum::<f32>() + 1e-12).sqrt();
                     for v in o.iter_mut() {
                         *v /= norm;
@@ -623,9 +619,9 @@ impl Embedder {
         pen_path: P,
         mut path_out: Option<&mut [[PenPoint; STEPS]]>,
     ) -> usize {
-        let kind = self.net.config().features;
+        let kind = self.fast.config().features;
         let v = kind.values();
-        let both = self.net.config().reverse_average && kind != FeatureKind::Joints;
+        let both = self.fast.config().reverse_average && kind != FeatureKind::Joints;
         let copies = if both { 2 } else { 1 };
         let n = copies * xs.len() * v;
         if feats.len() < n {
@@ -664,7 +660,7 @@ impl Embedder {
 
     /// Embed a batch with candle's forward pass — the reference the fast path is tested
     /// against (feature `test-support`).
-    #[cfg(any(test, feature = "test-support"))]
+    #[cfg(all(feature = "train", any(test, feature = "test-support")))]
     pub fn embed_batch_reference(
         &self,
         robot: &Robot,
@@ -675,7 +671,7 @@ impl Embedder {
             return Ok(Vec::new());
         }
         check_finite(xs)?;
-        let kind = self.net.config().features;
+        let kind = self.fast.config().features;
         let mut feats = Vec::new();
         let copies = self.features_into(
             robot,
@@ -689,10 +685,10 @@ impl Embedder {
             (copies * xs.len(), kind.steps(), kind.channels()),
             &Device::Cpu,
         )?;
-        let mut e = self.net.forward(&input)?;
+        let mut e = self.fast.to_net()?.forward(&input)?;
         if copies == 2 {
             e = e.reshape((xs.len(), 2, EMBED_DIM))?.mean(1)?;
-            if self.net.config().l2_normalize {
+            if self.fast.config().l2_normalize {
                 let norm = (e.sqr()?.sum_keepdim(1)? + 1e-12)?.sqrt()?;
                 e = e.broadcast_div(&norm)?;
             }
@@ -710,7 +706,7 @@ impl Embedder {
         Ok(embs)
     }
 
-    /// The fast-path network (same weights as [`Embedder::net`]).
+    /// The fast-path network: the weights.
     pub fn fast(&self) -> &FastNet {
         &self.fast
     }
@@ -727,25 +723,19 @@ impl Embedder {
 
     /// The architecture.
     pub fn config(&self) -> &NetConfig {
-        self.net.config()
+        self.fast.config()
     }
 
     /// Turn test-time reverse averaging on or off (see [`NetConfig::reverse_average`]); the
     /// weights and the version are unchanged.
     pub fn set_reverse_average(&mut self, on: bool) {
-        let mut config = self.net.config().clone();
-        config.reverse_average = on;
-        if let Ok(net) = Net::new(config, self.net.params().to_vec())
-            && let Ok(fast) = FastNet::from_net(&net)
-        {
-            self.net = net;
-            self.fast = Arc::new(fast);
-        }
+        Arc::make_mut(&mut self.fast).set_reverse_average(on);
     }
 
-    /// The network (for training and analysis).
-    pub fn net(&self) -> &Net {
-        &self.net
+    /// The weights as a candle network (for training and analysis; feature `train`).
+    #[cfg(feature = "train")]
+    pub fn net(&self) -> candle_core::Result<Net> {
+        self.fast.to_net()
     }
 }
 

@@ -15,9 +15,11 @@
 //! pointers; `gemm_strided` checks every operand's extent first. It is here because of a measured
 //! need: see `docs/performance.md`.
 
+#[cfg(feature = "train")]
+use crate::net::Net;
+use crate::net::NetConfig;
+#[cfg(feature = "train")]
 use candle_core::{DType, Device, Tensor};
-
-use crate::net::{Net, NetConfig};
 
 /// Building or running the fast path failed.
 #[derive(Debug, thiserror::Error)]
@@ -37,6 +39,7 @@ pub enum FastNetError {
         got: usize,
     },
     /// Reading the weights out of candle failed.
+    #[cfg(feature = "train")]
     #[error("reading weights: {0}")]
     Candle(#[from] candle_core::Error),
     /// An input or output buffer does not match `batch`, the time length and the config.
@@ -135,6 +138,7 @@ pub(crate) fn real<T: Real>(v: f64) -> T {
     T::from(v).unwrap_or_else(T::nan)
 }
 
+#[cfg(feature = "train")]
 impl FastNet<f32> {
     /// Copy the weights of a candle network.
     pub fn from_net(net: &Net) -> Result<Self, FastNetError> {
@@ -207,7 +211,8 @@ impl<T: Real> FastNet<T> {
     }
 
     /// Deterministic initial weights of `config` for `seed` (the values of
-    /// [`NetConfig::init`], as `T`).
+    /// [`NetConfig::init`], as `T`; feature `train`).
+    #[cfg(any(test, feature = "train"))]
     pub fn random(config: NetConfig, seed: u64) -> Result<Self, FastNetError> {
         let params = config
             .init(seed)
@@ -220,6 +225,12 @@ impl<T: Real> FastNet<T> {
     /// The architecture.
     pub fn config(&self) -> &NetConfig {
         &self.config
+    }
+
+    /// Turn test-time reverse averaging on or off (see [`NetConfig::reverse_average`]): an
+    /// inference option that changes no weight.
+    pub fn set_reverse_average(&mut self, on: bool) {
+        self.config.reverse_average = on;
     }
 
     /// The parameters, in [`NetConfig::param_shapes`] order.
@@ -581,7 +592,8 @@ pub(crate) fn gemm_strided<T: Real>(
     Ok(())
 }
 
-#[cfg(test)]
+// Against the candle reference (feature `train`, on in the workspace's test run).
+#[cfg(all(test, feature = "train"))]
 mod tests {
     use super::*;
     use crate::embedder::Embedder;

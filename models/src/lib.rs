@@ -15,8 +15,10 @@ pub mod embedder;
 pub mod fast;
 pub mod features;
 pub mod geometry;
+#[cfg(feature = "train")]
 pub mod grad;
 pub mod kinematics;
+#[cfg(feature = "train")]
 pub mod loss;
 pub mod net;
 pub mod picture;

@@ -19,6 +19,7 @@ use crate::fast::{
     FastNet, FastNetError, Real, Scratch, gemm_strided, grow, l2_normalize_rows, real,
 };
 use crate::features::PICTURE_SIDE;
+#[cfg(feature = "train")]
 use crate::grad::{BackScratch, Grads};
 
 /// Write the im2col rows of `x [batch, s, s, c]` for a `k x k` "same" convolution into
@@ -61,6 +62,7 @@ fn im2col<T: Real>(x: &[T], batch: usize, s: usize, c: usize, k: usize, cols: &m
 
 /// The adjoint of [`im2col`]: add every column value of `dcols` back to the pixel it was
 /// copied from, into `dx [batch, s, s, c]` (which is overwritten).
+#[cfg(feature = "train")]
 fn col2im<T: Real>(dcols: &[T], batch: usize, s: usize, c: usize, k: usize, dx: &mut [T]) {
     let pad = k / 2;
     let width = k * k * c;
@@ -204,6 +206,7 @@ impl<T: Real> FastNet<T> {
     }
 
     /// [`FastNet::backward`] of a picture network.
+    #[cfg(feature = "train")]
     pub(crate) fn backward_picture(
         &self,
         scratch: &Scratch<T>,
@@ -303,7 +306,7 @@ impl<T: Real> FastNet<T> {
     }
 }
 
-#[cfg(test)]
+#[cfg(all(test, feature = "train"))]
 mod tests {
     use super::*;
     use crate::features::FeatureKind;

@@ -825,7 +825,7 @@ fn run(o: Opts) -> Result<()> {
             guardian_models::features::compute(cfg.features, &samples[0], fwd);
         }
     }
-    let net = embedder.net();
+    let net = embedder.net()?;
     let candle_fwd = time_n(50, n_fwd, || {
         let x =
             candle_core::Tensor::from_slice(&feats, (copies, steps, c), &candle_core::Device::Cpu)?;
