@@ -150,8 +150,7 @@ impl FastNet<f32> {
         Self::from_params(net.config().clone(), params)
     }
 
-    /// The weights as a candle network (for saving as an [`crate::embedder::Embedder`] and
-    /// for the reference path).
+    /// The weights as a candle network (for training and for the reference path).
     pub fn to_net(&self) -> candle_core::Result<Net> {
         let tensors = self
             .config
@@ -596,10 +595,9 @@ pub(crate) fn gemm_strided<T: Real>(
 #[cfg(all(test, feature = "train"))]
 mod tests {
     use super::*;
-    use crate::embedder::Embedder;
     use crate::features::FeatureKind;
     use candle_core::{Device, Tensor};
-    use guardian_shared::trajectory::{Resampled, SLOTS, STEPS, TOOL};
+    use guardian_shared::trajectory::STEPS;
     use rand::{Rng, SeedableRng};
 
     /// `||a - b|| / ||b||` (L2 over the whole slices).
@@ -719,76 +717,6 @@ mod tests {
         params[1].pop();
         let err = FastNet::from_params(NetConfig::default(), params).unwrap_err();
         assert!(matches!(err, FastNetError::ParamLength { .. }), "{err}");
-    }
-
-    /// Random joint trajectories inside the limits with pen-down runs.
-    fn trajectories(n: usize, seed: u64) -> Vec<Resampled> {
-        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-        (0..n)
-            .map(|_| {
-                let phase: [f32; 7] = std::array::from_fn(|_| rng.random_range(0.0..6.0));
-                let amp: [f32; 7] = std::array::from_fn(|_| rng.random_range(0.0..0.3));
-                let mut x = [[0.0f32; SLOTS]; STEPS];
-                let centre = [0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.78];
-                for (t, w) in x.iter_mut().enumerate() {
-                    let s = t as f32 / STEPS as f32;
-                    for j in 0..7 {
-                        w[j] = centre[j] + amp[j] * (6.0 * s + phase[j]).sin();
-                    }
-                    w[TOOL] = if (t / 20) % 2 == 0 { 1.0 } else { 0.0 };
-                }
-                x
-            })
-            .collect()
-    }
-
-    /// The shipped model when it exists, else random weights of the default architecture.
-    fn shipped_or_random() -> Embedder {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("embedder.safetensors");
-        if path.exists() {
-            Embedder::load(&path).expect("the shipped model loads")
-        } else {
-            Embedder::random(11)
-        }
-    }
-
-    #[test]
-    fn embedder_fast_path_matches_candle_reference() {
-        let mut embedders = vec![shipped_or_random(), Embedder::random(4)];
-        let mut rev = Embedder::random(5);
-        rev.set_reverse_average(true);
-        embedders.push(rev);
-        for config in [
-            NetConfig {
-                features: FeatureKind::Joints,
-                ..NetConfig::default()
-            },
-            NetConfig {
-                features: FeatureKind::PenStrokes,
-                ..NetConfig::default()
-            },
-        ] {
-            embedders.push(Embedder::random_with(config, 9).unwrap());
-        }
-        let xs = trajectories(5, 2);
-        for (i, e) in embedders.iter().enumerate() {
-            let want = e
-                .embed_batch_reference(crate::preprocess::default_panda(), &xs)
-                .unwrap();
-            let got = e
-                .embed_batch(crate::preprocess::default_panda(), &xs)
-                .unwrap();
-            for (k, (g, w)) in got.iter().zip(&want).enumerate() {
-                let err = rel_err(g, w);
-                assert!(
-                    err <= 1e-5,
-                    "embedder {i} input {k}: relative error {err:e}"
-                );
-            }
-            // Batch 1 through `embed` gives the same as the batched fast path.
-            let one = e.embed(crate::preprocess::default_panda(), &xs[3]).unwrap();
-            assert!(rel_err(&one, &got[3]) <= 1e-6);
-        }
     }
 
     #[test]

@@ -148,7 +148,7 @@ impl Default for Augment {
 /// Pen-tip path of a resampled Panda trajectory by forward kinematics (the specialised
 /// position FK of [`crate::kinematics::PositionFk`] when available; no allocation).
 pub fn pen_path(x: &Resampled) -> [PenPoint; STEPS] {
-    pen_path_with(crate::preprocess::default_panda(), x)
+    pen_path_with(crate::kinematics::default_panda(), x)
 }
 
 /// [`pen_path`] of a trajectory of `robot`: the one place joints become the model's
@@ -168,7 +168,7 @@ pub fn pen_path_with(robot: &Robot, x: &Resampled) -> [PenPoint; STEPS] {
 /// path is tested against (feature `test-support`).
 #[cfg(any(test, feature = "test-support"))]
 pub fn pen_path_reference(x: &Resampled) -> [PenPoint; STEPS] {
-    pen_path_reference_with(crate::preprocess::default_panda(), x)
+    pen_path_reference_with(crate::kinematics::default_panda(), x)
 }
 
 /// [`pen_path_reference`] of a trajectory of `robot` (feature `test-support`).
@@ -176,7 +176,7 @@ pub fn pen_path_reference(x: &Resampled) -> [PenPoint; STEPS] {
 pub fn pen_path_reference_with(robot: &Robot, x: &Resampled) -> [PenPoint; STEPS] {
     let mut out = [[0.0f32; 3]; STEPS];
     for (o, w) in out.iter_mut().zip(x.iter()) {
-        let p = robot.pen_tip_position_general(&crate::preprocess::joints_of(w));
+        let p = robot.pen_tip_position_general(&crate::kinematics::joints_of(w));
         *o = [-p[1] as f32, p[0] as f32, w[TOOL]];
     }
     out

@@ -2,32 +2,20 @@
 //! planner trajectory, measure its pen-tip path length by forward kinematics and resample it
 //! to [`STEPS`](guardian_shared::trajectory::STEPS) samples uniform in that length.
 
-use std::sync::LazyLock;
-
 use guardian_shared::trajectory::{InvalidTrajectory, Resampled, Waypoint};
 use guardian_shared::workcell::Workcell;
 use nalgebra::Vector3;
 
-use crate::kinematics::{JointVector, Robot};
+use crate::kinematics::Robot;
+use crate::workcell::cumulative_lengths;
 
-/// The default robot (published Panda, default pen), built once: the lab's data sets and
-/// the paths that take no robot use it.
-static PANDA: LazyLock<Robot> = LazyLock::new(Robot::panda);
-
-/// The default robot model used by [`preprocess`].
-pub fn default_panda() -> &'static Robot {
-    &PANDA
-}
-
-/// Joint part of a waypoint in f64 (the unused slots of a waypoint are 0, so they stay 0).
-#[inline]
-pub fn joints_of(w: &Waypoint) -> JointVector {
-    std::array::from_fn(|j| f64::from(w[j]))
-}
+// The default robot and the joints of a waypoint live with the kinematics; re-exported here
+// where the lab and the tests have always found them.
+pub use crate::kinematics::{default_panda, joints_of};
 
 /// Pen-tip positions (m, base frame) of each waypoint, with the default robot.
 pub fn pen_tip_positions(waypoints: &[Waypoint]) -> Vec<Vector3<f64>> {
-    pen_tip_positions_with(&PANDA, waypoints)
+    pen_tip_positions_with(default_panda(), waypoints)
 }
 
 /// Pen-tip positions (m, base frame) of each waypoint, with a given robot.
@@ -40,7 +28,7 @@ pub fn pen_tip_positions_with(robot: &Robot, waypoints: &[Waypoint]) -> Vec<Vect
 /// Cumulative pen-tip path length (m) by forward kinematics: element `i` is the length of
 /// the polyline through the pen-tip positions of waypoints `0..=i` (element 0 is 0).
 pub fn pen_path_lengths(waypoints: &[Waypoint]) -> Vec<f64> {
-    pen_path_lengths_with(&PANDA, waypoints)
+    pen_path_lengths_with(default_panda(), waypoints)
 }
 
 /// [`pen_path_lengths`] with a given robot.
@@ -50,20 +38,6 @@ pub fn pen_path_lengths_with(robot: &Robot, waypoints: &[Waypoint]) -> Vec<f64> 
     robot.pen_tip_positions_into(waypoints, &mut positions);
     cumulative_lengths(&positions, &mut out);
     out
-}
-
-/// Cumulative polyline length through `positions` into `out` (element 0 is 0): the one
-/// summation every resampling length comes from.
-pub(crate) fn cumulative_lengths(positions: &[[f64; 3]], out: &mut [f64]) {
-    let mut total = 0.0;
-    for (i, o) in out.iter_mut().enumerate() {
-        if i > 0 {
-            let (a, b) = (positions[i - 1], positions[i]);
-            let d = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
-            total += (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-        }
-        *o = total;
-    }
 }
 
 /// [`pen_path_lengths_with`] through the general chain ([`Robot::pen_tip_position_general`],
@@ -89,7 +63,7 @@ pub fn pen_path_lengths_reference(robot: &Robot, waypoints: &[Waypoint]) -> Vec<
 /// ([`guardian_shared::trajectory::validate`]) and resample it to [`STEPS`](guardian_shared::trajectory::STEPS)
 /// waypoints uniformly in pen-tip path length ([`guardian_shared::trajectory::resample`]).
 pub fn preprocess(raw: &[Waypoint]) -> Result<Resampled, InvalidTrajectory> {
-    preprocess_with(&PANDA, raw)
+    preprocess_with(default_panda(), raw)
 }
 
 /// [`preprocess`] with a given robot (another arm, or another pen length): validated
@@ -122,6 +96,7 @@ pub fn preprocess_reference(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::kinematics::JointVector;
     use crate::kinematics::READY_POSE;
     use guardian_shared::trajectory::{InvalidKind, STEPS, TOOL};
 

@@ -23,8 +23,8 @@ use nalgebra::{Matrix3, Vector3};
 
 use crate::features::PenPoint;
 use crate::geometry::PlanGeometry;
+use crate::kinematics::default_panda;
 use crate::kinematics::{FK_LANES, Frame, PositionFk, Robot, WithJoints};
-use crate::preprocess::{cumulative_lengths, default_panda};
 
 /// Result of [`inspect`].
 #[derive(Debug, Clone)]
@@ -40,6 +40,20 @@ pub struct Inspection {
     /// `> 1` exactly when there is a violation (0 when the rules are disabled). Used as a
     /// continuous score for ROC curves.
     pub score: f32,
+}
+
+/// Cumulative polyline length through `positions` into `out` (element 0 is 0): the one
+/// summation every resampling length comes from.
+pub(crate) fn cumulative_lengths(positions: &[[f64; 3]], out: &mut [f64]) {
+    let mut total = 0.0;
+    for (i, o) in out.iter_mut().enumerate() {
+        if i > 0 {
+            let (a, b) = (positions[i - 1], positions[i]);
+            let d = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+            total += (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        }
+        *o = total;
+    }
 }
 
 /// Tool orientation the workcell commands: tool z down (−z of the base), tool x along +x.
@@ -425,7 +439,7 @@ mod tests {
             let fast = inspect_with(robot, cell, &ws).unwrap();
             let frames: Vec<Frame> = ws
                 .iter()
-                .map(|w| robot.pen_tip(&crate::preprocess::joints_of(w)))
+                .map(|w| robot.pen_tip(&crate::kinematics::joints_of(w)))
                 .collect();
             let (violation, score) = check_frames(cell, &frames, ws.iter().map(|w| w[TOOL]));
             assert_eq!(fast.violation, violation, "round {round}");

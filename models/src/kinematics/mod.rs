@@ -202,6 +202,21 @@ pub const PEN_LENGTH: f64 = 0.15;
 /// Default Panda pen yaw about the flange z axis (rad).
 pub const PEN_YAW: f64 = -std::f64::consts::FRAC_PI_4;
 
+/// The default robot (published Panda, default pen), built once: the lab's data sets and
+/// the paths that take no robot use it.
+static PANDA: std::sync::LazyLock<Robot> = std::sync::LazyLock::new(Robot::panda);
+
+/// The default robot: the published Panda with the default pen.
+pub fn default_panda() -> &'static Robot {
+    &PANDA
+}
+
+/// Joint part of a waypoint in f64 (the unused slots of a waypoint are 0, so they stay 0).
+#[inline]
+pub fn joints_of(w: &guardian_shared::trajectory::Waypoint) -> JointVector {
+    std::array::from_fn(|j| f64::from(w[j]))
+}
+
 /// SHA-256 of a file's bytes.
 pub(crate) fn sha256(bytes: &[u8]) -> [u8; 32] {
     Sha256::digest(bytes).into()
