@@ -915,19 +915,9 @@ mod tests {
 #[cfg(all(test, feature = "train"))]
 mod reference_tests {
     use super::*;
+    use crate::fast::tests::rel_err;
     use guardian_shared::trajectory::{SLOTS, TOOL};
     use rand::{Rng, SeedableRng};
-
-    fn rel_err(a: &[f32], b: &[f32]) -> f64 {
-        assert_eq!(a.len(), b.len());
-        let num: f64 = a
-            .iter()
-            .zip(b)
-            .map(|(x, y)| (f64::from(*x) - f64::from(*y)).powi(2))
-            .sum();
-        let den: f64 = b.iter().map(|y| f64::from(*y).powi(2)).sum();
-        (num / den.max(1e-30)).sqrt()
-    }
 
     /// Random joint trajectories inside the limits with pen-down runs.
     fn trajectories(n: usize, seed: u64) -> Vec<Resampled> {

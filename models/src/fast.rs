@@ -593,7 +593,7 @@ pub(crate) fn gemm_strided<T: Real>(
 
 // Against the candle reference (feature `train`, on in the workspace's test run).
 #[cfg(all(test, feature = "train"))]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::features::FeatureKind;
     use candle_core::{Device, Tensor};
@@ -601,7 +601,8 @@ mod tests {
     use rand::{Rng, SeedableRng};
 
     /// `||a - b|| / ||b||` (L2 over the whole slices).
-    fn rel_err(a: &[f32], b: &[f32]) -> f64 {
+    /// Relative L2 error of `a` against `b`.
+    pub(crate) fn rel_err(a: &[f32], b: &[f32]) -> f64 {
         assert_eq!(a.len(), b.len());
         let num: f64 = a
             .iter()
