@@ -34,7 +34,7 @@ pub struct Control {
 pub enum RunError {
     /// Model or bank could not be loaded at start-up.
     #[error(transparent)]
-    Load(#[from] LoadStateError),
+    Load(Box<LoadStateError>),
     /// The state directory could not be created.
     #[error("cannot create state directory {path}: {source}")]
     StateDir {
@@ -58,6 +58,12 @@ pub enum RunError {
     /// Saving the bank at shutdown failed.
     #[error("cannot flush class bank at shutdown: {0}")]
     Flush(#[from] guardian_models::bank::SaveBankError),
+}
+
+impl From<LoadStateError> for RunError {
+    fn from(e: LoadStateError) -> Self {
+        Self::Load(Box::new(e))
+    }
 }
 
 fn iox<E: std::error::Error + Send + Sync + 'static>(

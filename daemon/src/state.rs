@@ -62,7 +62,7 @@ pub enum LoadStateError {
     },
     /// The robot (or its workcell) could not be loaded.
     #[error("cannot load the robot: {0}")]
-    Robot(#[from] ConfigError),
+    Robot(Box<ConfigError>),
     /// The bank's classes were enrolled on another robot.
     #[error(
         "class bank {path} holds plans of robot {bank_robot} but this daemon serves {robot}; \
@@ -103,6 +103,12 @@ pub enum LoadStateError {
         /// Why.
         source: guardian_models::bank::SaveBankError,
     },
+}
+
+impl From<ConfigError> for LoadStateError {
+    fn from(e: ConfigError) -> Self {
+        Self::Robot(Box::new(e))
+    }
 }
 
 /// Whether [`load_bank_with`] may write the bank it re-embedded for a new model.

@@ -136,8 +136,11 @@ pub fn score(
 /// ([`crate::bank::ClassBank::decide_with_geometry`]), the calibration
 /// ([`crate::bank::calibrate_geometry`]) and the lab's figures all use it.
 pub fn is_geometry_no_go(score: f32, threshold: f32) -> bool {
-    // `!(a <= b)`, not `a > b`: NaN fails every comparison.
-    !(score <= threshold)
+    // Only a score that compares at most the threshold passes: NaN compares to nothing.
+    !matches!(
+        score.partial_cmp(&threshold),
+        Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)
+    )
 }
 
 /// `score / threshold` as a continuous score for ROC curves: above 1 exactly when
@@ -188,17 +191,17 @@ mod tests {
     #[test]
     fn a_nan_geometry_score_is_a_no_go_everywhere() {
         let t = 2.0;
-        for s in [
-            0.0,
-            1.0,
-            2.0,
-            2.0f32.next_up(),
-            3.0,
-            f32::INFINITY,
-            f32::NAN,
+        for (s, expected) in [
+            (0.0, false),
+            (1.0, false),
+            (2.0, false),
+            (2.0f32.next_up(), true),
+            (3.0, true),
+            (f32::INFINITY, true),
+            (f32::NAN, true),
         ] {
             let no_go = is_geometry_no_go(s, t);
-            assert_eq!(no_go, !(s <= t), "{s}");
+            assert_eq!(no_go, expected, "{s}");
             assert_eq!(normalised_geometry_score(s, t) > 1.0, no_go, "{s}");
         }
         assert!(is_geometry_no_go(f32::NAN, f32::INFINITY));

@@ -108,13 +108,13 @@ impl Robot {
     /// Parse the shipped Panda URDF with the shipped description's links and tool
     /// ([`Robot::panda`] builds the same chain without parsing).
     pub fn from_embedded_urdf() -> Result<Self, UrdfLoadError> {
-        Ok(Self::from_urdf_chain_with_tool(
+        Self::from_urdf_chain_with_tool(
             PANDA_URDF,
             "panda",
             None,
             Some("panda_link8"),
             Frame::from_xyz_rpy([0.0, 0.0, super::PEN_LENGTH], [0.0, 0.0, super::PEN_YAW]),
-        )?)
+        )
     }
 
     /// Parse a URDF as a serial chain from its root to its one leaf; the first fixed joint
