@@ -14,8 +14,6 @@
 //! - [`faults`]: faulty-plan generators (corruptions of a genuine plan).
 //! - [`metrics`]: AUROC, ROC curve, TPR at an FPR and the pair AUC.
 //! - [`outliers`]: go / no-go metrics on faulty and genuine plans.
-//! - [`pool`]: the unlabelled drawing pool: reading, conversion, copies of labelled drawings
-//!   left out, pseudo-labels and self-supervised classes for training.
 //! - [`robot`]: print a robot description and check its kinematics (`guardian-lab robot`).
 //! - [`demo`]: enroll real drawings in a running `guardiand` and check genuine and faulty
 //!   plans through the client (`guardian-lab demo`).
@@ -31,7 +29,6 @@ pub mod metrics;
 pub mod outliers;
 pub mod path;
 pub mod plot;
-pub mod pool;
 pub mod report;
 pub mod robot;
 pub mod strokes;

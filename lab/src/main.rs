@@ -27,9 +27,6 @@ enum Command {
     Bank(guardian_lab::calibrate::Args),
     /// Faulty-plan detection metrics (AUROC, TPR at 1% FPR, detection, false rejects).
     Outliers(guardian_lab::outliers::Args),
-    /// Build a fold's unlabelled pool: copies of the excluded alphabets' drawings left out,
-    /// the rest converted (a dataset file).
-    Pool(guardian_lab::pool::Args),
     /// Print a robot description (built-in name or file) and check its kinematics: FK fast
     /// path, Jacobian, IK round trips, home pose and canvas reach (exit status 1 on a failure).
     Robot(guardian_lab::robot::Args),
@@ -52,7 +49,6 @@ fn main() -> anyhow::Result<()> {
         Command::Report(args) => guardian_lab::report::run(args),
         Command::Bank(args) => guardian_lab::calibrate::run(args),
         Command::Outliers(args) => guardian_lab::outliers::run(args),
-        Command::Pool(args) => guardian_lab::pool::run(args),
         Command::Demo(args) => guardian_lab::demo::main(args),
         Command::Robot(args) => guardian_lab::robot::run(args),
     }

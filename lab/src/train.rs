@@ -16,7 +16,7 @@ use std::time::Instant;
 use candle_core::{Device, Tensor, Var};
 use guardian_models::embedder::Embedder;
 use guardian_models::fast::{FastNet, FastNetError};
-use guardian_models::features::{self, Augment, FeatureKind, PenPoint, Warp};
+use guardian_models::features::{self, Augment, FeatureKind, PenPoint};
 use guardian_models::grad::{Grads, Trainable};
 use guardian_models::loss;
 use guardian_models::net::NetConfig;
@@ -32,14 +32,11 @@ use crate::dataset::{Dataset, StrokeIndex};
 use crate::eval::{self, EpisodeSpec};
 use crate::faults::{self, Fault};
 use crate::path::PathSolver;
-use crate::pool::{self, ClusterParams, PoolMode};
 
 /// Which loss trains the network.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum LossKind {
-    /// Online batch-hard triplet loss (hardest positive and negative per anchor).
-    BatchHard,
     /// Online batch-all triplet loss (mean over active triplets).
     BatchAll,
     /// The paper's loss on random explicit triplets (one per anchor).
@@ -55,8 +52,6 @@ pub enum FeatureArg {
     Pen,
     /// Scaled joint angles (the paper's input).
     Joints,
-    /// Pen-down strokes only, resampled (travel between strokes dropped).
-    PenStrokes,
     /// A picture of the pen-down path, read by a 2D CNN.
     Picture,
 }
@@ -97,7 +92,6 @@ impl From<FeatureArg> for FeatureKind {
         match f {
             FeatureArg::Pen => FeatureKind::Pen,
             FeatureArg::Joints => FeatureKind::Joints,
-            FeatureArg::PenStrokes => FeatureKind::PenStrokes,
             FeatureArg::Picture => FeatureKind::Picture,
         }
     }
@@ -175,45 +169,6 @@ pub struct TrainConfig {
     /// The split-half quantile of `classaug::SymmetryRule` (with `class_augment`).
     #[serde(default)]
     pub symmetry_quantile: f64,
-    /// How training learns from the unlabelled pool (`pool`): not at all, pseudo-labels or
-    /// self-supervised classes.
-    #[serde(default)]
-    pub pool_mode: PoolMode,
-    /// The pool file (`guardian-lab pool`; the fold's copies already left out).
-    #[serde(default)]
-    pub pool: Option<PathBuf>,
-    /// Fraction of each batch's P classes drawn from pool classes.
-    #[serde(default)]
-    pub pool_share: f64,
-    /// The embedder whose clusters of the pool are the pseudo-classes (`pseudo` mode).
-    #[serde(default)]
-    pub pseudo_model: Option<PathBuf>,
-    /// Within-alphabet batches: the share of training batches whose P classes all come from
-    /// one alphabet (a character's class-augmented transforms count as its alphabet's), so
-    /// their negatives are the similar characters a new alphabet's episodes hold. 0 = off.
-    #[serde(default)]
-    pub alphabet_share: f64,
-    /// Largest amplitude of the smooth deformation among the augmentations
-    /// (`features::Warp`, a fraction of the drawing's half-size). 0 = off.
-    #[serde(default)]
-    pub warp: f64,
-    /// Compound classes (`Prepared::add_compounds`): two labelled characters drawn as one.
-    /// 0 = off.
-    #[serde(default)]
-    pub compounds: usize,
-    /// Fraction of each batch's P classes drawn from the compound classes.
-    #[serde(default)]
-    pub compound_share: f64,
-    /// Teacher models of relational distillation (their embeddings concatenated; none =
-    /// off).
-    #[serde(default)]
-    pub teachers: Vec<PathBuf>,
-    /// Weight of the distillation term (`loss::distance_distillation_loss`).
-    #[serde(default)]
-    pub distill_weight: f64,
-    /// Clustering of the pseudo-labels (`pseudo` mode).
-    #[serde(default)]
-    pub pseudo_clusters: Option<ClusterParams>,
 }
 
 fn yes() -> bool {
@@ -333,54 +288,6 @@ pub struct Args {
     /// template is as similar to it as this quantile of the split-half similarities.
     #[arg(long, default_value_t = 0.1)]
     pub symmetry_quantile: f64,
-    /// Learn from the unlabelled pool: `pseudo` (clusters under `--pseudo-model` as
-    /// classes) or `ssl` (every pool drawing a class of two augmented views).
-    #[arg(long, value_enum, default_value = "none")]
-    pub pool_mode: PoolMode,
-    /// The pool file (from `guardian-lab pool`, with the fold's test and validation
-    /// alphabets excluded).
-    #[arg(long)]
-    pub pool: Option<PathBuf>,
-    /// Fraction of each batch's P classes drawn from the pool classes.
-    #[arg(long, default_value_t = 0.5)]
-    pub pool_share: f64,
-    /// The model whose embeddings of the pool are clustered into pseudo-classes; iterate by
-    /// passing the model this run trains.
-    #[arg(long)]
-    pub pseudo_model: Option<PathBuf>,
-    /// Pseudo-labels: neighbours per drawing (mutual k-nearest-neighbour links).
-    #[arg(long, default_value_t = ClusterParams::default().k)]
-    pub pseudo_k: usize,
-    /// Pseudo-labels: largest squared embedding distance of a link.
-    #[arg(long, default_value_t = ClusterParams::default().threshold)]
-    pub pseudo_threshold: f32,
-    /// Pseudo-labels: smallest cluster kept as a class.
-    #[arg(long, default_value_t = ClusterParams::default().min_size)]
-    pub pseudo_min_size: usize,
-    /// Pseudo-labels: largest cluster kept (larger ones are split, then dropped).
-    #[arg(long, default_value_t = ClusterParams::default().max_size)]
-    pub pseudo_max_size: usize,
-    /// Share of training batches drawn from one alphabet (harder negatives); 0 = off.
-    #[arg(long, default_value_t = 0.0)]
-    pub alphabet_share: f64,
-    /// Largest amplitude of a smooth random deformation among the augmentations (a fraction
-    /// of the drawing's half-size per term); 0 = off.
-    #[arg(long, default_value_t = 0.0)]
-    pub warp: f64,
-    /// Compound classes: this many classes of two labelled characters (class-augmented
-    /// transforms included) drawn as one, side by side or one above the other; 0 = off.
-    #[arg(long, default_value_t = 0)]
-    pub compounds: usize,
-    /// Fraction of each batch's P classes drawn from the compound classes.
-    #[arg(long, default_value_t = 0.5)]
-    pub compound_share: f64,
-    /// Relational distillation from these models (comma-separated; an ensemble when more
-    /// than one): the batch's pairwise distances are matched to theirs.
-    #[arg(long, value_delimiter = ',')]
-    pub teachers: Vec<PathBuf>,
-    /// Weight of the distillation term (with `--teachers`).
-    #[arg(long, default_value_t = 1.0)]
-    pub distill_weight: f64,
 }
 
 impl Args {
@@ -430,40 +337,6 @@ impl Args {
                 self.symmetry_quantile
             } else {
                 0.0
-            },
-            // Without a pool the pool settings are recorded as off (old configurations
-            // parse to the same values, so `--resume` still matches them).
-            pool_mode: self.pool_mode,
-            pool: (self.pool_mode != PoolMode::None)
-                .then(|| self.pool.clone())
-                .flatten(),
-            pool_share: if self.pool_mode == PoolMode::None {
-                0.0
-            } else {
-                self.pool_share
-            },
-            pseudo_model: (self.pool_mode == PoolMode::Pseudo)
-                .then(|| self.pseudo_model.clone())
-                .flatten(),
-            pseudo_clusters: (self.pool_mode == PoolMode::Pseudo).then_some(ClusterParams {
-                k: self.pseudo_k,
-                threshold: self.pseudo_threshold,
-                min_size: self.pseudo_min_size,
-                max_size: self.pseudo_max_size,
-            }),
-            alphabet_share: self.alphabet_share,
-            warp: self.warp,
-            compounds: self.compounds,
-            compound_share: if self.compounds > 0 {
-                self.compound_share
-            } else {
-                0.0
-            },
-            teachers: self.teachers.clone(),
-            distill_weight: if self.teachers.is_empty() {
-                0.0
-            } else {
-                self.distill_weight
             },
         }
     }
@@ -601,17 +474,6 @@ pub struct Prepared {
     faults: Vec<Vec<[PenPoint; STEPS]>>,
     /// Time reversal among the augmentations.
     reverse_augment: bool,
-    /// Largest smooth-deformation amplitude among the augmentations (0 = off).
-    warp: f32,
-    /// Classes from here on are pool classes ([`Prepared::add_pool`]); `by_class.len()`
-    /// without a pool.
-    pool_start: usize,
-    /// Fraction of a batch's classes drawn from the pool classes.
-    pool_share: f64,
-    /// Alphabet (data set id) of every labelled class, transforms included.
-    class_alphabet: Vec<i64>,
-    /// Share of batches drawn from one alphabet ([`Prepared::set_alphabet_share`]).
-    alphabet_share: f64,
 }
 
 impl Prepared {
@@ -626,7 +488,6 @@ impl Prepared {
             .map_err(|e| TrainError::Setup(e.to_string()))?;
         let mut class_map: BTreeMap<i64, usize> = BTreeMap::new();
         let mut by_class: Vec<Vec<usize>> = Vec::new();
-        let mut class_alphabet: Vec<i64> = Vec::new();
         let mut raw = Vec::new();
         let mut labels = Vec::new();
         let mut data_index = Vec::new();
@@ -638,7 +499,6 @@ impl Prepared {
             let c = *class_map.entry(data.labels[i]).or_insert(next);
             if c == by_class.len() {
                 by_class.push(Vec::new());
-                class_alphabet.push(data.alphabet_ids[i]);
             }
             by_class[c].push(raw.len());
             raw.push(data.trajectories[i]);
@@ -660,7 +520,6 @@ impl Prepared {
             Vec::new()
         };
         let faults = vec![Vec::new(); raw.len()];
-        let pool_start = by_class.len();
         Ok(Self {
             kind,
             pen,
@@ -670,153 +529,7 @@ impl Prepared {
             data_index,
             faults,
             reverse_augment: true,
-            warp: 0.0,
-            pool_start,
-            pool_share: 0.0,
-            class_alphabet,
-            alphabet_share: 0.0,
         })
-    }
-
-    /// Draw this share of [`Prepared::sample_pk`]'s batches from the classes of one
-    /// alphabet (labelled classes only; a no-op at 0, the default).
-    pub fn set_alphabet_share(&mut self, share: f64) {
-        self.alphabet_share = share;
-    }
-
-    /// Add classes of unlabelled pool drawings: one class per group of `pool` indices (a
-    /// drawing may repeat in a group: its members then differ only by augmentation). Pool
-    /// samples have no corrupted plans and are not class-augmented; call after
-    /// [`Prepared::make_faults`] and [`Prepared::augment_classes`]. `share` is the fraction
-    /// of each batch's classes [`Prepared::sample_pk`] draws from the pool classes. Groups
-    /// with fewer than two members are skipped. Returns the classes added.
-    pub fn add_pool(
-        &mut self,
-        pool: &Dataset,
-        groups: &[Vec<usize>],
-        share: f64,
-    ) -> Result<usize, TrainError> {
-        if self.kind == FeatureKind::Joints {
-            return Err(TrainError::Setup("pool classes need pen features".into()));
-        }
-        if !(0.0..=1.0).contains(&share) {
-            return Err(TrainError::Setup(format!(
-                "pool share {share} must be in [0, 1]"
-            )));
-        }
-        let robot = pool.robot().map_err(|e| TrainError::Setup(e.to_string()))?;
-        let pens: Vec<Option<[PenPoint; STEPS]>> = {
-            let mut used = vec![false; pool.len()];
-            for &i in groups.iter().flatten() {
-                if i >= pool.len() {
-                    return Err(TrainError::Setup(format!(
-                        "pool index {i} out of range ({} drawings)",
-                        pool.len()
-                    )));
-                }
-                used[i] = true;
-            }
-            (0..pool.len())
-                .into_par_iter()
-                .map(|i| used[i].then(|| features::pen_path_with(&robot, &pool.trajectories[i])))
-                .collect()
-        };
-        let mut added = 0;
-        for g in groups.iter().filter(|g| g.len() >= 2) {
-            let label = self.by_class.len() as u32;
-            let mut members = Vec::with_capacity(g.len());
-            for &i in g {
-                let Some(p) = pens[i] else { continue };
-                members.push(self.raw.len());
-                self.pen.push(p);
-                self.raw.push(pool.trajectories[i]);
-                self.faults.push(Vec::new());
-                self.labels.push(label);
-                self.data_index.push(i);
-            }
-            self.by_class.push(members);
-            added += 1;
-        }
-        self.pool_share = share;
-        Ok(added)
-    }
-
-    /// Add `n` compound classes, each two labelled classes drawn side by side or one above
-    /// the other (a random layout per class: the second part 0.6–1 times the first's size,
-    /// a gap of 0.05–0.3 of it, offset by up to ±0.2 of it). Sample `i` of a compound
-    /// class is sample `i` of each part (time-subsampled to 60 steps each, joined by 8
-    /// pen-up steps), so its drawers vary as the parts' do. Compounds are made of the
-    /// labelled classes (class-augmented transforms included) and, like pool classes, have
-    /// no corrupted plans and take `share` of each batch's classes; they cannot be combined
-    /// with a pool. Call after [`Prepared::make_faults`] and [`Prepared::augment_classes`].
-    /// Deterministic in `seed`; returns the classes added.
-    pub fn add_compounds(&mut self, n: usize, share: f64, seed: u64) -> Result<usize, TrainError> {
-        self.check_new_classes("compound classes")?;
-        if !(0.0..=1.0).contains(&share) {
-            return Err(TrainError::Setup(format!(
-                "compound share {share} must be in [0, 1]"
-            )));
-        }
-        let parts = self.pool_start;
-        if parts < 2 {
-            return Err(TrainError::Setup(
-                "compound classes need two classes".into(),
-            ));
-        }
-        let mut rng = StdRng::seed_from_u64(seed ^ 0xc0_4d_90_0d);
-        for _ in 0..n {
-            let a = rng.random_range(0..parts);
-            let b = loop {
-                let b = rng.random_range(0..parts);
-                if b != a {
-                    break b;
-                }
-            };
-            let layout = CompoundLayout {
-                below: rng.random_bool(0.5),
-                scale: rng.random_range(0.6..1.0),
-                gap: rng.random_range(0.05..0.3),
-                offset: rng.random_range(-0.2..0.2),
-            };
-            let label = self.by_class.len() as u32;
-            let pairs: Vec<(usize, usize)> = self.by_class[a]
-                .iter()
-                .copied()
-                .zip(self.by_class[b].iter().copied())
-                .collect();
-            let mut members = Vec::with_capacity(pairs.len());
-            for (i, j) in pairs {
-                members.push(self.raw.len());
-                self.pen
-                    .push(compound_path(&self.pen[i], &self.pen[j], layout));
-                self.raw.push(self.raw[i]);
-                self.faults.push(Vec::new());
-                self.labels.push(label);
-                self.data_index.push(self.data_index[i]);
-            }
-            self.by_class.push(members);
-        }
-        self.pool_share = share;
-        Ok(n)
-    }
-
-    /// Classes made from the labelled ones (`what`) need pen paths, and must come before
-    /// any pool or compound class.
-    fn check_new_classes(&self, what: &str) -> Result<(), TrainError> {
-        if self.kind == FeatureKind::Joints {
-            return Err(TrainError::Setup(format!("{what}: needs pen features")));
-        }
-        if self.pool_classes() > 0 {
-            return Err(TrainError::Setup(format!(
-                "{what}: must come before pool or compound classes are added"
-            )));
-        }
-        Ok(())
-    }
-
-    /// Number of pool classes ([`Prepared::add_pool`]).
-    pub fn pool_classes(&self) -> usize {
-        self.by_class.len() - self.pool_start
     }
 
     /// Make `variants` corrupted plans of every sample for fault-negative training: a random
@@ -847,16 +560,10 @@ impl Prepared {
             .map_err(|e| TrainError::Setup(format!("fault negatives: {e}")))?;
         let solver = PathSolver::new(&data.geometry)
             .map_err(|e| TrainError::Setup(format!("fault negatives: {e}")))?;
-        let pool_start = self.pool_start;
         let made: Vec<Vec<[PenPoint; STEPS]>> = self
             .data_index
             .par_iter()
-            .zip(&self.labels)
-            .map(|(&i, &label)| {
-                // Pool samples index the pool, not `data`, and get no corrupted plans.
-                if label as usize >= pool_start {
-                    return Vec::new();
-                }
+            .map(|&i| {
                 let Some(st) = index.strokes_of(data, i) else {
                     return Vec::new();
                 };
@@ -880,10 +587,13 @@ impl Prepared {
 
     /// Class augmentation: add the transforms of every class that `plan` keeps as classes
     /// of their own (pen paths and corrupted plans transformed; same dataset indices).
-    /// Call after [`Prepared::make_faults`] and before [`Prepared::add_pool`] (pool classes
-    /// are not augmented). Returns the plan.
+    /// Call after [`Prepared::make_faults`]. Returns the plan.
     pub fn augment_classes(&mut self, rule: SymmetryRule) -> Result<AugmentPlan, TrainError> {
-        self.check_new_classes("class augmentation")?;
+        if self.kind == FeatureKind::Joints {
+            return Err(TrainError::Setup(
+                "class augmentation needs pen features".into(),
+            ));
+        }
         let groups: Vec<Vec<&[PenPoint; STEPS]>> = self
             .by_class
             .iter()
@@ -907,10 +617,8 @@ impl Prepared {
                     self.data_index.push(self.data_index[i]);
                 }
                 self.by_class.push(members);
-                self.class_alphabet.push(self.class_alphabet[c]);
             }
         }
-        self.pool_start = self.by_class.len();
         Ok(plan)
     }
 
@@ -962,12 +670,6 @@ impl Prepared {
         self.reverse_augment = on;
     }
 
-    /// Add a smooth deformation of at most `amplitude` (a fraction of the drawing's
-    /// half-size per term, [`features::Warp`]) to the augmentations (0, the default: none).
-    pub fn set_warp(&mut self, amplitude: f32) {
-        self.warp = amplitude;
-    }
-
     /// Number of classes.
     pub fn classes(&self) -> usize {
         self.by_class.len()
@@ -1011,7 +713,7 @@ impl Prepared {
                 candle_core::bail!("batch item {item:?} is not in the prepared set");
             };
             let aug = match rng.as_deref_mut() {
-                Some(r) => random_augment(r, self.reverse_augment, self.warp),
+                Some(r) => random_augment(r, self.reverse_augment),
                 None => Augment::default(),
             };
             features::path_features(self.kind, path, &aug, out);
@@ -1020,42 +722,10 @@ impl Prepared {
     }
 
     /// A class-balanced batch: `p` classes, `k` samples each (fewer if a class is small).
-    /// With pool classes, `round(p * pool_share)` of the classes are pool classes and the
-    /// rest labelled ones.
     pub fn sample_pk(&self, p: usize, k: usize, rng: &mut StdRng) -> (Vec<usize>, Vec<u32>) {
-        let classes: Vec<usize> = if self.pool_classes() == 0 {
-            let mut classes: Vec<usize> = (0..self.by_class.len()).collect();
-            classes.shuffle(rng);
-            if self.alphabet_share > 0.0 && rng.random_bool(self.alphabet_share.min(1.0)) {
-                // The alphabet of a random class (alphabets weighted by their classes):
-                // its classes first, the others after them if it has fewer than P.
-                self.one_alphabet_first(&mut classes);
-            }
-            classes.truncate(p);
-            classes
-        } else {
-            let n_pool = ((p as f64 * self.pool_share).round() as usize).min(self.pool_classes());
-            let n_lab = (p - n_pool).min(self.pool_start);
-            let mut classes: Vec<usize> =
-                if self.alphabet_share > 0.0 && rng.random_bool(self.alphabet_share.min(1.0)) {
-                    // The labelled classes from one alphabet, as without pool classes.
-                    let mut all: Vec<usize> = (0..self.pool_start).collect();
-                    all.shuffle(rng);
-                    self.one_alphabet_first(&mut all);
-                    all.truncate(n_lab);
-                    all
-                } else {
-                    rand::seq::index::sample(rng, self.pool_start, n_lab)
-                        .into_iter()
-                        .collect()
-                };
-            classes.extend(
-                rand::seq::index::sample(rng, self.pool_classes(), n_pool)
-                    .into_iter()
-                    .map(|c| self.pool_start + c),
-            );
-            classes
-        };
+        let mut classes: Vec<usize> = (0..self.by_class.len()).collect();
+        classes.shuffle(rng);
+        classes.truncate(p);
         let mut idx = Vec::with_capacity(p * k);
         let mut labels = Vec::with_capacity(p * k);
         for &c in &classes {
@@ -1067,15 +737,6 @@ impl Prepared {
             }
         }
         (idx, labels)
-    }
-
-    /// Reorder shuffled labelled `classes`: those of the first one's alphabet (alphabets are
-    /// thus weighted by their classes) first, the others after them, in their order.
-    fn one_alphabet_first(&self, classes: &mut [usize]) {
-        if let Some(&first) = classes.first() {
-            let alphabet = self.class_alphabet[first];
-            classes.sort_by_key(|&c| self.class_alphabet[c] != alphabet);
-        }
     }
 
     /// The raw inputs.
@@ -1093,108 +754,22 @@ impl Prepared {
         &self.labels
     }
 
-    /// The data set index of every sample (a transform's or pool sample's source drawing in
-    /// its own data set).
+    /// The data set index of every sample (a transform's source drawing).
     pub fn data_indices(&self) -> &[usize] {
         &self.data_index
     }
 }
 
-/// Where the second part of a compound class goes ([`Prepared::add_compounds`]); lengths
-/// are fractions of the first part's longest side.
-#[derive(Debug, Clone, Copy)]
-struct CompoundLayout {
-    /// Below the first part (else right of it).
-    below: bool,
-    /// Longest side of the second part.
-    scale: f32,
-    /// Gap between the two parts' bounding boxes.
-    gap: f32,
-    /// Offset across the layout direction, between the boxes' centres.
-    offset: f32,
-}
-
-/// Steps of each part of a compound and of the pen-up travel between them.
-const COMPOUND_PART: usize = 60;
-const COMPOUND_TRAVEL: usize = STEPS - 2 * COMPOUND_PART;
-
-/// `a` and `b` drawn as one character (see [`CompoundLayout`]).
-fn compound_path(
-    a: &[PenPoint; STEPS],
-    b: &[PenPoint; STEPS],
-    l: CompoundLayout,
-) -> [PenPoint; STEPS] {
-    let sub = |p: &[PenPoint; STEPS]| -> [PenPoint; COMPOUND_PART] {
-        std::array::from_fn(|k| {
-            p[(k * (STEPS - 1) + (COMPOUND_PART - 1) / 2) / (COMPOUND_PART - 1)]
-        })
-    };
-    let (pa, mut pb) = (sub(a), sub(b));
-    let (alo, ahi) = features::pen_down_box(&pa);
-    let (blo, bhi) = features::pen_down_box(&pb);
-    let size_a = (ahi[0] - alo[0]).max(ahi[1] - alo[1]).max(1e-6);
-    let size_b = (bhi[0] - blo[0]).max(bhi[1] - blo[1]);
-    // A second part of (nearly) no extent, a dot, keeps its own size rather than being
-    // blown up to the first part's.
-    let k = if size_b > 1e-3 * size_a {
-        l.scale * size_a / size_b
-    } else {
-        1.0
-    };
-    let bc = [0.5 * (blo[0] + bhi[0]), 0.5 * (blo[1] + bhi[1])];
-    let ac = [0.5 * (alo[0] + ahi[0]), 0.5 * (alo[1] + ahi[1])];
-    let half_b = [0.5 * k * (bhi[0] - blo[0]), 0.5 * k * (bhi[1] - blo[1])];
-    // Centre of the placed second part.
-    let centre = if l.below {
-        [
-            ac[0] + l.offset * size_a,
-            alo[1] - l.gap * size_a - half_b[1],
-        ]
-    } else {
-        [
-            ahi[0] + l.gap * size_a + half_b[0],
-            ac[1] + l.offset * size_a,
-        ]
-    };
-    for q in pb.iter_mut() {
-        q[0] = centre[0] + k * (q[0] - bc[0]);
-        q[1] = centre[1] + k * (q[1] - bc[1]);
-    }
-    let mut out = [[0.0f32; 3]; STEPS];
-    out[..COMPOUND_PART].copy_from_slice(&pa);
-    let (from, to) = (pa[COMPOUND_PART - 1], pb[0]);
-    for t in 0..COMPOUND_TRAVEL {
-        let s = (t + 1) as f32 / (COMPOUND_TRAVEL + 1) as f32;
-        out[COMPOUND_PART + t] = [
-            from[0] + s * (to[0] - from[0]),
-            from[1] + s * (to[1] - from[1]),
-            0.0,
-        ];
-    }
-    out[COMPOUND_PART + COMPOUND_TRAVEL..].copy_from_slice(&pb);
-    out
-}
-
 /// Random augmentation; with `reverse` false the draw for time reversal is made and
-/// ignored, so the other augmentations are the same as with it. A deformation is drawn
-/// only when `warp > 0`, so without one the random stream is the same as before it existed.
-fn random_augment(rng: &mut StdRng, reverse: bool, warp: f32) -> Augment {
-    let mut aug = Augment {
+/// ignored, so the other augmentations are the same as with it.
+fn random_augment(rng: &mut StdRng, reverse: bool) -> Augment {
+    Augment {
         rotation: rng.random_range(-0.2..0.2),
         shear: rng.random_range(-0.2..0.2),
         scale_x: rng.random_range(0.85..1.15),
         scale_y: rng.random_range(0.85..1.15),
         reverse: rng.random_bool(0.5) && reverse,
-        warp: Warp::default(),
-    };
-    if warp > 0.0 {
-        for k in 0..4 {
-            aug.warp.amp[k] = rng.random_range(-warp..warp);
-            aug.warp.freq[k] = rng.random_range(0.5..1.0);
-            aug.warp.phase[k] = rng.random_range(0.0..std::f32::consts::TAU);
-        }
     }
-    aug
 }
 
 /// The loss of one batch of embeddings `e [B, embed_dim]`. Returns `(loss, active
@@ -1238,39 +813,6 @@ pub fn objective(
     Ok((total, comparable, active, n))
 }
 
-/// The distillation teachers' networks (checked to read the student's features).
-fn load_teachers(paths: &[PathBuf], features: FeatureKind) -> Result<Vec<FastNet>, TrainError> {
-    paths
-        .iter()
-        .map(|p| {
-            let m = Embedder::load(p)?;
-            if m.config().features != features {
-                return Err(TrainError::Setup(format!(
-                    "teacher {} reads {:?} features, the student {features:?}",
-                    p.display(),
-                    m.config().features
-                )));
-            }
-            Ok(m.fast().clone())
-        })
-        .collect()
-}
-
-/// Squared distances `[B, B]` between the teachers' embeddings of the batch `x`, each
-/// teacher's embedding L2-normalised and the ensemble's concatenated (`None` without
-/// teachers).
-fn teacher_distances(teachers: &[FastNet], x: &Tensor) -> Result<Option<Tensor>, TrainError> {
-    if teachers.is_empty() {
-        return Ok(None);
-    }
-    let parts = teachers
-        .iter()
-        .map(|t| embed(t, x))
-        .collect::<Result<Vec<_>, _>>()?;
-    let e = Tensor::cat(&parts, 1)?;
-    Ok(Some(loss::pairwise_sq_dist(&e)?))
-}
-
 /// Embeddings `[B, embed_dim]` of a feature batch `x [B, STEPS, F]` (no gradient).
 pub fn embed(net: &FastNet, x: &Tensor) -> Result<Tensor, TrainError> {
     let (b, l, _) = x.dims3()?;
@@ -1289,10 +831,6 @@ fn embedding_loss(
     rng: &mut StdRng,
 ) -> candle_core::Result<(Tensor, f32, usize)> {
     match kind {
-        LossKind::BatchHard => {
-            let (l, a) = loss::batch_hard_triplet_loss(e, labels, margin)?;
-            Ok((l, a, labels.len()))
-        }
         LossKind::BatchAll => {
             let (l, a) = loss::batch_all_triplet_loss(e, labels, margin)?;
             let n = labels.len();
@@ -1488,28 +1026,8 @@ pub fn train(
         )));
     }
     std::fs::create_dir_all(out).map_err(io_err(out))?;
-    if !(0.0..=1.0).contains(&cfg.alphabet_share) {
-        return Err(TrainError::Setup(format!(
-            "alphabet share {} must be in [0, 1]",
-            cfg.alphabet_share
-        )));
-    }
-    if !(0.0..1.0).contains(&cfg.warp) {
-        return Err(TrainError::Setup(format!(
-            "warp {} must be in [0, 1)",
-            cfg.warp
-        )));
-    }
-    if !(cfg.distill_weight.is_finite() && cfg.distill_weight >= 0.0) {
-        return Err(TrainError::Setup(format!(
-            "distillation weight {} must be finite and >= 0",
-            cfg.distill_weight
-        )));
-    }
     let mut train_set = Prepared::new(data, &cfg.train_alphabets, cfg.net.features)?;
     train_set.set_reverse_augment(cfg.reverse_augment);
-    train_set.set_alphabet_share(cfg.alphabet_share);
-    train_set.set_warp(cfg.warp as f32);
     let mut val_set = Prepared::new(data, &cfg.val_alphabets, cfg.net.features)?;
     if cfg.fault_share > 0.0 {
         let root = strokes.ok_or_else(|| {
@@ -1553,15 +1071,6 @@ pub fn train(
             );
         }
         write_json(&out.join("class-augment.json"), &plan)?;
-    }
-    if cfg.pool_mode != PoolMode::None {
-        add_pool_classes(&mut train_set, data, cfg, out, quiet)?;
-    }
-    if cfg.compounds > 0 {
-        let added = train_set.add_compounds(cfg.compounds, cfg.compound_share, cfg.seed)?;
-        if !quiet {
-            eprintln!("compound classes: {added} ({} in all)", train_set.classes());
-        }
     }
     if train_set.classes() < cfg.p_classes.min(2) || val_set.classes() < 5 {
         return Err(TrainError::Setup(format!(
@@ -1639,7 +1148,6 @@ pub fn train(
         });
     }
     let mut learner = Learner::new(net, cfg.weight_decay);
-    let teachers = load_teachers(&cfg.teachers, cfg.net.features)?;
     if let Some((m, v)) = opt_state {
         let opt = &mut learner.opt;
         let shapes_match = |saved: &[Vec<f32>], own: &[Vec<f32>]| {
@@ -1711,13 +1219,8 @@ pub fn train(
             let (items, labels) = train_set.with_faults(&idx, &labels, cfg.fault_share, &mut rng);
             let x = train_set.batch_items(&items, cfg.augment.then_some(&mut rng))?;
             let sources = train_set.sources(&items);
-            let teacher_d = teacher_distances(&teachers, &x)?;
             let (l, (active, n_trip)) = learner.step(&x, state.lr, |e| {
-                let (mut l, _, active, n) = objective(e, &labels, &sources, cfg, &mut rng)?;
-                if let Some(d) = &teacher_d {
-                    let kd = loss::distance_distillation_loss(e, d)?;
-                    l = (l + (kd * cfg.distill_weight)?)?;
-                }
+                let (l, _, active, n) = objective(e, &labels, &sources, cfg, &mut rng)?;
                 Ok((l, (active, n)))
             })?;
             loss_sum += f64::from(l);
@@ -1815,65 +1318,6 @@ pub fn train(
         model_version: best.version().to_string(),
         stopped,
     })
-}
-
-/// Load the pool of `cfg`, make its classes (pseudo-labels or SSL) and add them to
-/// `train_set`; the pseudo-classes and their statistics go to `out/pool-classes.json`.
-fn add_pool_classes(
-    train_set: &mut Prepared,
-    data: &Dataset,
-    cfg: &TrainConfig,
-    out: &Path,
-    quiet: bool,
-) -> Result<(), TrainError> {
-    let path = cfg
-        .pool
-        .as_deref()
-        .ok_or_else(|| TrainError::Setup("a pool mode needs --pool".into()))?;
-    let t0 = Instant::now();
-    let pool_data = Dataset::load(path)
-        .map_err(|e| TrainError::Setup(format!("pool {}: {e}", path.display())))?;
-    if pool_data.geometry != data.geometry {
-        return Err(TrainError::Setup(format!(
-            "pool {} was made with another geometry than the dataset",
-            path.display()
-        )));
-    }
-    let model = match (cfg.pool_mode, &cfg.pseudo_model) {
-        (PoolMode::Pseudo, Some(m)) => Some(Embedder::load(m)?),
-        (PoolMode::Pseudo, None) => {
-            return Err(TrainError::Setup(
-                "pseudo-labels need --pseudo-model".into(),
-            ));
-        }
-        _ => None,
-    };
-    let params = cfg.pseudo_clusters.unwrap_or_default();
-    let (groups, stats) = pool::training_groups(&pool_data, cfg.pool_mode, model.as_ref(), &params)
-        .map_err(|e| TrainError::Setup(format!("pool classes: {e}")))?;
-    let added = train_set.add_pool(&pool_data, &groups, cfg.pool_share)?;
-    if added == 0 {
-        return Err(TrainError::Setup("the pool gave no class".into()));
-    }
-    if !quiet {
-        eprintln!(
-            "pool: {added} classes ({} drawings) from {} pool drawings in {:.1} s{}",
-            groups.iter().map(Vec::len).sum::<usize>(),
-            pool_data.len(),
-            t0.elapsed().as_secs_f64(),
-            stats
-                .as_ref()
-                .map(|s| format!("; clusters {}", serde_json::json!(s)))
-                .unwrap_or_default()
-        );
-    }
-    if cfg.pool_mode == PoolMode::Pseudo {
-        write_json(
-            &out.join("pool-classes.json"),
-            &serde_json::json!({"stats": stats, "params": params, "groups": groups}),
-        )?;
-    }
-    Ok(())
 }
 
 /// Embeddings of every sample of a prepared set (no augmentation), in order.
