@@ -515,7 +515,7 @@ fn training_gradients_match_candle_autograd_on_real_batches() {
 
 #[test]
 fn class_augmentation_adds_transformed_classes_with_their_faults_and_drops_duplicates() {
-    use guardian_lab::classaug::{self, Dihedral, SymmetryRule};
+    use guardian_lab::train::classaug::{self, Dihedral, SymmetryRule};
     let data = small_dataset();
     let mut set = Prepared::new(data, &["Latin".to_string()], FeatureKind::Pen).expect("prepare");
     set.make_faults(data, &shared_strokes(), &train::TRAIN_FAULTS, 2, 7)
