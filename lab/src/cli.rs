@@ -118,6 +118,10 @@ mod tests {
         data: DatasetArgs,
         #[command(flatten)]
         screen: ScreenArgs,
+    }
+
+    #[derive(Debug, Parser)]
+    struct EpisodeCli {
         #[command(flatten)]
         episodes: EpisodeArgs,
     }
@@ -129,7 +133,10 @@ mod tests {
         assert_eq!(cli.screen.model, PathBuf::from(SHIPPED_MODEL));
         assert_eq!(cli.screen.alphabets, ["Greek", "Korean"]);
         assert_eq!(cli.screen.calib_alphabets, ["Latin"]);
-        let spec = cli.episodes.spec();
+        let spec = EpisodeCli::try_parse_from(["lab"])
+            .expect("parse")
+            .episodes
+            .spec();
         assert_eq!(
             (spec.way, spec.shot, spec.episodes, spec.seed),
             (5, 1, 10_000, 0)

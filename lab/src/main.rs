@@ -53,3 +53,15 @@ fn main() -> anyhow::Result<()> {
         Command::Robot(args) => guardian_lab::tools::robot::run(args),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use clap::CommandFactory;
+
+    /// Every subcommand's arguments, shared groups flattened in, are consistent (no option
+    /// defined twice, defaults that parse).
+    #[test]
+    fn the_command_line_is_consistent() {
+        super::Cli::command().debug_assert();
+    }
+}
