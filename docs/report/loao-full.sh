@@ -24,38 +24,11 @@ for i in "${!alphabets[@]}"; do
     [[ $a == "$test_a" || $a == "$val_a" ]] || train+=("$a")
   done
   dir="$out/${test_a//[()]/}"
-  # With POOL_MODE=pseudo|ssl: the unlabelled pool without the copies of the fold's test and
-  # validation alphabets (made once per fold under POOL_DIR), and for pseudo-labels the
-  # fold's model from the PSEUDO_FROM run (a model that never saw the test alphabet).
-  pool_args=()
-  if [[ -n ${POOL_MODE:-} ]]; then
-    pool_dir=${POOL_DIR:-$out/pools}
-    mkdir -p "$pool_dir"
-    pool="$pool_dir/${test_a//[()]/}.safetensors"
-    if [[ ! -s $pool ]]; then
-      "$lab" pool --unlabelled "${UNLABELLED:-../shared/omniglot/unlabelled/drawings.jsonl}" \
-        --strokes "$strokes" --exclude-alphabets "$test_a,$val_a" --out "$pool.tmp" \
-        > "$pool_dir/${test_a//[()]/}.json"
-      mv "$pool.tmp" "$pool"
-    fi
-    pool_args=(--pool-mode "$POOL_MODE" --pool "$pool")
-    if [[ $POOL_MODE == pseudo ]]; then
-      pool_args+=(--pseudo-model "$PSEUDO_FROM/${test_a//[()]/}/model.safetensors")
-    fi
-  fi
-  # With TEACHERS_FROM=RUN1,RUN2,...: relational distillation from those runs' models of
-  # this fold (models that never saw the test alphabet either).
-  if [[ -n ${TEACHERS_FROM:-} ]]; then
-    IFS=, read -r -a teacher_runs <<< "$TEACHERS_FROM"
-    teachers=()
-    for t in "${teacher_runs[@]}"; do teachers+=("$t/${test_a//[()]/}/model.safetensors"); done
-    pool_args+=(--teachers "$(IFS=,; echo "${teachers[*]}")")
-  fi
   if [[ ! -f $dir/state.json ]] || ! grep -q '"finished": true' "$dir/state.json"; then
     resume=(); [[ -f $dir/state.json ]] && resume=(--resume)
     mkdir -p "$dir"
     "$lab" train --dataset "$dataset" --train-alphabets "$(IFS=,; echo "${train[*]}")" \
-      --val-alphabets "$val_a" --out "$dir" --quiet --strokes "$strokes" "${resume[@]}" "${pool_args[@]}" "$@" \
+      --val-alphabets "$val_a" --out "$dir" --quiet --strokes "$strokes" "${resume[@]}" "$@" \
       > "$dir.train.log" 2>&1
   fi
   if [[ ! -s $dir/eval.jsonl ]]; then

@@ -1,38 +1,26 @@
 //! guardian-lab: the research bench behind guardian — Omniglot strokes to joint trajectories
-//! of a robot arm (the Panda by default, the UR5e or any described arm), training of the embedding network, baselines, few-shot evaluation and reports.
+//! of a robot arm (the Panda by default, the UR5e or any described arm), training of the
+//! embedding network, baselines, few-shot evaluation and reports. Laid out by role:
 //!
-//! - [`strokes`]: the Omniglot stroke reader.
-//! - [`path`]: canvas geometry, the Cartesian pen path and IK along it.
-//! - [`dataset`]: dataset generation and the safetensors file ([`dataset::Dataset`]).
-//! - [`plot`]: a drawing, its FK-reconstructed pen tip and its joint curves as a PNG.
-//! - [`train`]: training of the embedding network (triplet, or contrastive for the Siamese
-//!   baseline).
-//! - [`eval`]: N-way K-shot episodes for the model and the baselines.
-//! - [`report`]: the markdown + PNG report of a trained model.
-//! - [`calibrate`]: threshold calibration and the default class bank.
-//! - [`classaug`]: class augmentation (rotated and mirrored characters as classes).
-//! - [`faults`]: faulty-plan generators (corruptions of a genuine plan).
-//! - [`metrics`]: AUROC, ROC curve, TPR at an FPR and the pair AUC.
-//! - [`outliers`]: go / no-go metrics on faulty and genuine plans.
-//! - [`pool`]: the unlabelled drawing pool: reading, conversion, copies of labelled drawings
-//!   left out, pseudo-labels and self-supervised classes for training.
-//! - [`robot`]: print a robot description and check its kinematics (`guardian-lab robot`).
-//! - [`demo`]: enroll real drawings in a running `guardiand` and check genuine and faulty
-//!   plans through the client (`guardian-lab demo`).
+//! - [`data`]: the Omniglot stroke reader, canvas geometry and IK along the pen path, the
+//!   dataset file, faulty-plan generators.
+//! - [`train`]: training of the embedding network (configuration, batches, class
+//!   augmentation, objective, optimiser, schedule, checkpoints, the loop).
+//! - [`eval`]: few-shot episodes and baselines, go / no-go on faulty plans, calibration,
+//!   metrics, the report.
+//! - [`tools`]: the default class bank, the demo against a running `guardiand`, plots, the
+//!   robot description check.
+//! - [`cli`]: argument groups shared by the subcommands.
+//!
+//! Every subcommand's module owns its `Args` and a `run(&Args)`.
 #![forbid(unsafe_code)]
 
-pub mod calibrate;
-pub mod classaug;
-pub mod dataset;
-pub mod demo;
+pub mod cli;
+pub mod data;
 pub mod eval;
-pub mod faults;
-pub mod metrics;
-pub mod outliers;
-pub mod path;
-pub mod plot;
-pub mod pool;
-pub mod report;
-pub mod robot;
-pub mod strokes;
+pub mod tools;
 pub mod train;
+
+// Used by other crates of the workspace (guardian-tests): the stroke reader, the path
+// solver and the dataset conversion.
+pub use data::{dataset, path, strokes};

@@ -14,28 +14,25 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Convert Omniglot strokes into joint trajectories of a robot (safetensors dataset).
-    Dataset(guardian_lab::dataset::Args),
+    Dataset(guardian_lab::data::dataset::Args),
     /// Plot one drawing of a dataset: strokes, FK pen tip, joint curves.
-    Plot(guardian_lab::plot::Args),
+    Plot(guardian_lab::tools::plot::Args),
     /// Train the embedding network.
     Train(Box<guardian_lab::train::Args>),
     /// Few-shot evaluation of a model or a baseline.
     Eval(guardian_lab::eval::Args),
     /// Markdown + PNG report of a trained model.
-    Report(guardian_lab::report::Args),
+    Report(guardian_lab::eval::report::Args),
     /// Calibrate thresholds on validation alphabets and build a class bank.
-    Bank(guardian_lab::calibrate::Args),
+    Bank(guardian_lab::tools::bank::Args),
     /// Faulty-plan detection metrics (AUROC, TPR at 1% FPR, detection, false rejects).
-    Outliers(guardian_lab::outliers::Args),
-    /// Build a fold's unlabelled pool: copies of the excluded alphabets' drawings left out,
-    /// the rest converted (a dataset file).
-    Pool(guardian_lab::pool::Args),
+    Outliers(guardian_lab::eval::outliers::Args),
     /// Print a robot description (built-in name or file) and check its kinematics: FK fast
     /// path, Jacobian, IK round trips, home pose and canvas reach (exit status 1 on a failure).
-    Robot(guardian_lab::robot::Args),
+    Robot(guardian_lab::tools::robot::Args),
     /// Enroll real drawings in a running guardiand, send genuine and faulty plans, print a
     /// go/no-go table (exit status 1 if any case is not as expected).
-    Demo(guardian_lab::demo::Args),
+    Demo(guardian_lab::tools::demo::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -45,15 +42,26 @@ fn main() -> anyhow::Result<()> {
         .init();
     let cli = Cli::parse();
     match &cli.command {
-        Command::Dataset(args) => guardian_lab::dataset::run(args),
-        Command::Plot(args) => guardian_lab::plot::run(args),
+        Command::Dataset(args) => guardian_lab::data::dataset::run(args),
+        Command::Plot(args) => guardian_lab::tools::plot::run(args),
         Command::Train(args) => guardian_lab::train::run(args),
         Command::Eval(args) => guardian_lab::eval::run(args),
-        Command::Report(args) => guardian_lab::report::run(args),
-        Command::Bank(args) => guardian_lab::calibrate::run(args),
-        Command::Outliers(args) => guardian_lab::outliers::run(args),
-        Command::Pool(args) => guardian_lab::pool::run(args),
-        Command::Demo(args) => guardian_lab::demo::main(args),
-        Command::Robot(args) => guardian_lab::robot::run(args),
+        Command::Report(args) => guardian_lab::eval::report::run(args),
+        Command::Bank(args) => guardian_lab::tools::bank::run(args),
+        Command::Outliers(args) => guardian_lab::eval::outliers::run(args),
+        Command::Demo(args) => guardian_lab::tools::demo::run(args),
+        Command::Robot(args) => guardian_lab::tools::robot::run(args),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::CommandFactory;
+
+    /// Every subcommand's arguments, shared groups flattened in, are consistent (no option
+    /// defined twice, defaults that parse).
+    #[test]
+    fn the_command_line_is_consistent() {
+        super::Cli::command().debug_assert();
     }
 }

@@ -4,8 +4,8 @@
 
 use std::path::{Path, PathBuf};
 
+use guardian_lab::data::faults::{CorruptError, Fault, SEVERITIES, corrupt};
 use guardian_lab::dataset::convert_strokes;
-use guardian_lab::faults::{CorruptError, Fault, SEVERITIES, corrupt};
 use guardian_lab::path::{Geometry, PathSolver};
 use guardian_lab::strokes::read_strokes;
 use guardian_shared::trajectory::validate;

@@ -1,7 +1,7 @@
 //! `guardian-lab robot`'s checks on the shipped robots and on a description whose canvas the
 //! arm cannot reach.
 
-use guardian_lab::robot::check;
+use guardian_lab::tools::robot::check;
 use guardian_models::kinematics::{RobotDescription, UR5E_URDF};
 
 #[test]
@@ -22,7 +22,10 @@ fn both_shipped_robots_pass_every_check() {
     }
     // The UR5e home is elbow up, as seeded, and well conditioned (measured ~0.23).
     let ur = check(RobotDescription::named("ur5e").unwrap());
-    let sv = guardian_lab::robot::smallest_singular_value(&ur.description.robot, &ur.home.unwrap());
+    let sv = guardian_lab::tools::robot::smallest_singular_value(
+        &ur.description.robot,
+        &ur.home.unwrap(),
+    );
     assert!(sv > 0.1, "{sv}");
 }
 

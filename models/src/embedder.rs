@@ -91,6 +91,13 @@ pub enum LoadModelError {
         /// Tensor name.
         name: String,
     },
+    /// The network config names a feature kind this build does not know (e.g. one that
+    /// was removed: a model trained on it cannot be served).
+    #[error("model config names unknown feature kind `{got}`")]
+    UnknownFeatureKind {
+        /// The kind the file names.
+        got: String,
+    },
     /// A tensor has the wrong shape or dtype.
     #[error("tensor `{name}`: expected f32 {expected:?}, got {dtype} {got:?}")]
     ShapeMismatch {
@@ -241,12 +248,16 @@ impl Embedder {
             });
         }
         let config_json = get("config")?;
-        let config: NetConfig =
-            serde_json::from_str(config_json).map_err(|e| LoadModelError::BadMetadata {
-                key: "config",
-                expected: "a network config".into(),
-                got: format!("{config_json} ({e})"),
-            })?;
+        let config: NetConfig = serde_json::from_str(config_json).map_err(|e| {
+            match unknown_feature_kind(config_json) {
+                Some(got) => LoadModelError::UnknownFeatureKind { got },
+                None => LoadModelError::BadMetadata {
+                    key: "config",
+                    expected: "a network config".into(),
+                    got: format!("{config_json} ({e})"),
+                },
+            }
+        })?;
         if config.embed_dim != EMBED_DIM {
             return Err(LoadModelError::BadMetadata {
                 key: "config",
@@ -739,6 +750,18 @@ impl Embedder {
     }
 }
 
+/// The `features` a network config JSON names, if it is not a [`FeatureKind`] this build
+/// knows.
+fn unknown_feature_kind(config_json: &str) -> Option<String> {
+    let value: serde_json::Value = serde_json::from_str(config_json).ok()?;
+    let features = value.get("features")?;
+    let known = serde_json::from_value::<crate::features::FeatureKind>(features.clone()).is_ok();
+    (!known).then(|| match features.as_str() {
+        Some(name) => name.to_string(),
+        None => features.to_string(),
+    })
+}
+
 fn check_finite(xs: &[Resampled]) -> Result<(), EmbedError> {
     for (index, x) in xs.iter().enumerate() {
         if x.iter().flatten().any(|v| !v.is_finite()) {
@@ -908,6 +931,42 @@ mod tests {
         let err = Embedder::load(Path::new("/nonexistent/model.safetensors")).unwrap_err();
         assert!(matches!(err, LoadModelError::Read { .. }), "{err}");
     }
+
+    /// `bytes` with the JSON header's `from` replaced by `to` (the header re-padded to 8).
+    fn edit_header(bytes: &[u8], from: &str, to: &str) -> Vec<u8> {
+        let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+        let header = std::str::from_utf8(&bytes[8..8 + n]).unwrap();
+        assert!(header.contains(from), "{header}");
+        let mut header = header.trim_end().replace(from, to).into_bytes();
+        header.resize(header.len().next_multiple_of(8), b' ');
+        let mut out = (header.len() as u64).to_le_bytes().to_vec();
+        out.extend(header);
+        out.extend(&bytes[8 + n..]);
+        out
+    }
+
+    #[test]
+    fn a_model_file_with_an_unknown_feature_kind_is_refused() {
+        let model = Embedder::random(2);
+        let bytes = model.to_bytes().unwrap();
+        let kind = serde_json::to_value(model.config().features).unwrap();
+        let kind = kind.as_str().unwrap().to_string();
+        // The config is a JSON string inside the JSON header, so its quotes are escaped.
+        let field = |k: &str| format!(r#"\"features\":\"{k}\""#);
+        // The edit itself keeps a loadable file: only the feature kind decides.
+        Embedder::from_bytes(&edit_header(&bytes, &field(&kind), &field(&kind)))
+            .expect("an unedited config loads");
+        // A kind that was removed (pen-down strokes) or never existed is refused, by name.
+        for unknown in ["pen-strokes", "sonar"] {
+            let edited = edit_header(&bytes, &field(&kind), &field(unknown));
+            let err = Embedder::from_bytes(&edited).unwrap_err();
+            match &err {
+                LoadModelError::UnknownFeatureKind { got } => assert_eq!(got, unknown),
+                other => panic!("expected UnknownFeatureKind, got {other}"),
+            }
+            assert!(err.to_string().contains(unknown), "{err}");
+        }
+    }
 }
 
 /// The embedder's fast path against candle's forward pass of the same weights (feature
@@ -962,7 +1021,7 @@ mod reference_tests {
                 ..NetConfig::default()
             },
             NetConfig {
-                features: FeatureKind::PenStrokes,
+                features: FeatureKind::Pen,
                 ..NetConfig::default()
             },
         ] {

@@ -657,7 +657,7 @@ pub(crate) mod tests {
                 reverse_average: false,
             },
             NetConfig {
-                features: FeatureKind::PenStrokes,
+                features: FeatureKind::Pen,
                 channels: vec![32, 64, 64, 96],
                 kernel: 7,
                 embed_dim: 128,

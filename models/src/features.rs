@@ -25,11 +25,6 @@ pub enum FeatureKind {
     Joints,
     /// Normalised pen-tip path features from forward kinematics (7 channels).
     Pen,
-    /// Like [`FeatureKind::Pen`], but only the pen-down strokes, resampled to [`STEPS`]
-    /// points uniform in pen-down length: the travel between strokes (which depends on the
-    /// order the strokes were drawn in) is dropped; channel 2 marks the first sample of each
-    /// stroke (7 channels).
-    PenStrokes,
     /// A picture of the pen-down path: the segments whose both ends are pen down, splatted
     /// bilinearly into a [`PICTURE_SIDE`] x [`PICTURE_SIDE`] image after the pen features'
     /// bounding-box normalisation (see [`picture`]). Blind to stroke order and direction by
@@ -43,7 +38,7 @@ impl FeatureKind {
     pub fn channels(self) -> usize {
         match self {
             Self::Joints => 8,
-            Self::Pen | Self::PenStrokes => PEN_CHANNELS,
+            Self::Pen => PEN_CHANNELS,
             Self::Picture => 1,
         }
     }
@@ -90,46 +85,6 @@ pub struct Augment {
     pub scale_y: f32,
     /// Reverse time (every stroke drawn backwards, strokes in reverse order).
     pub reverse: bool,
-    /// A smooth non-linear deformation, as one drawer's hand differs from another's.
-    pub warp: Warp,
-}
-
-/// A smooth displacement field over the drawing: with `u, v` a point's coordinates
-/// relative to the centre of the path's bounding box in half-sizes (`[-1, 1]` on the
-/// longest side), `x += h * (a0 sin(pi f0 u + p0) + a1 sin(pi f1 v + p1))` and
-/// `y += h * (a2 sin(pi f2 u + p2) + a3 sin(pi f3 v + p3))` (`h` the half-size): local
-/// stretches and bends of a few percent of the drawing. Zero amplitudes leave a path as it is.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct Warp {
-    /// Amplitudes `a0..a3` (fractions of the half-size).
-    pub amp: [f32; 4],
-    /// Frequencies `f0..f3` (half-cycles over a half-size).
-    pub freq: [f32; 4],
-    /// Phases `p0..p3` (rad).
-    pub phase: [f32; 4],
-}
-
-impl Warp {
-    /// Displace `p` in place (see [`Warp`]).
-    fn apply(&self, p: &mut [PenPoint; STEPS]) {
-        if self.amp == [0.0; 4] {
-            return;
-        }
-        let (lo, hi) = bounds(p.iter());
-        let c = [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])];
-        let h = 0.5 * (hi[0] - lo[0]).max(hi[1] - lo[1]);
-        if h.is_nan() || h <= 0.0 {
-            return;
-        }
-        let term = |k: usize, t: f32| {
-            self.amp[k] * (std::f32::consts::PI * self.freq[k] * t + self.phase[k]).sin()
-        };
-        for q in p.iter_mut() {
-            let (u, v) = ((q[0] - c[0]) / h, (q[1] - c[1]) / h);
-            q[0] += h * (term(0, u) + term(1, v));
-            q[1] += h * (term(2, u) + term(3, v));
-        }
-    }
 }
 
 impl Default for Augment {
@@ -140,7 +95,6 @@ impl Default for Augment {
             scale_x: 1.0,
             scale_y: 1.0,
             reverse: false,
-            warp: Warp::default(),
         }
     }
 }
@@ -188,7 +142,6 @@ pub fn compute(kind: FeatureKind, x: &Resampled, out: &mut [f32]) {
     match kind {
         FeatureKind::Joints => joint_features(x, out),
         FeatureKind::Pen => pen_features(&pen_path(x), &Augment::default(), out),
-        FeatureKind::PenStrokes => stroke_features(&pen_path(x), &Augment::default(), out),
         FeatureKind::Picture => picture(&pen_path(x), &Augment::default(), out),
     }
 }
@@ -198,7 +151,6 @@ pub fn compute(kind: FeatureKind, x: &Resampled, out: &mut [f32]) {
 pub fn path_features(kind: FeatureKind, path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
     match kind {
         FeatureKind::Pen => pen_features(path, aug, out),
-        FeatureKind::PenStrokes => stroke_features(path, aug, out),
         FeatureKind::Picture => picture(path, aug, out),
         FeatureKind::Joints => out.fill(0.0),
     }
@@ -265,7 +217,6 @@ fn augmented(path: &[PenPoint; STEPS], aug: &Augment) -> [PenPoint; STEPS] {
     if aug.reverse {
         p.reverse();
     }
-    aug.warp.apply(&mut p);
     let (cr, sr) = (aug.rotation.cos(), aug.rotation.sin());
     for pt in p.iter_mut() {
         let (x, y) = (pt[0], pt[1]);
@@ -275,113 +226,6 @@ fn augmented(path: &[PenPoint; STEPS], aug: &Augment) -> [PenPoint; STEPS] {
         pt[1] = y * aug.scale_y;
     }
     p
-}
-
-/// Pen-down-only features (see [`FeatureKind::PenStrokes`]).
-pub fn stroke_features(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
-    let c = PEN_CHANNELS;
-    let p = augmented(path, aug);
-    // Strokes: maximal runs of pen-down samples (the whole path if the pen never touches).
-    let mut strokes: Vec<Vec<[f32; 2]>> = Vec::new();
-    let mut prev_down = false;
-    for q in p.iter() {
-        let down = q[2] > 0.5;
-        if down {
-            if !prev_down {
-                strokes.push(Vec::new());
-            }
-            if let Some(s) = strokes.last_mut() {
-                s.push([q[0], q[1]]);
-            }
-        }
-        prev_down = down;
-    }
-    if strokes.is_empty() {
-        strokes.push(p.iter().map(|q| [q[0], q[1]]).collect());
-    }
-    let seg = |a: [f32; 2], b: [f32; 2]| ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
-    let lens: Vec<Vec<f32>> = strokes
-        .iter()
-        .map(|s| {
-            let mut acc = vec![0.0f32];
-            for w in s.windows(2) {
-                let l = acc[acc.len() - 1] + seg(w[0], w[1]);
-                acc.push(l);
-            }
-            acc
-        })
-        .collect();
-    let drawn: f32 = lens.iter().map(|l| l[l.len() - 1]).sum();
-    // Each stroke also gets a small fixed share so dots and short strokes keep samples.
-    let pad = (0.02 * drawn).max(1e-6);
-    let spans: Vec<f32> = lens.iter().map(|l| l[l.len() - 1] + pad).collect();
-    let total: f32 = spans.iter().sum();
-    let mut xy = [[0.0f32; 2]; STEPS];
-    let mut stroke_of = [0usize; STEPS];
-    let (mut si, mut start) = (0usize, 0.0f32);
-    for k in 0..STEPS {
-        let s = total * k as f32 / (STEPS - 1) as f32;
-        while si + 1 < strokes.len() && s > start + spans[si] {
-            start += spans[si];
-            si += 1;
-        }
-        let (pts, acc) = (&strokes[si], &lens[si]);
-        let u = ((s - start) - 0.5 * pad).clamp(0.0, acc[acc.len() - 1]);
-        let j = acc
-            .partition_point(|&a| a <= u)
-            .clamp(1, acc.len().max(2) - 1);
-        xy[k] = if pts.len() == 1 {
-            pts[0]
-        } else {
-            let (a, b) = (acc[j - 1], acc[j]);
-            let t = if b > a { (u - a) / (b - a) } else { 0.0 };
-            [
-                pts[j - 1][0] + t * (pts[j][0] - pts[j - 1][0]),
-                pts[j - 1][1] + t * (pts[j][1] - pts[j - 1][1]),
-            ]
-        };
-        stroke_of[k] = si;
-    }
-    let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
-    for q in &xy {
-        for d in 0..2 {
-            lo[d] = lo[d].min(q[d]);
-            hi[d] = hi[d].max(q[d]);
-        }
-    }
-    let centre = [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])];
-    let half = (0.5 * (hi[0] - lo[0]).max(hi[1] - lo[1])).max(2e-3);
-    for t in 0..STEPS {
-        let a = if t > 0 && stroke_of[t - 1] == stroke_of[t] {
-            t - 1
-        } else {
-            t
-        };
-        let b = if t + 1 < STEPS && stroke_of[t + 1] == stroke_of[t] {
-            t + 1
-        } else {
-            t
-        };
-        let (dx, dy) = (xy[b][0] - xy[a][0], xy[b][1] - xy[a][1]);
-        let len = (dx * dx + dy * dy).sqrt();
-        let (ux, uy) = if len > 1e-6 {
-            (dx / len, dy / len)
-        } else {
-            (0.0, 0.0)
-        };
-        let row = &mut out[t * c..(t + 1) * c];
-        row[0] = (xy[t][0] - centre[0]) / half;
-        row[1] = (xy[t][1] - centre[1]) / half;
-        row[2] = if t == 0 || stroke_of[t - 1] != stroke_of[t] {
-            1.0
-        } else {
-            0.0
-        };
-        row[3] = ux * ux - uy * uy;
-        row[4] = 2.0 * ux * uy;
-        row[5] = ux;
-        row[6] = uy;
-    }
 }
 
 fn joint_features(x: &Resampled, out: &mut [f32]) {
@@ -456,84 +300,6 @@ mod tests {
             *q = [offset + scale * s, offset + 0.5 * scale * s, 1.0];
         }
         p
-    }
-
-    #[test]
-    fn a_warp_bends_a_path_smoothly_by_at_most_its_amplitude() {
-        let line = straight_line(0.05, 0.1);
-        let mut p = line;
-        Warp::default().apply(&mut p);
-        assert_eq!(p, line, "zero amplitudes leave the path as it is");
-        let warp = Warp {
-            amp: [0.05, -0.05, 0.05, 0.05],
-            freq: [1.0, 0.5, 0.75, 1.0],
-            phase: [0.3, 1.0, 2.0, 4.0],
-        };
-        warp.apply(&mut p);
-        // Half-size of the line's bounding box: half its longest side.
-        let h = 0.5 * 0.05;
-        let mut moved = 0.0f32;
-        for (a, b) in line.iter().zip(&p) {
-            let d = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt();
-            // Two terms per axis, each at most 0.05 h.
-            assert!(d <= 0.1 * h * 2f32.sqrt() + 1e-6, "moved {d}");
-            assert_eq!(a[2], b[2], "the pen state is kept");
-            moved = moved.max(d);
-        }
-        assert!(moved > 0.01 * h, "the path was not deformed ({moved})");
-        // Smooth: neighbouring samples move by nearly the same amount.
-        for w in line.iter().zip(&p).collect::<Vec<_>>().windows(2) {
-            let d0 = [w[0].1[0] - w[0].0[0], w[0].1[1] - w[0].0[1]];
-            let d1 = [w[1].1[0] - w[1].0[0], w[1].1[1] - w[1].0[1]];
-            assert!((d0[0] - d1[0]).abs() + (d0[1] - d1[1]).abs() < 0.01 * h);
-        }
-        // The features see it through `Augment`.
-        let c = PEN_CHANNELS;
-        let (mut a, mut b) = (vec![0.0; STEPS * c], vec![0.0; STEPS * c]);
-        pen_features(&line, &Augment::default(), &mut a);
-        let aug = Augment {
-            warp,
-            ..Augment::default()
-        };
-        pen_features(&line, &aug, &mut b);
-        assert_ne!(a, b);
-    }
-
-    #[test]
-    fn stroke_features_drop_travel_and_keep_every_stroke() {
-        // Two strokes with a long pen-up travel between them, and a dot at the end.
-        let mut p = [[0.0f32, 0.0, 0.0]; STEPS];
-        for (t, q) in p.iter_mut().enumerate() {
-            *q = match t {
-                0..40 => [t as f32 * 1e-3, 0.0, 1.0],
-                40..100 => [0.04 + (t - 40) as f32 * 1e-3, 0.05, 0.0],
-                100..126 => [0.0, 0.01 + (t - 100) as f32 * 1e-3, 1.0],
-                126 => [0.03, 0.03, 0.0],
-                _ => [0.02, 0.02, 1.0],
-            };
-        }
-        let c = PEN_CHANNELS;
-        let mut f = vec![0.0; STEPS * c];
-        stroke_features(&p, &Augment::default(), &mut f);
-        let starts: Vec<usize> = (0..STEPS).filter(|&t| f[t * c + 2] == 1.0).collect();
-        assert_eq!(starts.len(), 3, "{starts:?}");
-        assert_eq!(starts[0], 0);
-        // Every sample lies inside the pen-down bounding box ([-1, 1] after normalisation).
-        for t in 0..STEPS {
-            assert!(f[t * c].abs() <= 1.0 + 1e-5 && f[t * c + 1].abs() <= 1.0 + 1e-5);
-        }
-        // Swapping the order of the two strokes moves only the stroke order, not the shape:
-        // the multiset of sampled points is nearly the same.
-        let mut swapped = p;
-        swapped[..26].copy_from_slice(&p[100..126]);
-        swapped[26..86].copy_from_slice(&p[40..100]);
-        swapped[86..126].copy_from_slice(&p[0..40]);
-        let mut g = vec![0.0; STEPS * c];
-        stroke_features(&swapped, &Augment::default(), &mut g);
-        let mean =
-            |v: &[f32], d: usize| (0..STEPS).map(|t| v[t * c + d]).sum::<f32>() / STEPS as f32;
-        assert!((mean(&f, 0) - mean(&g, 0)).abs() < 0.05);
-        assert!((mean(&f, 1) - mean(&g, 1)).abs() < 0.05);
     }
 
     #[test]

@@ -2,13 +2,10 @@
 //!
 //! * [`triplet_loss`] — the paper's loss on explicit (anchor, positive, negative) triplets:
 //!   `mean(max(0, d_p - d_n + margin))`.
-//! * [`batch_hard_triplet_loss`] / [`batch_all_triplet_loss`] — online mining over a batch of
-//!   labelled embeddings (class-balanced P x K batches): every sample is an anchor with its
-//!   hardest positive and hardest negative, or every valid triplet averaged over the active ones.
+//! * [`batch_all_triplet_loss`] — online mining over a batch of labelled embeddings
+//!   (class-balanced P x K batches): every valid triplet, averaged over the active ones.
 //! * [`fault_triplet_loss`] — fault negatives: corrupted plans made from a class's drawings
 //!   pushed farther from the class's anchors than its positives.
-//! * [`distance_distillation_loss`] — relational distillation: the batch's pairwise
-//!   distances, each divided by their mean, matched to a teacher's.
 //! * [`contrastive_loss`] — the Siamese baseline's pair loss:
 //!   `y * d + (1 - y) * max(0, margin - sqrt(d))^2` over all pairs of the batch.
 
@@ -20,31 +17,6 @@ pub fn pairwise_sq_dist(e: &Tensor) -> candle_core::Result<Tensor> {
     let gram = e.matmul(&e.t()?)?; // [B, B]
     let d = sq.broadcast_add(&sq.t()?)?.sub(&(gram * 2.0)?)?;
     d.relu()
-}
-
-/// Relational distillation: `mean((D_s / mean D_s - D_t / mean D_t)^2)` over the pairs
-/// `i != j` of the batch, with `D_s` the squared distances of the student's embeddings
-/// `e [B, E]` and `D_t [B, B]` the teacher's (so only the teacher's geometry, not its
-/// scale, is learned).
-pub fn distance_distillation_loss(e: &Tensor, teacher: &Tensor) -> candle_core::Result<Tensor> {
-    let b = e.dim(0)?;
-    if b < 2 {
-        return Tensor::new(0f32, e.device());
-    }
-    let off: Vec<f32> = (0..b * b)
-        .map(|k| if k / b == k % b { 0.0 } else { 1.0 })
-        .collect();
-    let off = Tensor::from_vec(off, (b, b), e.device())?.to_dtype(e.dtype())?;
-    let pairs = (b * (b - 1)) as f64;
-    let ds = pairwise_sq_dist(e)?.mul(&off)?;
-    let dt = teacher.to_dtype(e.dtype())?.mul(&off)?;
-    let ms = (ds.sum_all()? / pairs)?;
-    let mt = (dt.sum_all()? / pairs)?;
-    let diff = ds
-        .broadcast_div(&(ms + 1e-6)?)?
-        .sub(&dt.broadcast_div(&(mt + 1e-6)?)?)?
-        .mul(&off)?;
-    diff.sqr()?.sum_all()? / pairs
 }
 
 /// The paper's triplet loss on explicit triplets `[B, E]` each.
@@ -81,31 +53,6 @@ fn masks(
         Tensor::from_vec(pos, (b, b), device)?.to_dtype(dtype)?,
         Tensor::from_vec(neg, (b, b), device)?.to_dtype(dtype)?,
     ))
-}
-
-/// Batch-hard triplet loss: for every anchor, its farthest positive and nearest negative in
-/// the batch. Anchors without a positive or a negative in the batch contribute 0 (the batch
-/// sampler avoids them). Returns `(loss, fraction of anchors with a non-zero loss)`.
-pub fn batch_hard_triplet_loss(
-    e: &Tensor,
-    labels: &[u32],
-    margin: f64,
-) -> candle_core::Result<(Tensor, f32)> {
-    let d = pairwise_sq_dist(e)?;
-    let (pos, neg) = masks(labels, e.device(), e.dtype())?;
-    let hardest_pos = (&d * &pos)?.max(1)?;
-    // Push non-negatives out of reach of the min.
-    let big = (neg.ones_like()? - &neg)? * 1e6;
-    let hardest_neg = (&d + big)?.min(1)?;
-    let per_anchor = ((hardest_pos - hardest_neg)? + margin)?.relu()?;
-    let active = per_anchor
-        .to_dtype(candle_core::DType::F32)?
-        .to_vec1::<f32>()?
-        .iter()
-        .filter(|&&v| v > 0.0)
-        .count() as f32
-        / labels.len().max(1) as f32;
-    Ok((per_anchor.mean_all()?, active))
 }
 
 /// Batch-all triplet loss: every valid (a, p, n) in the batch, averaged over the triplets
@@ -251,14 +198,8 @@ mod tests {
         let n = t(&[[0.0, 2.0]]);
         assert_eq!(triplet_loss(&a, &p, &n, 0.5)?.to_scalar::<f32>()?, 0.0);
         assert_eq!(triplet_loss(&a, &p, &n, 4.0)?.to_scalar::<f32>()?, 1.0);
-        // Labels [0, 0, 1, 1]: anchor 0 hardest pos 1 (d 1), hardest neg 2 (d 4).
-        // anchor 1: pos 1, neg min(5, 10) = 5; anchor 2: pos 1, neg min(4, 5) = 4;
-        // anchor 3: pos 1, neg min(9, 10) = 9. margin 3.5 -> [0.5, 0, 0.5, 0] -> mean 0.25.
-        let (l, active) = batch_hard_triplet_loss(&e, &[0, 0, 1, 1], 3.5)?;
-        assert!((l.to_scalar::<f32>()? - 0.25).abs() < 1e-6);
-        assert_eq!(active, 0.5);
-        // Batch-all with the same margin: active triplets (a,p,n) with d_ap - d_an + 3.5 > 0:
-        // (0,1,2)=0.5 (1,0,2)=-0.5 (2,3,0)=0.5 ... average over active ones.
+        // Batch-all with labels [0, 0, 1, 1] and margin 3.5: active triplets (a,p,n) with
+        // d_ap - d_an + 3.5 > 0: (0,1,2)=0.5 (1,0,2)=-0.5 (2,3,0)=0.5 ... average over active ones.
         let (l, _) = batch_all_triplet_loss(&e, &[0, 0, 1, 1], 3.5)?;
         assert!((l.to_scalar::<f32>()? - 0.5).abs() < 1e-6);
         // Contrastive: a perfectly separated batch has zero loss.
@@ -289,34 +230,6 @@ mod tests {
 
     /// Value and gradient (with respect to the embeddings) of the enumerated loss equal the
     /// hinge form on random batches, in f64.
-    #[test]
-    fn distillation_matches_the_teachers_geometry_not_its_scale() -> candle_core::Result<()> {
-        let e = t(&[[0.0, 0.0], [1.0, 0.0], [0.0, 2.0], [0.0, 3.0]]);
-        // The same configuration, 3x larger and moved: the same geometry, loss 0.
-        let moved = t(&[[5.0, 5.0], [8.0, 5.0], [5.0, 11.0], [5.0, 14.0]]);
-        let same = distance_distillation_loss(&e, &pairwise_sq_dist(&moved)?)?;
-        assert!(same.to_scalar::<f32>()?.abs() < 1e-6);
-        // Another geometry: a positive loss, by hand. Teacher: every pair at distance 1.
-        let ones = Tensor::ones((4, 4), candle_core::DType::F32, &Device::Cpu)?;
-        let l = distance_distillation_loss(&e, &ones)?.to_scalar::<f32>()?;
-        let d = [1.0f32, 4.0, 9.0, 5.0, 10.0, 1.0]; // the 6 pairs of e
-        let m = d.iter().sum::<f32>() / 6.0;
-        let want = d.iter().map(|x| (x / m - 1.0).powi(2)).sum::<f32>() / 6.0;
-        assert!((l - want).abs() < 1e-4, "{l} vs {want}");
-        // Its gradient moves the student towards the teacher's geometry.
-        let v = candle_core::Var::from_tensor(&e)?;
-        let loss = distance_distillation_loss(v.as_tensor(), &ones)?;
-        let g = loss
-            .backward()?
-            .get(v.as_tensor())
-            .expect("gradient")
-            .clone();
-        let stepped = (v.as_tensor() - (g * 0.05)?)?;
-        let after = distance_distillation_loss(&stepped, &ones)?.to_scalar::<f32>()?;
-        assert!(after < l, "{after} >= {l}");
-        Ok(())
-    }
-
     #[test]
     fn active_triplet_mean_matches_the_hinge_form() -> candle_core::Result<()> {
         use rand::{Rng, SeedableRng};

@@ -3,7 +3,7 @@
 //! Omniglot drawings; every case must get its expected verdict, and the demo classes are
 //! forgotten afterwards (the default bank's classes stay).
 
-use guardian_lab::demo::{self, Options, Outcome};
+use guardian_lab::tools::demo::{self, Options, Outcome};
 use guardian_tests::harness::{self, Daemon, Setup};
 
 fn shipped_setup(seed: u64) -> Setup {
@@ -33,7 +33,7 @@ fn every_demo_case_is_as_expected_against_the_shipped_defaults() {
         "the shipped default bank is loaded"
     );
 
-    let report = demo::run(
+    let report = demo::run_cases(
         &client,
         &Options {
             strokes: harness::workspace_root().join("../shared/omniglot/strokes"),
@@ -76,7 +76,7 @@ fn keep_leaves_the_demo_classes_and_a_second_run_starts_clean() {
         strokes: harness::workspace_root().join("../shared/omniglot/strokes"),
         keep: true,
     };
-    let first = demo::run(&client, &opts).expect("demo runs");
+    let first = demo::run_cases(&client, &opts).expect("demo runs");
     assert!(first.all_as_expected(), "{}", first.table());
     let classes = client.classes().expect("classes");
     for name in &first.kept {
@@ -88,7 +88,7 @@ fn keep_leaves_the_demo_classes_and_a_second_run_starts_clean() {
     }
     assert_eq!(first.kept.len(), demo::LATIN.len());
     // A second run re-enrolls from scratch (5 examples, not 10) and gets the same answers.
-    let second = demo::run(&client, &opts).expect("demo runs again");
+    let second = demo::run_cases(&client, &opts).expect("demo runs again");
     assert!(second.all_as_expected(), "{}", second.table());
     let classes = client.classes().expect("classes");
     for name in &second.kept {

@@ -1,4 +1,4 @@
-//! Helpers shared by the training tests of `model.rs` and `pool.rs`.
+//! Helpers shared by the training tests of `model.rs`.
 #![allow(dead_code)] // each test crate uses its own subset
 
 use guardian_lab::train::{LossKind, TrainConfig};
@@ -21,7 +21,7 @@ pub fn tiny_net() -> NetConfig {
 pub fn tiny_config() -> TrainConfig {
     TrainConfig {
         net: tiny_net(),
-        loss: LossKind::BatchHard,
+        loss: LossKind::BatchAll,
         margin: 0.2,
         train_alphabets: vec!["Latin".into()],
         val_alphabets: vec!["Greek".into()],
@@ -47,16 +47,5 @@ pub fn tiny_config() -> TrainConfig {
         fault_kinds: Vec::new(),
         class_augment: false,
         symmetry_quantile: 0.0,
-        pool_mode: Default::default(),
-        pool: None,
-        pool_share: 0.0,
-        pseudo_model: None,
-        pseudo_clusters: None,
-        alphabet_share: 0.0,
-        warp: 0.0,
-        compounds: 0,
-        compound_share: 0.0,
-        teachers: Vec::new(),
-        distill_weight: 0.0,
     }
 }

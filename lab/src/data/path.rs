@@ -16,7 +16,7 @@ use guardian_shared::trajectory::{MAX_WAYPOINTS, TOOL, Waypoint};
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::strokes::Stroke;
+use crate::data::strokes::Stroke;
 
 /// Canvas, pen and path parameters. Recorded in every dataset file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -402,7 +402,7 @@ fn to_f32_within(v: f64, lo: f64, hi: f64) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::strokes::Point;
+    use crate::data::strokes::Point;
 
     fn pt(x: f64, y: f64) -> Point {
         Point { x, y, t: 0.0 }

@@ -17,9 +17,9 @@ use guardian_shared::trajectory::{Resampled, Waypoint};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::dataset::{ConvertError, convert_strokes};
-use crate::path::PathSolver;
-use crate::strokes::{Point, Stroke};
+use crate::data::dataset::{ConvertError, convert_strokes};
+use crate::data::path::PathSolver;
+use crate::data::strokes::{Point, Stroke};
 
 /// Severities the evaluation reports: low, moderate, high.
 pub const SEVERITIES: [f64; 3] = [0.25, 0.5, 1.0];

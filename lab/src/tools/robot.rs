@@ -10,7 +10,7 @@ use guardian_models::kinematics::{
 use nalgebra::{DMatrix, Vector3};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 
-use crate::path::{Geometry, PathPoint, PathSolver};
+use crate::data::path::{Geometry, PathPoint, PathSolver};
 
 /// One check and its outcome.
 #[derive(Debug, Clone, PartialEq)]

@@ -17,10 +17,11 @@ use rand::SeedableRng;
 use rand::rngs::StdRng;
 use serde::Serialize;
 
-use crate::dataset::{ConvertError, convert_strokes};
-use crate::faults::{Fault, corrupt_joints};
-use crate::path::{Geometry, PathSolver, SolvePathError};
-use crate::strokes::{DrawingFile, Point, ReadStrokesError, Stroke, read_strokes, scan};
+use crate::cli::StrokesArgs;
+use crate::data::dataset::{ConvertError, convert_strokes};
+use crate::data::faults::{Fault, corrupt_joints};
+use crate::data::path::{Geometry, PathSolver, SolvePathError};
+use crate::data::strokes::{DrawingFile, Point, ReadStrokesError, Stroke, read_strokes, scan};
 
 /// The Latin characters enrolled as demo classes.
 pub const LATIN: [u32; 3] = [1, 13, 18];
@@ -355,8 +356,8 @@ fn shift_direction(
 
 type Case = (String, Trajectory, String, Outcome);
 
-/// Run the demo against the daemon behind `client`.
-pub fn run(client: &Client, opts: &Options) -> Result<Report, DemoError> {
+/// Run the demo's cases against the daemon behind `client`.
+pub fn run_cases(client: &Client, opts: &Options) -> Result<Report, DemoError> {
     let served = client.status().map_err(DemoError::Status)?.robot;
     if served.name != "panda" || served.joints as usize != PANDA_JOINTS {
         return Err(DemoError::WrongRobot {
@@ -594,8 +595,8 @@ pub fn verdict_text(v: &Verdict) -> String {
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Omniglot stroke root.
-    #[arg(long, default_value = "../shared/omniglot/strokes")]
-    pub strokes: PathBuf,
+    #[command(flatten)]
+    pub strokes: StrokesArgs,
     /// Request-response service name of the daemon.
     #[arg(long, default_value = guardian_shared::wire::DEFAULT_SERVICE_NAME)]
     pub service: String,
@@ -616,8 +617,9 @@ pub struct Args {
     pub keep: bool,
 }
 
-/// The `demo` subcommand: connect, run, print; an error if any case is not as expected.
-pub fn main(args: &Args) -> anyhow::Result<()> {
+/// Run `guardian-lab demo`: connect, run the cases, print; an error if any case is not as
+/// expected.
+pub fn run(args: &Args) -> anyhow::Result<()> {
     use anyhow::Context;
     let client = Client::connect(guardian_client::ClientConfig {
         service_name: args.service.clone(),
@@ -626,10 +628,10 @@ pub fn main(args: &Args) -> anyhow::Result<()> {
         iceoryx2_prefix: args.iceoryx2_prefix.clone(),
     })
     .context("cannot connect to guardiand (is it running? see README)")?;
-    let report = run(
+    let report = run_cases(
         &client,
         &Options {
-            strokes: args.strokes.clone(),
+            strokes: args.strokes.strokes.clone(),
             keep: args.keep,
         },
     )?;

@@ -2,7 +2,7 @@
 //! through, for guardian and the raw 1-NN and Siamese baselines.
 //!
 //! Protocol. Calibration: every method is calibrated on the calibration (validation)
-//! alphabets exactly like the shipped bank ([`crate::calibrate`], target false-reject rate
+//! alphabets exactly like the shipped bank ([`crate::eval::calibration`], target false-reject rate
 //! `--target-frr`). Test, on `--alphabets` only, `--reps` rounds: a random quarter of the
 //! classes is never enrolled (the unknown tasks); every other class enrolls `--shots`
 //! random drawings; its other drawings are the genuine plans. Faulty plans:
@@ -52,13 +52,14 @@ use rand::seq::{IndexedRandom, SliceRandom};
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::calibrate::split;
-use crate::dataset::{Dataset, StrokeIndex};
+use crate::cli::{DatasetArgs, ScreenArgs, StrokesArgs};
+use crate::data::dataset::{Dataset, StrokeIndex};
+use crate::data::faults::{self, Fault, SEVERITIES};
+use crate::data::path::PathSolver;
+use crate::data::strokes;
+use crate::eval::calibration::split;
+use crate::eval::metrics::{auroc, share_above, tpr_at_fpr};
 use crate::eval::{Pool, standardised_raw};
-use crate::faults::{self, Fault, SEVERITIES};
-use crate::metrics::{auroc, share_above, tpr_at_fpr};
-use crate::path::PathSolver;
-use crate::strokes;
 
 /// How a method measures a query against a class.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -208,27 +209,15 @@ fn full_score(
 /// Arguments of `guardian-lab outliers`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct Args {
-    /// Embedder.
-    #[arg(long, default_value = "models/embedder.safetensors")]
-    pub model: PathBuf,
-    /// Dataset file.
-    #[arg(long)]
-    pub dataset: PathBuf,
+    /// Model, test (enrolled) and calibration alphabets, shots, target and seed.
+    #[command(flatten)]
+    pub screen: ScreenArgs,
+    /// The dataset.
+    #[command(flatten)]
+    pub data: DatasetArgs,
     /// Omniglot stroke root (for the Cartesian corruptions).
-    #[arg(long, default_value = "../shared/omniglot/strokes")]
-    pub strokes: PathBuf,
-    /// Test alphabets (never used in training or calibration).
-    #[arg(long, value_delimiter = ',', default_value = "Greek,Korean")]
-    pub alphabets: Vec<String>,
-    /// Calibration alphabets.
-    #[arg(long, value_delimiter = ',', default_value = "Latin")]
-    pub calib_alphabets: Vec<String>,
-    /// Enrolled drawings per class.
-    #[arg(long, default_value_t = 5)]
-    pub shots: usize,
-    /// Target genuine false-reject rate of the calibration.
-    #[arg(long, default_value_t = 0.01)]
-    pub target_frr: f32,
+    #[command(flatten)]
+    pub strokes: StrokesArgs,
     /// Calibration rounds.
     #[arg(long, default_value_t = 20)]
     pub calib_reps: usize,
@@ -251,13 +240,6 @@ pub struct Args {
     /// the calibrated thresholds, to measure what the tolerance buys.
     #[arg(long)]
     pub wrong_task_tolerance: Option<f32>,
-    /// Share of the false-reject budget given to the geometry check (the embedding gets the
-    /// rest).
-    #[arg(long, default_value_t = 0.25)]
-    pub geometry_share: f32,
-    /// Seed.
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
     /// Directory for ROC curves and score histograms (PNG) and the raw scores (JSON).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -340,25 +322,19 @@ fn pool_data_indices(data: &Dataset, alphabets: &[String]) -> anyhow::Result<Vec
 
 /// Run `guardian-lab outliers`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
-    let data = Dataset::load(&args.dataset)?;
+    let data = Dataset::load(&args.data.dataset)?;
     // Pen paths by the forward kinematics of the robot that drew the data set.
     let robot = data.robot()?;
-    let model = data.embedder(&args.model)?;
-    if args
-        .calib_alphabets
-        .iter()
-        .any(|a| args.alphabets.contains(a))
-    {
-        anyhow::bail!("calibration and test alphabets overlap");
-    }
-    let cpool = Pool::new(&data, &args.calib_alphabets)?;
-    let pool = Pool::new(&data, &args.alphabets)?;
-    let didx = pool_data_indices(&data, &args.alphabets)?;
+    let model = data.embedder(&args.screen.model)?;
+    args.screen.check_disjoint()?;
+    let cpool = Pool::new(&data, &args.screen.calib_alphabets)?;
+    let pool = Pool::new(&data, &args.screen.alphabets)?;
+    let didx = pool_data_indices(&data, &args.screen.alphabets)?;
     anyhow::ensure!(didx.len() == pool.xs.len(), "pool index mismatch");
 
     // Corruption sources.
-    let index = StrokeIndex::scan(std::slice::from_ref(&args.strokes))?;
-    let mut rng = StdRng::seed_from_u64(args.seed);
+    let index = StrokeIndex::scan(std::slice::from_ref(&args.strokes.strokes))?;
+    let mut rng = StdRng::seed_from_u64(args.screen.seed);
     let mut order: Vec<usize> = (0..pool.xs.len()).collect();
     order.shuffle(&mut rng);
     order.truncate(args.sources);
@@ -372,7 +348,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     p,
                     f,
                     s,
-                    args.seed ^ ((si as u64) << 16 | (k as u64) << 8),
+                    args.screen.seed ^ ((si as u64) << 16 | (k as u64) << 8),
                 ));
             }
         }
@@ -449,7 +425,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let (cgeo, tgeo, fgeo) = (geo_of(&ec), geo_of(&et), geo_of(&ef));
     let (twc, fwc) = (wc_of(&pool.xs), wc_of(&fxs));
     let scales = {
-        let groups: Vec<Vec<PlanGeometry>> = crate::calibrate::by_class(&cpool.labels)
+        let groups: Vec<Vec<PlanGeometry>> = crate::eval::calibration::by_class(&cpool.labels)
             .iter()
             .map(|idx| idx.iter().filter_map(|&i| cgeo[i]).collect())
             .collect();
@@ -497,11 +473,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             method: space_method,
             vecs: cv,
         };
-        let mut crng = StdRng::seed_from_u64(args.seed);
+        let mut crng = StdRng::seed_from_u64(args.screen.seed);
         let mut gs = Vec::new();
         let mut ggeo = Vec::new();
         for _ in 0..args.calib_reps {
-            let (support, queries) = split(&cpool.labels, args.shots, &mut crng);
+            let (support, queries) = split(&cpool.labels, args.screen.shots, &mut crng);
             let e = cspace.enroll(&support, full.then_some(cgeo.as_slice()));
             for q in queries {
                 let d = e.distances(space_method, &cv[q]);
@@ -511,9 +487,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             }
         }
         let emb_target = if full {
-            args.target_frr * (1.0 - args.geometry_share)
+            args.screen.target_frr * (1.0 - args.screen.geometry_share)
         } else {
-            args.target_frr
+            args.screen.target_frr
         };
         let mut cal = bank::calibrate(&gs, emb_target, &format!("{method:?}"))
             .context("calibration failed")?;
@@ -542,9 +518,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     &gs,
                     &ggeo,
                     &cal,
-                    args.target_frr,
+                    args.screen.target_frr,
                     scales,
-                    &format!("geometry share {}", args.geometry_share),
+                    &format!("geometry share {}", args.screen.geometry_share),
                 )
                 .context("geometry calibration failed")?,
             )
@@ -570,9 +546,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             vecs: tv,
         };
         let mut sc = Scores::default();
-        let mut trng = StdRng::seed_from_u64(args.seed.wrapping_add(1));
+        let mut trng = StdRng::seed_from_u64(args.screen.seed.wrapping_add(1));
         for _ in 0..args.reps {
-            let (mut support, queries) = split(&pool.labels, args.shots, &mut trng);
+            let (mut support, queries) = split(&pool.labels, args.screen.shots, &mut trng);
             let mut classes: Vec<usize> = (0..nclass).collect();
             classes.shuffle(&mut trng);
             let unknown: Vec<usize> = classes[..nclass / 4].to_vec();
@@ -693,9 +669,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     }
     let report = OutliersReport {
         model_version: model.version().to_owned(),
-        alphabets: args.alphabets.clone(),
-        calib_alphabets: args.calib_alphabets.clone(),
-        shots: args.shots,
+        alphabets: args.screen.alphabets.clone(),
+        calib_alphabets: args.screen.calib_alphabets.clone(),
+        shots: args.screen.shots,
         reps: args.reps,
         sources,
         methods: reports,
@@ -707,7 +683,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             dir.join("outliers.json"),
             serde_json::to_vec_pretty(&report)?,
         )?;
-        crate::report::outlier_plots(
+        crate::eval::report::outlier_plots(
             dir,
             raw.iter()
                 .map(|(m, sc)| (m.as_str(), sc.genuine.as_slice(), &sc.faulty)),

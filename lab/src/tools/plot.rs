@@ -8,16 +8,17 @@ use guardian_models::preprocess::joints_of;
 use guardian_shared::trajectory::TOOL;
 use plotters::prelude::*;
 
-use crate::dataset::Dataset;
-use crate::path::Geometry;
-use crate::strokes::{Stroke, read_strokes};
+use crate::cli::DatasetArgs;
+use crate::data::dataset::Dataset;
+use crate::data::path::Geometry;
+use crate::data::strokes::{Stroke, read_strokes};
 
 /// `guardian-lab plot`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct Args {
-    /// Dataset file (from `guardian-lab dataset`).
-    #[arg(long)]
-    pub dataset: PathBuf,
+    /// The dataset.
+    #[command(flatten)]
+    pub data: DatasetArgs,
     /// Drawing index in the dataset.
     #[arg(long)]
     pub index: usize,
@@ -281,7 +282,7 @@ fn min_max(v: &[f64]) -> (f64, f64) {
 
 /// Run `guardian-lab plot`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
-    let dataset = Dataset::load(&args.dataset)?;
+    let dataset = Dataset::load(&args.data.dataset)?;
     let strokes = match find_stroke_file(&dataset, args.index, &args.strokes) {
         Some(p) => Some(read_strokes(&p)?),
         None => {

@@ -10,6 +10,15 @@
 //! trajectories; random scores are uniform. The rank of the true class (1 = best) gives
 //! accuracy (rank 1) and the CMC curve (rank <= r). The 95% interval is the normal
 //! approximation `1.96 * sqrt(p (1 - p) / episodes)` (episodes are independent).
+//!
+//! Beside the episodes: [`outliers`] (go / no-go on faulty plans), [`calibration`]
+//! (thresholds for a target false-reject rate), [`metrics`] (AUROC, TPR at an FPR) and
+//! [`report`] (the markdown + PNG report of a model).
+
+pub mod calibration;
+pub mod metrics;
+pub mod outliers;
+pub mod report;
 
 use std::path::PathBuf;
 
@@ -21,7 +30,8 @@ use rand::seq::IndexedRandom;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
-use crate::dataset::Dataset;
+use crate::cli::{DatasetArgs, EpisodeArgs};
+use crate::data::dataset::Dataset;
 
 /// Evaluation failed.
 #[derive(Debug, thiserror::Error)]
@@ -339,24 +349,15 @@ pub struct Args {
     /// Trained embedder (triplet model).
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// Dataset file.
-    #[arg(long)]
-    pub dataset: PathBuf,
+    /// The dataset.
+    #[command(flatten)]
+    pub data: DatasetArgs,
     /// Alphabets to draw classes from, comma-separated (default: every alphabet).
     #[arg(long, value_delimiter = ',')]
     pub alphabets: Vec<String>,
-    /// Classes per episode.
-    #[arg(long, default_value_t = 5)]
-    pub way: usize,
-    /// Support samples per class.
-    #[arg(long, default_value_t = 1)]
-    pub shot: usize,
-    /// Episodes.
-    #[arg(long, default_value_t = 10_000)]
-    pub episodes: usize,
-    /// Seed of the episode draw.
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
+    /// N-way K-shot episodes and their seed.
+    #[command(flatten)]
+    pub episodes: EpisodeArgs,
     /// Evaluate a baseline instead of the model.
     #[arg(long, value_enum)]
     pub baseline: Option<Baseline>,
@@ -446,7 +447,7 @@ pub fn evaluate(
 
 /// Run `guardian-lab eval`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
-    let data = Dataset::load(&args.dataset)?;
+    let data = Dataset::load(&args.data.dataset)?;
     let pool = Pool::new(&data, &args.alphabets)?;
     let mut model = match (args.baseline, &args.model) {
         (Some(Baseline::Siamese), m) => {
@@ -469,12 +470,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     {
         m.set_reverse_average(args.reverse_average);
     }
-    let spec = EpisodeSpec {
-        way: args.way,
-        shot: args.shot,
-        episodes: args.episodes,
-        seed: args.seed,
-    };
+    let spec = args.episodes.spec();
     let report = match (&args.fuse_model, &model) {
         (Some(other), Some(first)) => {
             let second = data.embedder(other)?;

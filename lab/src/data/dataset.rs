@@ -16,8 +16,8 @@ use guardian_shared::trajectory::{InvalidTrajectory, Resampled, SLOTS, STEPS, TO
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::path::{DensePath, Geometry, PathPoint, PathSolver, SolvePathError};
-use crate::strokes::{self, ReadStrokesError, Stroke};
+use crate::data::path::{DensePath, Geometry, PathPoint, PathSolver, SolvePathError};
+use crate::data::strokes::{self, ReadStrokesError, Stroke};
 
 /// Converting one drawing failed.
 #[derive(Debug, thiserror::Error)]
@@ -389,10 +389,10 @@ impl Dataset {
 
     /// The robot that drew the trajectories, loaded from the geometry's robot and checked
     /// against the file's record (name, joints, URDF checksum), with the geometry's pen.
-    pub fn robot(&self) -> Result<Robot, crate::path::SolvePathError> {
+    pub fn robot(&self) -> Result<Robot, crate::data::path::SolvePathError> {
         let robot = self.geometry.robot()?;
         if !self.robot.matches(&robot) {
-            return Err(crate::path::SolvePathError::Robot(format!(
+            return Err(crate::data::path::SolvePathError::Robot(format!(
                 "the data set was drawn by {} but {:?} loads as {}",
                 self.robot,
                 self.geometry.robot,

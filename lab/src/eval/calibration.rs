@@ -1,29 +1,26 @@
-//! Threshold calibration and the shipped default bank (`guardian-lab bank`).
+//! Threshold calibration for the screen's figures and banks (`guardian-lab bank` and
+//! `guardian-lab outliers` use it).
 //!
 //! Calibration data: the classes of the calibration (validation) alphabets. In each of
 //! `reps` rounds every class gets `shots` randomly drawn enrolled drawings; every other
 //! drawing of the class is a genuine plan scored against that bank (distance to its class,
 //! to the nearest other class, and its class's spread). [`guardian_models::bank::calibrate`]
 //! turns those scores into the global threshold, the wrong-task tolerance and the
-//! per-class scale for a target false-reject rate; the bank of the enrolled alphabets is
-//! then built with them.
+//! per-class scale for a target false-reject rate. Cross-fitting pools the genuine scores
+//! of fold models on the alphabets each never saw ([`cross_fit`]).
 
 use std::path::PathBuf;
 
 use anyhow::Context as _;
-use guardian_models::bank::{
-    self, Calibration, ClassBank, Example, GenuineScore, GeometryCalibration,
-};
-use guardian_models::embedder::Embedder;
+use guardian_models::bank::{self, Calibration, ClassBank, GenuineScore, GeometryCalibration};
 use guardian_models::geometry::{self, PlanGeometry};
 use guardian_models::kinematics::Robot;
 use guardian_shared::trajectory::Resampled;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
-use serde::Serialize;
 
-use crate::dataset::Dataset;
+use crate::data::dataset::Dataset;
 use crate::eval::Pool;
 
 /// Indices of each dense label, in pool order.
@@ -295,202 +292,6 @@ pub fn calibrate_pool(
             scores.len()
         )
     })
-}
-
-/// `guardian-lab bank`: calibrate on the validation alphabets and build a class bank.
-#[derive(Debug, Clone, clap::Args)]
-pub struct Args {
-    /// Embedder.
-    #[arg(long, default_value = "models/embedder.safetensors")]
-    pub model: PathBuf,
-    /// Dataset file.
-    #[arg(long)]
-    pub dataset: PathBuf,
-    /// Alphabets to calibrate on (validation; never the enrolled ones).
-    #[arg(long, value_delimiter = ',', default_value = "Latin")]
-    pub calib_alphabets: Vec<String>,
-    /// Alphabets whose classes are enrolled into the bank.
-    #[arg(long, value_delimiter = ',', default_value = "Greek,Korean")]
-    pub alphabets: Vec<String>,
-    /// Enrolled drawings per class (calibration uses the same number).
-    #[arg(long, default_value_t = 5)]
-    pub shots: usize,
-    /// Target false-reject rate on genuine plans (embedding and geometry together).
-    #[arg(long, default_value_t = 0.01)]
-    pub target_frr: f32,
-    /// Share of the false-reject budget given to the geometry check (the embedding gets
-    /// the rest); 0 turns the geometry check off.
-    #[arg(long, default_value_t = 0.25)]
-    pub geometry_share: f32,
-    /// Random enrollments of the calibration alphabets.
-    #[arg(long, default_value_t = 20)]
-    pub reps: usize,
-    /// Seed (calibration enrollments and the enrolled drawings).
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// Output bank file.
-    #[arg(long, default_value = "models/default-bank.gcb")]
-    pub out: PathBuf,
-    /// Cross-fitted calibration instead of `--calib-alphabets`: `MODEL=ALPHABET[+ALPHABET]`
-    /// pairs (repeat the option), each model one that never saw its alphabets (the
-    /// leave-one-alphabet-out fold models); their genuine scores are pooled and the numbers
-    /// used with `--model` ([`cross_fit`]).
-    #[arg(long)]
-    pub cross_fit: Vec<CrossFitPair>,
-    /// Take the calibration (record and geometry calibration) from this bank instead of
-    /// calibrating: it must be a calibrated bank built with `--model`. Rebuilds a bank with
-    /// the same numbers, e.g. to add the enrolled examples to a bank whose cross-fit fold
-    /// models are not at hand.
-    #[arg(long, conflicts_with = "cross_fit")]
-    pub calibration_from: Option<PathBuf>,
-}
-
-/// What `guardian-lab bank` did.
-#[derive(Debug, Clone, Serialize)]
-pub struct BankSummary {
-    /// Model version.
-    pub model_version: String,
-    /// Classes enrolled.
-    pub classes: usize,
-    /// The calibration record stored in the bank.
-    pub calibration: Calibration,
-    /// The geometry calibration stored in the bank.
-    pub geometry_calibration: Option<GeometryCalibration>,
-    /// Output file.
-    pub out: PathBuf,
-}
-
-/// The calibration of `guardian-lab bank` on `--calib-alphabets` with the bank's own model.
-fn calibrate_on_alphabets(
-    args: &Args,
-    data: &Dataset,
-    model: &Embedder,
-) -> anyhow::Result<(Calibration, Option<GeometryCalibration>)> {
-    let cpool = Pool::new(data, &args.calib_alphabets)?;
-    let cemb = cpool.embed(model)?;
-    let note = format!(
-        "{}-shot, {} reps on {}; model {}",
-        args.shots,
-        args.reps,
-        args.calib_alphabets.join(","),
-        model.version()
-    );
-    let emb_target = args.target_frr * (1.0 - args.geometry_share);
-    let scores = genuine_scores(
-        &cemb,
-        &cpool.labels,
-        &cpool.class_names,
-        args.shots,
-        args.reps,
-        args.seed,
-    )?;
-    let cal = bank::calibrate(&scores, emb_target, &note)
-        .with_context(|| format!("cannot calibrate: {} scores", scores.len()))?;
-    let gcal = if args.geometry_share > 0.0 {
-        let cgeo = geometry_of(&cpool.xs, &cpool.robot);
-        Some(calibrate_geometry_pool(
-            &scores,
-            &cal,
-            &[(cgeo.as_slice(), cpool.labels.as_slice())],
-            args.shots,
-            args.reps,
-            args.target_frr,
-            args.seed,
-            &format!("{note}; geometry share {}", args.geometry_share),
-        )?)
-    } else {
-        None
-    };
-    Ok((cal, gcal))
-}
-
-/// Run `guardian-lab bank`.
-pub fn run(args: &Args) -> anyhow::Result<()> {
-    let data = Dataset::load(&args.dataset)?;
-    let model = data.embedder(&args.model)?;
-    anyhow::ensure!(
-        (0.0..=1.0).contains(&args.geometry_share),
-        "--geometry-share must be in [0, 1]"
-    );
-    let (cal, gcal) = if let Some(p) = &args.calibration_from {
-        let from =
-            ClassBank::load(p).with_context(|| format!("--calibration-from {}", p.display()))?;
-        anyhow::ensure!(
-            from.model_version() == model.version(),
-            "--calibration-from {} is a bank of model {}, not of {}",
-            p.display(),
-            from.model_version(),
-            model.version()
-        );
-        let cal = from
-            .calibration()
-            .cloned()
-            .with_context(|| format!("--calibration-from {} is not calibrated", p.display()))?;
-        (cal, from.geometry_calibration().cloned())
-    } else if args.cross_fit.is_empty() {
-        if args
-            .calib_alphabets
-            .iter()
-            .any(|a| args.alphabets.contains(a))
-        {
-            anyhow::bail!("calibration and enrolled alphabets overlap");
-        }
-        calibrate_on_alphabets(args, &data, &model)?
-    } else {
-        cross_fit(
-            &data,
-            &args.cross_fit,
-            args.shots,
-            args.reps,
-            args.target_frr,
-            args.geometry_share,
-            args.seed,
-        )?
-    };
-    let pool = Pool::new(&data, &args.alphabets)?;
-    let emb = pool.embed(&model)?;
-    let geo = geometry_of(&pool.xs, &pool.robot);
-    let mut rng = StdRng::seed_from_u64(args.seed ^ 0x5eed);
-    let (support, _) = split(&pool.labels, args.shots, &mut rng);
-    let dim = emb.first().map_or(0, Vec::len);
-    let mut b = ClassBank::new(dim, model.version(), bank::DEFAULT_THRESHOLD);
-    // The bank records the robot that drew its plans: a daemon serving another arm
-    // refuses it.
-    b.set_robot(data.robot.clone());
-    for (l, idx) in support.iter().enumerate() {
-        if idx.is_empty() {
-            continue;
-        }
-        let rows: Vec<Vec<f32>> = idx.iter().map(|&i| emb[i].clone()).collect();
-        let g: Vec<PlanGeometry> = idx
-            .iter()
-            .map(|&i| geo[i])
-            .collect::<Option<_>>()
-            .unwrap_or_default();
-        let name = pool
-            .class_names
-            .get(l)
-            .cloned()
-            .unwrap_or_else(|| format!("class{l}"));
-        // The resampled plans too: a daemon with a new model embeds them again.
-        let examples: Vec<Example> = idx
-            .iter()
-            .map(|&i| Example::from_resampled(&pool.xs[i], data.robot.joints))
-            .collect();
-        b.enroll_plans(&name, &rows, &g, &examples)?;
-    }
-    b.apply_calibration(cal.clone());
-    b.set_geometry_calibration(gcal.clone());
-    b.save(&args.out)?;
-    let summary = BankSummary {
-        model_version: model.version().to_owned(),
-        classes: b.len(),
-        calibration: cal,
-        geometry_calibration: gcal,
-        out: args.out.clone(),
-    };
-    println!("{}", serde_json::to_string_pretty(&summary)?);
-    Ok(())
 }
 
 #[cfg(test)]
