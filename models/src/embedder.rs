@@ -20,7 +20,9 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 #[cfg(feature = "train")]
-use candle_core::{DType, Device, Tensor};
+use candle_core::DType;
+#[cfg(all(feature = "train", any(test, feature = "test-support")))]
+use candle_core::{Device, Tensor};
 use guardian_shared::trajectory::{Resampled, STEPS};
 use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 use sha2::{Digest, Sha256};

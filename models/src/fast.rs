@@ -648,14 +648,7 @@ pub(crate) mod tests {
     fn matches_candle_on_random_weights_and_inputs() {
         let configs = [
             NetConfig::default(),
-            NetConfig {
-                features: FeatureKind::Joints,
-                channels: vec![4, 5],
-                kernel: 3,
-                embed_dim: 6,
-                l2_normalize: true,
-                reverse_average: false,
-            },
+            NetConfig::tiny_joints(),
             NetConfig {
                 features: FeatureKind::Pen,
                 channels: vec![32, 64, 64, 96],

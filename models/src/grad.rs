@@ -431,14 +431,7 @@ mod tests {
 
     fn configs() -> Vec<NetConfig> {
         vec![
-            NetConfig {
-                features: FeatureKind::Joints,
-                channels: vec![4, 5],
-                kernel: 3,
-                embed_dim: 6,
-                l2_normalize: true,
-                reverse_average: false,
-            },
+            NetConfig::tiny_joints(),
             NetConfig {
                 features: FeatureKind::Pen,
                 channels: vec![3, 4, 5],

@@ -52,6 +52,20 @@ impl Default for NetConfig {
 }
 
 impl NetConfig {
+    /// The tiny joint-feature network the gradient, fast-path and reference tests share
+    /// (two layers of 4 and 5 channels, kernel 3, 6-d embedding).
+    #[cfg(all(test, feature = "train"))]
+    pub(crate) fn tiny_joints() -> Self {
+        Self {
+            features: FeatureKind::Joints,
+            channels: vec![4, 5],
+            kernel: 3,
+            embed_dim: 6,
+            l2_normalize: true,
+            reverse_average: false,
+        }
+    }
+
     /// Input feature channels.
     pub fn in_channels(&self) -> usize {
         self.features.channels()

@@ -147,7 +147,10 @@ mod tests {
         let lv = f64::from(l.to_scalar::<f32>().unwrap());
         assert!((comparable - lv * f64::from(active)).abs() < 1e-9);
         assert!(active > 0.0 && active < 1.0, "{active}");
-        assert!(comparable < lv, "the mean over all valid triplets is below the active mean");
+        assert!(
+            comparable < lv,
+            "the mean over all valid triplets is below the active mean"
+        );
     }
 
     #[test]

@@ -168,19 +168,11 @@ pub fn max_pool2(x: &Tensor) -> candle_core::Result<Tensor> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::features::FeatureKind;
     use candle_core::Var;
     use rand::{Rng, SeedableRng};
 
     fn small_config() -> NetConfig {
-        NetConfig {
-            features: FeatureKind::Joints,
-            channels: vec![4, 5],
-            kernel: 3,
-            embed_dim: 6,
-            l2_normalize: true,
-            reverse_average: false,
-        }
+        NetConfig::tiny_joints()
     }
 
     /// Reference convolution written with loops.
