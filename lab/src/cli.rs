@@ -3,8 +3,6 @@
 
 use std::path::PathBuf;
 
-use crate::eval::EpisodeSpec;
-
 /// The Omniglot stroke root of this workspace's shared data.
 pub const DEFAULT_STROKES: &str = "../shared/omniglot/strokes";
 
@@ -93,18 +91,6 @@ pub struct EpisodeArgs {
     /// Seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-}
-
-impl EpisodeArgs {
-    /// The episodes these arguments describe.
-    pub fn spec(&self) -> EpisodeSpec {
-        EpisodeSpec {
-            way: self.way,
-            shot: self.shot,
-            episodes: self.episodes,
-            seed: self.seed,
-        }
-    }
 }
 
 #[cfg(test)]

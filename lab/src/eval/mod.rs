@@ -70,6 +70,18 @@ pub struct EpisodeSpec {
     pub seed: u64,
 }
 
+impl EpisodeArgs {
+    /// The episodes these arguments describe.
+    pub fn spec(&self) -> EpisodeSpec {
+        EpisodeSpec {
+            way: self.way,
+            shot: self.shot,
+            episodes: self.episodes,
+            seed: self.seed,
+        }
+    }
+}
+
 /// Result of a run of episodes.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct EpisodeResult {

@@ -11,7 +11,6 @@ use serde::{Deserialize, Serialize};
 use crate::cli::{DatasetArgs, StrokesArgs};
 use crate::data::faults::Fault;
 use crate::train::TrainError;
-use crate::train::schedule::Schedule;
 
 /// Which loss trains the network.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -58,6 +57,20 @@ pub const TRAIN_FAULTS: [Fault; 5] = [
     Fault::Truncated,
     Fault::Rotated,
 ];
+
+/// Learning-rate schedule.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Schedule {
+    /// Halve the rate when the validation loss stalls and stop early; the model with the best
+    /// validation loss is kept.
+    #[default]
+    Plateau,
+    /// A fixed one-cycle schedule over every step of `epochs x steps-per-epoch` (linear
+    /// warm-up from lr/25 over the first 5 %, then cosine annealing to lr/10⁴), no early
+    /// stopping; the last model is kept. Validation is measured and logged only.
+    OneCycle,
+}
 
 /// Everything that determines a training run (written to `train-config.json`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

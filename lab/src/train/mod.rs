@@ -33,10 +33,10 @@ pub mod schedule;
 pub mod trainer;
 
 pub use batches::{Item, Prepared};
-pub use config::{Args, FeatureArg, LossKind, TRAIN_FAULTS, TrainConfig};
+pub use config::{Args, FeatureArg, LossKind, Schedule, TRAIN_FAULTS, TrainConfig};
 pub use objective::{batch_loss, objective};
 pub use optim::{AdamW, Learner};
-pub use schedule::{Schedule, one_cycle_lr};
+pub use schedule::one_cycle_lr;
 pub use trainer::{EpochMetrics, TrainSummary, embed, embed_all, run, train};
 
 /// Training failed.

@@ -9,18 +9,6 @@ use rand::seq::IndexedRandom;
 
 use crate::train::config::{LossKind, TrainConfig};
 
-/// The loss of one batch of embeddings `e [B, embed_dim]`. Returns `(loss, active
-/// fraction, mined triplets)`.
-pub fn batch_loss(
-    e: &Tensor,
-    labels: &[u32],
-    kind: LossKind,
-    margin: f64,
-    rng: &mut StdRng,
-) -> candle_core::Result<(Tensor, f32, usize)> {
-    embedding_loss(e, labels, kind, margin, rng)
-}
-
 /// The training objective of one batch of embeddings `e [B, embed_dim]` of items: the main
 /// loss of `cfg`, plus the fault-negative term (weighted) when the batch has corrupted
 /// plans. Returns `(loss to optimise, validation-comparable loss, active fraction, mined
@@ -34,7 +22,7 @@ pub fn objective(
     cfg: &TrainConfig,
     rng: &mut StdRng,
 ) -> candle_core::Result<(Tensor, f64, f32, usize)> {
-    let (l, active, n) = embedding_loss(e, labels, cfg.loss, cfg.margin, rng)?;
+    let (l, active, n) = batch_loss(e, labels, cfg.loss, cfg.margin, rng)?;
     let lv = f64::from(l.to_scalar::<f32>()?);
     let mut comparable = if cfg.loss == LossKind::BatchAll {
         lv * f64::from(active)
@@ -50,7 +38,9 @@ pub fn objective(
     Ok((total, comparable, active, n))
 }
 
-fn embedding_loss(
+/// The loss of one batch of embeddings `e [B, embed_dim]`. Returns `(loss, active
+/// fraction, mined triplets)`.
+pub fn batch_loss(
     e: &Tensor,
     labels: &[u32],
     kind: LossKind,

@@ -1,24 +1,8 @@
 //! The learning-rate schedule: ReduceLROnPlateau with early stopping on the validation
 //! loss (the best model kept), or a fixed one-cycle schedule (the last model kept).
 
-use serde::{Deserialize, Serialize};
-
 use crate::train::checkpoint::State;
-use crate::train::config::TrainConfig;
-
-/// Learning-rate schedule.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "kebab-case")]
-pub enum Schedule {
-    /// Halve the rate when the validation loss stalls and stop early; the model with the best
-    /// validation loss is kept.
-    #[default]
-    Plateau,
-    /// A fixed one-cycle schedule over every step of `epochs x steps-per-epoch` (linear
-    /// warm-up from lr/25 over the first 5 %, then cosine annealing to lr/10⁴), no early
-    /// stopping; the last model is kept. Validation is measured and logged only.
-    OneCycle,
-}
+use crate::train::config::{Schedule, TrainConfig};
 
 /// The one-cycle rate at `step` of `total` for a peak rate `peak` (PyTorch's `OneCycleLR`
 /// with `pct_start = 0.05`, `div_factor = 25`, `final_div_factor = 10⁴`, cosine annealing).

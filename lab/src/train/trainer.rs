@@ -19,10 +19,11 @@ use crate::eval::{self, EpisodeSpec};
 use crate::train::batches::{Item, Prepared};
 use crate::train::checkpoint::{State, load_opt, read_json, save_opt, write_json};
 use crate::train::classaug::SymmetryRule;
+use crate::train::config::Schedule;
 use crate::train::config::{Args, TrainConfig};
 use crate::train::objective::objective;
 use crate::train::optim::Learner;
-use crate::train::schedule::{EpochEnd, Schedule, end_epoch, one_cycle_lr};
+use crate::train::schedule::{EpochEnd, end_epoch, one_cycle_lr};
 use crate::train::{TrainError, io_err};
 
 /// One epoch's metrics (one JSONL line).
