@@ -43,6 +43,9 @@ pub struct Screen {
     journal_ok: bool,
     /// The journal outgrew its bound; compact at the next [`Screen::maintain`].
     compact_pending: bool,
+    /// Entries a status answer carries: the fleet position of a fleet member (one entry
+    /// per signer, `docs/wire-protocol.md` §9), empty otherwise.
+    status_entries: Vec<ClassEntry>,
 }
 
 /// The journal is compacted into the snapshot once it is larger than the bank's class data
@@ -82,6 +85,7 @@ impl Screen {
             admin_separation: false,
             journal_ok: true,
             compact_pending: false,
+            status_entries: Vec::new(),
         };
         s.journal_bytes = s.journal_len();
         s
@@ -192,6 +196,74 @@ impl Screen {
         self.answer(h, request, None)
     }
 
+    /// Answer one request from a remote caller (authenticated by the fleet transport): check,
+    /// identify and status only; every other op is refused with `NotPermitted` from its
+    /// header alone, whatever the admin separation.
+    pub fn handle_remote(
+        &mut self,
+        h: &RequestHeader,
+        payload: &[f32],
+    ) -> (ResponseHeader, Vec<ClassEntry>) {
+        let request = if matches!(
+            decode_code::<Op>(h.op),
+            Some(Op::Check | Op::Identify | Op::Status)
+        ) {
+            self.decode(h, payload, false)
+        } else {
+            Err(Failure::NotPermitted {
+                message: "remote callers may check, identify and ask status only".into(),
+            })
+        };
+        self.answer(h, request, None)
+    }
+
+    /// Set the entries a status answer carries (a fleet member's position).
+    pub fn set_status_entries(&mut self, entries: Vec<ClassEntry>) {
+        self.status_entries = entries;
+    }
+
+    /// Apply a change replicated from another member: class `name` becomes `class`
+    /// (`None`: forgotten), checked like an enroll and within the bank limits, persisted
+    /// before it is served. On any failure nothing changes and the error says why.
+    pub fn apply_replicated(&mut self, name: &str, class: Option<Class>) -> Result<(), Failure> {
+        let generation = self.bank.generation();
+        let before = self.bank.class_bytes(name);
+        let previous = match class {
+            Some(class) => {
+                if self.bank.class(name).is_none() {
+                    self.limits
+                        .check_counts(&self.bank, name, 0)
+                        .map_err(limit_exceeded)?;
+                }
+                if class.embeddings.len() > self.limits.max_examples_per_class {
+                    return Err(limit_exceeded(guardian_shared::wire::Limit {
+                        kind: guardian_shared::wire::LimitKind::ExamplesPerClass,
+                        max: self.limits.max_examples_per_class as u64,
+                        requested: class.embeddings.len() as u64,
+                    }));
+                }
+                self.bank
+                    .put_class(name, class)
+                    .map_err(|e| Failure::BadRequest {
+                        message: format!("replicated class {name:?} refused: {e}"),
+                    })?
+            }
+            None => match self.bank.forget(name) {
+                Some(c) => Some(c),
+                // Already absent: nothing to do.
+                None => return Ok(()),
+            },
+        };
+        let after = self.bank_bytes.saturating_sub(before) + self.bank.class_bytes(name);
+        if let Err(limit) = self.limits.check_bytes(after) {
+            self.bank.undo_change(name, previous, generation);
+            return Err(limit_exceeded(limit));
+        }
+        self.persist(name, previous, generation, after)?;
+        tracing::info!(class = %name, bank = self.bank.generation(), "applied a replicated change");
+        Ok(())
+    }
+
     /// Decode a request; under admin separation a planner's enroll or forget is refused
     /// from its header alone, before its payload is looked at.
     fn decode<'a>(
@@ -234,7 +306,7 @@ impl Screen {
             Ok(Request::Enroll { class, examples }) => self.enroll(class, &examples),
             Ok(Request::Forget { class }) => self.forget(class),
             Ok(Request::Classes) => Ok(self.class_list()),
-            Ok(Request::Status) => Ok(Vec::new()),
+            Ok(Request::Status) => Ok(self.status_entries.clone()),
         };
         let entries = match result {
             Ok(e) => e,

@@ -99,7 +99,6 @@ pub struct Store {
     path: PathBuf,
     winners: BTreeMap<String, Record>,
     clock: u64,
-    position: BTreeMap<[u8; 32], u64>,
 }
 
 fn frame(record: &Record) -> Vec<u8> {
@@ -122,7 +121,6 @@ impl Store {
             path: path.to_owned(),
             winners: BTreeMap::new(),
             clock: 0,
-            position: BTreeMap::new(),
         };
         let mut report = OpenReport::default();
         let data = match fs::read(path) {
@@ -195,8 +193,6 @@ impl Store {
             }
             _ => {}
         }
-        let p = self.position.entry(*record.signer()).or_insert(0);
-        *p = (*p).max(record.lamport());
         self.winners.insert(record.class().to_owned(), record);
         Offer::Applied
     }
@@ -288,11 +284,18 @@ impl Store {
         self.winners.values()
     }
 
-    /// The fleet position: per signer, the greatest Lamport counter of its records applied
-    /// here. Two members with the same position and the same [`Store::digest`] hold the
-    /// same bank.
-    pub fn position(&self) -> &BTreeMap<[u8; 32], u64> {
-        &self.position
+    /// The fleet position: per signer, the greatest Lamport counter among the records of
+    /// that signer the bank holds here (the winners). Like the winners, it depends only on
+    /// the set of records received, not on their order, so members that converged report
+    /// the same position, and a member that missed a signer's latest change reports a
+    /// smaller counter for it (or none).
+    pub fn position(&self) -> BTreeMap<[u8; 32], u64> {
+        let mut p = BTreeMap::new();
+        for r in self.winners.values() {
+            let e = p.entry(*r.signer()).or_insert(0);
+            *e = (*e).max(r.lamport());
+        }
+        p
     }
 
     /// SHA-256 over the winners' hashes in class order: equal digests, equal state.
@@ -395,6 +398,11 @@ mod tests {
         assert_eq!(fs::metadata(&path).unwrap().len(), len);
         assert_eq!(s.next_lamport(), 3);
         assert_eq!(s.position()[&key(2).verifying_key().to_bytes()], 2);
+        // The superseded record's signer holds no winner any more.
+        assert!(
+            !s.position()
+                .contains_key(&key(1).verifying_key().to_bytes())
+        );
     }
 
     #[test]
