@@ -151,7 +151,8 @@ fn built_bin(name: &str, env: &str) -> anyhow::Result<PathBuf> {
         Some(other) => other.to_string(),
     };
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-    // Both binaries in one build, so their dependencies are built once with one feature set.
+    // Both binaries in one build, so their dependencies are built once with one feature set;
+    // guardiand with fleet membership, as this crate depends on it (the fleet tests need it).
     let status = Command::new(cargo)
         .args([
             "build",
@@ -161,6 +162,8 @@ fn built_bin(name: &str, env: &str) -> anyhow::Result<PathBuf> {
             "-p",
             "guardian-ctl",
             "--bins",
+            "--features",
+            "guardian-daemon/fleet",
         ])
         .args(["--profile", &profile])
         .current_dir(workspace_root())
