@@ -3,7 +3,7 @@
 //! same API and answers as the local [`crate::Client`]. Each request is the iceoryx2
 //! request's bytes in an envelope signed by this caller's key (which the member must list
 //! in `caller-keys`), and each answer is signed by the member's key, which this client
-//! checks (`docs/fleet.md`, `docs/wire-protocol.md` §9). A remote caller can never enroll
+//! checks (`docs/fleet.md`, `docs/wire-protocol.md` §10). A remote caller can never enroll
 //! or forget.
 
 use std::path::PathBuf;

@@ -44,7 +44,7 @@ pub struct Screen {
     /// The journal outgrew its bound; compact at the next [`Screen::maintain`].
     compact_pending: bool,
     /// Entries a status answer carries: the fleet position of a fleet member (one entry
-    /// per signer, `docs/wire-protocol.md` §9), empty otherwise.
+    /// per signer, `docs/wire-protocol.md` §10), empty otherwise.
     status_entries: Vec<ClassEntry>,
 }
 
