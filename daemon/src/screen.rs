@@ -664,4 +664,52 @@ mod tests {
         assert_eq!(batched[2].0.reason, ReasonCode::InvalidTrajectory as u32);
         assert_eq!(batched[4].0.reason, ReasonCode::UnknownClass as u32);
     }
+
+    /// A remote caller may check, identify and ask status, never enroll or forget; a
+    /// replicated class is applied whole, persisted, and a malformed one changes nothing.
+    #[test]
+    fn remote_requests_and_replicated_changes() {
+        let dir = tempfile::tempdir().unwrap();
+        let embedder = Embedder::random(3);
+        let station = Station::panda().with_workcell(Workcell::OFF);
+        let bank = ClassBank::new(embedder.config().embed_dim, embedder.version(), 0.8);
+        let path = dir.path().join("bank.gcb");
+        let mut screen = Screen::new(embedder, station, bank, path.clone(), 3);
+        let (mut h, p) = request(Op::Enroll, "task0", &task(0, 1));
+        let (r, _) = screen.handle_remote(&h, &p);
+        assert_eq!(r.status, guardian_shared::wire::Status::NotPermitted as u32);
+        h.op = Op::Forget as u32;
+        let (r, _) = screen.handle_remote(&h, &[]);
+        assert_eq!(r.status, guardian_shared::wire::Status::NotPermitted as u32);
+        assert!(screen.bank().is_empty());
+        // Enrolled by the admin path, the class is what a record would carry.
+        let (h, p) = request(Op::Enroll, "task0", &task(0, 1));
+        assert_eq!(screen.handle_admin(&h, &p).0.status, 0);
+        let class = screen.bank().class("task0").cloned().unwrap();
+        // Applied elsewhere under another name: served and persisted.
+        screen
+            .apply_replicated("copy", Some(class.clone()))
+            .unwrap();
+        let (h, p) = request(Op::Check, "copy", &task(0, 1));
+        let (r, _) = screen.handle_remote(&h, &p);
+        assert_eq!(r.status, 0);
+        let (loaded, _) = ClassBank::load_with_journal(&path).unwrap();
+        assert_eq!(loaded.class("copy"), Some(&class));
+        // A class of the wrong dimension is refused; nothing changes.
+        let mut bad = class.clone();
+        bad.prototype.pop();
+        let generation = screen.bank().generation();
+        assert!(screen.apply_replicated("bad", Some(bad)).is_err());
+        assert_eq!(screen.bank().generation(), generation);
+        assert!(screen.bank().class("bad").is_none());
+        // A replicated forget removes it; forgetting an absent class is a no-op.
+        screen.apply_replicated("copy", None).unwrap();
+        assert!(screen.bank().class("copy").is_none());
+        screen.apply_replicated("never", None).unwrap();
+        // Status carries the entries set by the fleet member.
+        screen.set_status_entries(vec![screen.entry("task0", f32::NAN)]);
+        let h = RequestHeader::new(8, Op::Status);
+        let (r, entries) = screen.handle_remote(&h, &[]);
+        assert_eq!((r.status, entries.len()), (0, 1));
+    }
 }
