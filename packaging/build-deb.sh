@@ -34,10 +34,10 @@ command -v cargo-deb >/dev/null || {
   exit 1
 }
 if [ "$build" = 1 ]; then
-  # One build per package, the same commands the test harness uses, so a tested dev build
-  # is reused as it is.
-  cargo build --locked --profile "$profile" -p "$DAEMON_PACKAGE" --bin guardiand
-  cargo build --locked --profile "$profile" -p "$CTL_PACKAGE" --bin guardianctl
+  # Both binaries in one build with fleet membership on (docs/fleet.md), the same command the
+  # test harness uses, so a tested dev build is reused as it is.
+  cargo build --locked --profile "$profile" -p "$DAEMON_PACKAGE" -p "$CTL_PACKAGE" --bins \
+    --features "$DAEMON_PACKAGE/fleet"
 fi
 for b in guardiand guardianctl; do
   test -x "$target/$dir/$b" || { echo "$target/$dir/$b is missing; build it first" >&2; exit 1; }

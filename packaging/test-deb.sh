@@ -4,7 +4,8 @@
 #  2. checks that every packaged file is installed and that every path the unit and the
 #     config name exists (binary, config, model, default bank, user, state and runtime dirs);
 #  3. runs the installed `guardiand --check` on the installed config as the service's user,
-#     and `systemd-analyze verify` on the installed unit;
+#     checks that the installed guardiand has fleet membership (`--fleet-keygen` writes a key
+#     pair), and runs `systemd-analyze verify` on the installed unit;
 #  4. starts the installed guardiand, enrolls a class with the installed guardianctl, stops it,
 #     then installs the same package again: /var/lib/guardian/bank.gcb must stay untouched
 #     (same bytes, same inode and mtime) and a local edit of the conffile must survive;
@@ -106,6 +107,14 @@ step "installed guardiand --check (as $user)"
 as_user "$exe" --config "$conf" --check 2>"$tmp/check.err" | tee "$tmp/check.out" \
   || { cat "$tmp/check.err"; fail "guardiand --check"; }
 grep -q '^ok: ' "$tmp/check.out" || fail "guardiand --check did not say ok"
+
+step "installed guardiand has fleet membership (--fleet-keygen)"
+keyout=$("$exe" --fleet-keygen "$tmp/fleet.key" 2>/dev/null) || fail "guardiand --fleet-keygen"
+[[ "$keyout" =~ ^[0-9a-f]{64}$ ]] || fail "guardiand --fleet-keygen printed $keyout, not a public key"
+[ "$(stat -c '%a' "$tmp/fleet.key")" = 600 ] || fail "the secret fleet key is not mode 0600"
+[ "$(tr -d '\n' < "$tmp/fleet.key.pub")" = "$keyout" ] || fail "fleet.key.pub does not hold the printed key"
+test -f /usr/share/doc/guardian/examples/guardiand-fleet.toml || fail "the fleet sample config is not installed"
+echo "fleet key pair written; public key $keyout"
 
 step "systemd-analyze verify $unit"
 systemd-analyze verify "$unit" || fail "systemd-analyze verify"

@@ -36,6 +36,8 @@ pub mod samples;
 
 mod admin;
 mod locate;
+#[cfg(feature = "fleet")]
+pub mod remote;
 pub use admin::AdminClient;
 pub use locate::{ADMIN_SOCKET_ENV, LocateAdminError, QUICK_START_ADMIN_SOCKET};
 
@@ -382,6 +384,18 @@ pub struct DaemonStatus {
     pub latency_us: Option<[f32; 4]>,
     /// The robot the daemon serves (its trajectories have `joints + 1` channels).
     pub robot: RobotInfo,
+    /// A fleet member's position (`docs/fleet.md`): per record signer, the greatest Lamport
+    /// counter of its records applied here; empty for a daemon outside a fleet.
+    pub fleet: Vec<FleetPosition>,
+}
+
+/// How far a fleet member has applied one signer's records.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct FleetPosition {
+    /// The first 16 hex digits of the signer's public key.
+    pub signer: String,
+    /// The greatest Lamport counter of that signer's records applied.
+    pub lamport: u64,
 }
 
 /// The robot a daemon serves.
@@ -805,13 +819,7 @@ impl Client {
     pub fn identify(&self, trajectory: &Trajectory) -> Result<Ranking, CheckError> {
         let h = Self::single(Op::Identify, trajectory, None)?;
         let (r, entries) = self.call(h, trajectory.as_flat())?;
-        status_ok(&r)?;
-        let state = wire::decode_state(&r);
-        Ok(Ranking {
-            nearest: neighbours(&entries),
-            model_version: state.model_version.into_owned(),
-            bank_version: state.bank_version,
-        })
+        ranking(&r, &entries)
     }
 
     /// Add `examples` (1..=[`MAX_EXAMPLES`]) to `class`, creating it if new. No retraining:
@@ -838,9 +846,30 @@ impl Client {
 
     /// Versions, counters and latency percentiles.
     pub fn status(&self) -> Result<DaemonStatus, CheckError> {
-        let (r, _) = self.call(RequestHeader::new(0, Op::Status), &[])?;
-        status_ok(&r)?;
-        let s = wire::decode_state(&r);
+        let (r, entries) = self.call(RequestHeader::new(0, Op::Status), &[])?;
+        daemon_status(&r, &entries)
+    }
+}
+
+/// The ranking an identify response carries.
+pub(crate) fn ranking(r: &ResponseHeader, entries: &[ClassEntry]) -> Result<Ranking, CheckError> {
+    status_ok(r)?;
+    let state = wire::decode_state(r);
+    Ok(Ranking {
+        nearest: neighbours(entries),
+        model_version: state.model_version.into_owned(),
+        bank_version: state.bank_version,
+    })
+}
+
+/// The status a status response carries (a fleet member's position in its entries).
+pub(crate) fn daemon_status(
+    r: &ResponseHeader,
+    entries: &[ClassEntry],
+) -> Result<DaemonStatus, CheckError> {
+    {
+        status_ok(r)?;
+        let s = wire::decode_state(r);
         let lat = s.latency_us;
         Ok(DaemonStatus {
             model_version: s.model_version.into_owned(),
@@ -861,6 +890,17 @@ impl Client {
                 name: s.robot.name.into_owned(),
                 joints: s.robot.joints,
             },
+            fleet: entries
+                .iter()
+                .filter_map(|e| {
+                    let name = wire::decode_text(&e.name);
+                    let signer = name.strip_prefix("fleet:")?.to_owned();
+                    Some(FleetPosition {
+                        signer,
+                        lamport: u64::from(e.examples) | (u64::from(e.calibrated) << 32),
+                    })
+                })
+                .collect(),
         })
     }
 }

@@ -234,6 +234,13 @@ fn main() -> anyhow::Result<()> {
                     ),
                     None => println!("service time    (no requests yet)"),
                 }
+                // A fleet member's position: per signer, the last record applied here.
+                for p in &s.fleet {
+                    println!(
+                        "fleet           signer {} at lamport {}",
+                        p.signer, p.lamport
+                    );
+                }
             }
         }
     }

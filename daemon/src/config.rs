@@ -138,7 +138,20 @@ pub struct Config {
     pub workcell: Option<toml::Table>,
     /// The admin endpoint and admin separation.
     pub admin: AdminConfig,
+    /// Fleet membership (`docs/fleet.md`): bank replication and remote checks over Zenoh.
+    /// Needs a daemon built with the `fleet` feature (the Debian package's is).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fleet: Option<FleetTable>,
 }
+
+/// The `[fleet]` table: parsed and checked by `guardian-fleet` when the daemon is built with
+/// the `fleet` feature.
+#[cfg(feature = "fleet")]
+pub type FleetTable = guardian_fleet::config::FleetConfig;
+/// The `[fleet]` table: without the `fleet` feature any such table is refused at load
+/// ([`ConfigError::FleetNotBuilt`]).
+#[cfg(not(feature = "fleet"))]
+pub type FleetTable = toml::Table;
 
 impl Default for Config {
     fn default() -> Self {
@@ -163,6 +176,7 @@ impl Default for Config {
             iceoryx2: Iceoryx2Config::default(),
             workcell: None,
             admin: AdminConfig::default(),
+            fleet: None,
         }
     }
 }
@@ -219,6 +233,16 @@ pub enum ConfigError {
     /// The `[workcell]` overrides do not fit.
     #[error("[workcell]: {0}")]
     Workcell(#[from] WorkcellOverrideError),
+    /// The config has a `[fleet]` table but this guardiand was built without fleet support.
+    #[error(
+        "[fleet]: this guardiand was built without the `fleet` feature; \
+         build it with `--features fleet` (the Debian package is) or remove the table"
+    )]
+    FleetNotBuilt,
+    /// The `[fleet]` table is invalid.
+    #[cfg(feature = "fleet")]
+    #[error(transparent)]
+    Fleet(#[from] guardian_fleet::config::FleetConfigError),
 }
 
 impl Config {
@@ -312,6 +336,14 @@ impl Config {
             && !(t.is_finite() && t >= 0.0)
         {
             return Err(ConfigError::DefaultThreshold(t));
+        }
+        #[cfg(not(feature = "fleet"))]
+        if self.fleet.is_some() {
+            return Err(ConfigError::FleetNotBuilt);
+        }
+        #[cfg(feature = "fleet")]
+        if let Some(f) = &self.fleet {
+            f.check()?;
         }
         Ok(())
     }
@@ -473,6 +505,37 @@ mod tests {
         assert_eq!(c.station().unwrap().robot().name(), "ur5e");
     }
 
+    /// A `[fleet]` table is refused with a typed error by a daemon built without the
+    /// feature, and checked by one built with it.
+    #[test]
+    fn fleet_table_needs_the_feature() {
+        let text = "[fleet]\nname = \"cell\"\nmember = \"a\"\nlisten = [\"tcp/127.0.0.1:7447\"]\nsigning-key = \"/k\"\n";
+        let r = Config::from_toml(text, Path::new("t"));
+        #[cfg(not(feature = "fleet"))]
+        assert!(
+            matches!(
+                r,
+                Err(LoadConfigError::Invalid {
+                    source: ConfigError::FleetNotBuilt,
+                    ..
+                })
+            ),
+            "{r:?}"
+        );
+        #[cfg(feature = "fleet")]
+        {
+            assert_eq!(r.unwrap().fleet.unwrap().member, "a");
+            let bad = text.replace("member = \"a\"", "member = \"a/b\"");
+            assert!(matches!(
+                Config::from_toml(&bad, Path::new("t")),
+                Err(LoadConfigError::Invalid {
+                    source: ConfigError::Fleet(_),
+                    ..
+                })
+            ));
+        }
+    }
+
     #[test]
     fn the_daemons_own_uid_is_an_admin_only_without_separation() {
         let open = AdminConfig::default();
@@ -493,7 +556,15 @@ mod tests {
         for entry in std::fs::read_dir(&dir).unwrap() {
             let p = entry.unwrap().path();
             if p.extension().is_some_and(|e| e == "toml") {
-                Config::from_file(&p).unwrap();
+                match Config::from_file(&p) {
+                    Ok(_) => {}
+                    // A fleet sample needs the feature; without it, the typed refusal.
+                    Err(LoadConfigError::Invalid {
+                        source: ConfigError::FleetNotBuilt,
+                        ..
+                    }) if cfg!(not(feature = "fleet")) => {}
+                    Err(e) => panic!("{}: {e}", p.display()),
+                }
                 n += 1;
             }
         }

@@ -5,6 +5,8 @@
 
 pub mod admin;
 pub mod config;
+#[cfg(feature = "fleet")]
+pub mod fleet;
 pub mod locator;
 pub mod notify;
 pub mod recovery;

@@ -21,12 +21,28 @@ struct Args {
     /// Check config, model and bank, then exit without serving.
     #[arg(long)]
     check: bool,
+    /// Write a new fleet key pair (`docs/fleet.md`): the secret key to PATH (mode 0600,
+    /// never overwritten) and the public key to PATH.pub, print the public key and exit.
+    #[cfg(feature = "fleet")]
+    #[arg(long, value_name = "PATH")]
+    fleet_keygen: Option<PathBuf>,
 }
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     if args.print_default_config {
         print!("{}", Config::default_toml());
+        return Ok(());
+    }
+    #[cfg(feature = "fleet")]
+    if let Some(path) = &args.fleet_keygen {
+        let public = guardian_fleet::keys::write_key_pair(path)?;
+        println!("{}", guardian_fleet::keys::hex(public.as_bytes()));
+        eprintln!(
+            "secret key written to {} (mode 0600), public key to {}",
+            path.display(),
+            guardian_fleet::keys::public_path(path).display()
+        );
         return Ok(());
     }
     tracing_subscriber::fmt()

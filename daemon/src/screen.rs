@@ -43,6 +43,9 @@ pub struct Screen {
     journal_ok: bool,
     /// The journal outgrew its bound; compact at the next [`Screen::maintain`].
     compact_pending: bool,
+    /// Entries a status answer carries: the fleet position of a fleet member (one entry
+    /// per signer, `docs/wire-protocol.md` §10), empty otherwise.
+    status_entries: Vec<ClassEntry>,
 }
 
 /// The journal is compacted into the snapshot once it is larger than the bank's class data
@@ -82,6 +85,7 @@ impl Screen {
             admin_separation: false,
             journal_ok: true,
             compact_pending: false,
+            status_entries: Vec::new(),
         };
         s.journal_bytes = s.journal_len();
         s
@@ -192,6 +196,74 @@ impl Screen {
         self.answer(h, request, None)
     }
 
+    /// Answer one request from a remote caller (authenticated by the fleet transport): check,
+    /// identify and status only; every other op is refused with `NotPermitted` from its
+    /// header alone, whatever the admin separation.
+    pub fn handle_remote(
+        &mut self,
+        h: &RequestHeader,
+        payload: &[f32],
+    ) -> (ResponseHeader, Vec<ClassEntry>) {
+        let request = if matches!(
+            decode_code::<Op>(h.op),
+            Some(Op::Check | Op::Identify | Op::Status)
+        ) {
+            self.decode(h, payload, false)
+        } else {
+            Err(Failure::NotPermitted {
+                message: "remote callers may check, identify and ask status only".into(),
+            })
+        };
+        self.answer(h, request, None)
+    }
+
+    /// Set the entries a status answer carries (a fleet member's position).
+    pub fn set_status_entries(&mut self, entries: Vec<ClassEntry>) {
+        self.status_entries = entries;
+    }
+
+    /// Apply a change replicated from another member: class `name` becomes `class`
+    /// (`None`: forgotten), checked like an enroll and within the bank limits, persisted
+    /// before it is served. On any failure nothing changes and the error says why.
+    pub fn apply_replicated(&mut self, name: &str, class: Option<Class>) -> Result<(), Failure> {
+        let generation = self.bank.generation();
+        let before = self.bank.class_bytes(name);
+        let previous = match class {
+            Some(class) => {
+                if self.bank.class(name).is_none() {
+                    self.limits
+                        .check_counts(&self.bank, name, 0)
+                        .map_err(limit_exceeded)?;
+                }
+                if class.embeddings.len() > self.limits.max_examples_per_class {
+                    return Err(limit_exceeded(guardian_shared::wire::Limit {
+                        kind: guardian_shared::wire::LimitKind::ExamplesPerClass,
+                        max: self.limits.max_examples_per_class as u64,
+                        requested: class.embeddings.len() as u64,
+                    }));
+                }
+                self.bank
+                    .put_class(name, class)
+                    .map_err(|e| Failure::BadRequest {
+                        message: format!("replicated class {name:?} refused: {e}"),
+                    })?
+            }
+            None => match self.bank.forget(name) {
+                Some(c) => Some(c),
+                // Already absent: nothing to do.
+                None => return Ok(()),
+            },
+        };
+        let after = self.bank_bytes.saturating_sub(before) + self.bank.class_bytes(name);
+        if let Err(limit) = self.limits.check_bytes(after) {
+            self.bank.undo_change(name, previous, generation);
+            return Err(limit_exceeded(limit));
+        }
+        self.persist(name, previous, generation, after)?;
+        tracing::info!(class = %name, bank = self.bank.generation(), "applied a replicated change");
+        Ok(())
+    }
+
     /// Decode a request; under admin separation a planner's enroll or forget is refused
     /// from its header alone, before its payload is looked at.
     fn decode<'a>(
@@ -234,7 +306,7 @@ impl Screen {
             Ok(Request::Enroll { class, examples }) => self.enroll(class, &examples),
             Ok(Request::Forget { class }) => self.forget(class),
             Ok(Request::Classes) => Ok(self.class_list()),
-            Ok(Request::Status) => Ok(Vec::new()),
+            Ok(Request::Status) => Ok(self.status_entries.clone()),
         };
         let entries = match result {
             Ok(e) => e,
@@ -591,5 +663,53 @@ mod tests {
         assert!(go >= 1, "some checks should pass");
         assert_eq!(batched[2].0.reason, ReasonCode::InvalidTrajectory as u32);
         assert_eq!(batched[4].0.reason, ReasonCode::UnknownClass as u32);
+    }
+
+    /// A remote caller may check, identify and ask status, never enroll or forget; a
+    /// replicated class is applied whole, persisted, and a malformed one changes nothing.
+    #[test]
+    fn remote_requests_and_replicated_changes() {
+        let dir = tempfile::tempdir().unwrap();
+        let embedder = Embedder::random(3);
+        let station = Station::panda().with_workcell(Workcell::OFF);
+        let bank = ClassBank::new(embedder.config().embed_dim, embedder.version(), 0.8);
+        let path = dir.path().join("bank.gcb");
+        let mut screen = Screen::new(embedder, station, bank, path.clone(), 3);
+        let (mut h, p) = request(Op::Enroll, "task0", &task(0, 1));
+        let (r, _) = screen.handle_remote(&h, &p);
+        assert_eq!(r.status, guardian_shared::wire::Status::NotPermitted as u32);
+        h.op = Op::Forget as u32;
+        let (r, _) = screen.handle_remote(&h, &[]);
+        assert_eq!(r.status, guardian_shared::wire::Status::NotPermitted as u32);
+        assert!(screen.bank().is_empty());
+        // Enrolled by the admin path, the class is what a record would carry.
+        let (h, p) = request(Op::Enroll, "task0", &task(0, 1));
+        assert_eq!(screen.handle_admin(&h, &p).0.status, 0);
+        let class = screen.bank().class("task0").cloned().unwrap();
+        // Applied elsewhere under another name: served and persisted.
+        screen
+            .apply_replicated("copy", Some(class.clone()))
+            .unwrap();
+        let (h, p) = request(Op::Check, "copy", &task(0, 1));
+        let (r, _) = screen.handle_remote(&h, &p);
+        assert_eq!(r.status, 0);
+        let (loaded, _) = ClassBank::load_with_journal(&path).unwrap();
+        assert_eq!(loaded.class("copy"), Some(&class));
+        // A class of the wrong dimension is refused; nothing changes.
+        let mut bad = class.clone();
+        bad.prototype.pop();
+        let generation = screen.bank().generation();
+        assert!(screen.apply_replicated("bad", Some(bad)).is_err());
+        assert_eq!(screen.bank().generation(), generation);
+        assert!(screen.bank().class("bad").is_none());
+        // A replicated forget removes it; forgetting an absent class is a no-op.
+        screen.apply_replicated("copy", None).unwrap();
+        assert!(screen.bank().class("copy").is_none());
+        screen.apply_replicated("never", None).unwrap();
+        // Status carries the entries set by the fleet member.
+        screen.set_status_entries(vec![screen.entry("task0", f32::NAN)]);
+        let h = RequestHeader::new(8, Op::Status);
+        let (r, entries) = screen.handle_remote(&h, &[]);
+        assert_eq!((r.status, entries.len()), (0, 1));
     }
 }

@@ -58,7 +58,79 @@ pub enum RunError {
     /// Saving the bank at shutdown failed.
     #[error("cannot flush class bank at shutdown: {0}")]
     Flush(#[from] guardian_models::bank::SaveBankError),
+    /// Fleet membership could not be started.
+    #[cfg(feature = "fleet")]
+    #[error("cannot join the fleet: {0}")]
+    Fleet(#[from] crate::fleet::FleetError),
 }
+
+/// The fleet member, when the daemon is built with the `fleet` feature and configured.
+#[cfg(feature = "fleet")]
+type Fleet = Option<crate::fleet::Member>;
+/// Without the `fleet` feature there is no member.
+#[cfg(not(feature = "fleet"))]
+struct Fleet;
+
+#[cfg(feature = "fleet")]
+fn start_fleet(
+    config: &Config,
+    screen: &mut Screen,
+    iox_config: &iceoryx2::config::Config,
+) -> Result<Fleet, RunError> {
+    let Some(f) = &config.fleet else {
+        return Ok(None);
+    };
+    // Every bank change must become a signed record: planners may not enroll or forget.
+    screen.set_admin_separation(true);
+    let wake = (iox_config.clone(), request_event_name(&config.service_name));
+    let member = crate::fleet::Member::start(f, &config.state_dir(), screen, wake)?;
+    tracing::info!(fleet = %f.name, member = %f.member, "fleet membership on; enroll and forget only through the admin socket");
+    Ok(Some(member))
+}
+
+#[cfg(not(feature = "fleet"))]
+fn start_fleet(
+    _: &Config,
+    _: &mut Screen,
+    _: &iceoryx2::config::Config,
+) -> Result<Fleet, RunError> {
+    Ok(Fleet)
+}
+
+/// Handle what the fleet delivered (records, remote requests); returns how many items.
+#[cfg(feature = "fleet")]
+fn poll_fleet(fleet: &mut Fleet, screen: &mut Screen) -> usize {
+    fleet.as_mut().map_or(0, |m| m.poll(screen))
+}
+
+/// The bound on the loop's sleep a fleet member needs ([`crate::fleet::FLEET_TICK`]).
+#[cfg(feature = "fleet")]
+fn fleet_tick(fleet: &Fleet) -> Option<Duration> {
+    fleet.as_ref().map(|_| crate::fleet::FLEET_TICK)
+}
+
+#[cfg(not(feature = "fleet"))]
+fn fleet_tick(_: &Fleet) -> Option<Duration> {
+    None
+}
+
+#[cfg(not(feature = "fleet"))]
+fn poll_fleet(_: &mut Fleet, _: &mut Screen) -> usize {
+    0
+}
+
+/// An admin request was answered: replicate the change it made, if any.
+#[cfg(feature = "fleet")]
+fn replicate(fleet: &mut Fleet, screen: &mut Screen, h: &RequestHeader, status: u32) {
+    if let Some(m) = fleet.as_mut()
+        && let Some(class) = crate::fleet::changed_class(h, status)
+    {
+        m.local_change(screen, &class);
+    }
+}
+
+#[cfg(not(feature = "fleet"))]
+fn replicate(_: &mut Fleet, _: &mut Screen, _: &RequestHeader, _: u32) {}
 
 impl From<LoadStateError> for RunError {
     fn from(e: LoadStateError) -> Self {
@@ -251,6 +323,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         &admin_path,
     );
     tracing::info!(socket = %admin_path.display(), separation = config.admin.separation, uids = ?admin_uids, gids = ?config.admin.gids, "admin socket ready");
+    let mut fleet = start_fleet(&config, &mut screen, &iox_config)?;
 
     let watchdog = if config.watchdog {
         sd.watchdog_timeout().map(|t| t / 2)
@@ -268,6 +341,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         Some(w) => config.tick().min(w),
         None => config.tick(),
     };
+    let tick = fleet_tick(&fleet).map_or(tick, |t| tick.min(t));
     let mut last_ping = Instant::now();
     let mut last_cleanup = Instant::now();
     let mut last_request = Instant::now();
@@ -288,7 +362,8 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     loop {
         // Answer everything queued first, so that a stop answers in-flight requests.
         let served = drain(&server, &mut out, &mut screen, config.max_batch)?
-            + serve_admin(&admin, &mut screen);
+            + serve_admin(&admin, &mut screen, &mut fleet)
+            + poll_fleet(&mut fleet, &mut screen);
         if served > 0 {
             last_request = Instant::now();
         }
@@ -360,7 +435,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     sd.stopping();
     tracing::info!("stopping: answering queued requests and flushing state");
     let _ = drain(&server, &mut out, &mut screen, config.max_batch)?;
-    let _ = serve_admin(&admin, &mut screen);
+    let _ = serve_admin(&admin, &mut screen, &mut fleet);
     drop(admin);
     screen.flush()?;
     tracing::info!("stopped");
@@ -391,7 +466,7 @@ fn reload(config: &Config, screen: &mut Screen, sd: &SdNotify) {
 }
 
 /// Answer the admins' queued requests (their credentials were checked by the endpoint).
-fn serve_admin(admin: &AdminEndpoint, screen: &mut Screen) -> usize {
+fn serve_admin(admin: &AdminEndpoint, screen: &mut Screen, fleet: &mut Fleet) -> usize {
     let mut n = 0;
     while let Ok(job) = admin.jobs.try_recv() {
         // A change whose requester has gone is not applied (the endpoint logs it).
@@ -399,6 +474,8 @@ fn serve_admin(admin: &AdminEndpoint, screen: &mut Screen) -> usize {
             continue;
         }
         let answer = screen.handle_admin(&job.header, &job.payload);
+        // Replicated (signed, stored, published) before the admin hears it is done.
+        replicate(fleet, screen, &job.header, answer.0.status);
         job.answer(answer);
         n += 1;
     }

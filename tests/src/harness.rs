@@ -151,9 +151,17 @@ fn built_bin(name: &str, env: &str) -> anyhow::Result<PathBuf> {
         Some(other) => other.to_string(),
     };
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-    // Both binaries in one build, so their dependencies are built once with one feature set.
-    let status = Command::new(cargo)
-        .args([
+    // Both binaries in one build, so their dependencies are built once with one feature set,
+    // guardiand with fleet membership (this crate depends on it; the fleet tests need it).
+    // For tests (dev profile): the workspace's binaries and tests, which is the feature set
+    // of `cargo test --workspace` — guardiand then only needs linking, and Zenoh is never
+    // compiled a second time with the two binaries' narrower feature set (measured: a
+    // `-p guardian-daemon -p guardian-ctl` build resolves another zenoh unit). Benchmarks
+    // (release profiles) build just the two binaries.
+    let args: &[&str] = if profile == "dev" {
+        &["build", "-q", "--workspace", "--bins", "--tests"]
+    } else {
+        &[
             "build",
             "-q",
             "-p",
@@ -161,7 +169,12 @@ fn built_bin(name: &str, env: &str) -> anyhow::Result<PathBuf> {
             "-p",
             "guardian-ctl",
             "--bins",
-        ])
+            "--features",
+            "guardian-daemon/fleet",
+        ]
+    };
+    let status = Command::new(cargo)
+        .args(args)
         .args(["--profile", &profile])
         .current_dir(workspace_root())
         .status()

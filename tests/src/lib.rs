@@ -3,4 +3,5 @@
 //! benchmarks (`harness = false`).
 #![forbid(unsafe_code)]
 
+pub mod fleet;
 pub mod harness;

@@ -480,6 +480,55 @@ impl ClassBank {
         Ok(&self.classes[name])
     }
 
+    /// Put class `name` in the state `class` as a whole (a class replicated from another
+    /// bank of the same model and robot), after the checks an enroll makes: at least one
+    /// embedding, each of the bank's dimension and finite, a prototype of that dimension,
+    /// examples of the bank's robot. Returns the class it replaced.
+    pub fn put_class(&mut self, name: &str, class: Class) -> Result<Option<Class>, EnrollError> {
+        if class.embeddings.is_empty() {
+            return Err(EnrollError::NoExamples);
+        }
+        for (index, e) in class
+            .embeddings
+            .iter()
+            .chain(std::iter::once(&class.prototype))
+            .enumerate()
+        {
+            if e.len() != self.dim {
+                return Err(EnrollError::DimensionMismatch {
+                    index,
+                    expected: self.dim,
+                    got: e.len(),
+                });
+            }
+            if e.iter().any(|v| !v.is_finite()) {
+                return Err(EnrollError::NonFinite { index });
+            }
+        }
+        if let Some(index) = class.geometry.iter().position(|g| !g.is_finite()) {
+            return Err(EnrollError::NonFinite { index });
+        }
+        let joints = self.robot_joints();
+        for (index, x) in class.examples.iter().enumerate() {
+            if x.joints() != joints {
+                return Err(EnrollError::ExampleJoints {
+                    index,
+                    expected: joints,
+                    got: x.joints(),
+                });
+            }
+            if !x.is_finite() {
+                return Err(EnrollError::NonFinite { index });
+            }
+        }
+        if class.threshold.is_some_and(|t| !t.is_finite() || t < 0.0) {
+            return Err(EnrollError::NonFinite { index: 0 });
+        }
+        let previous = self.classes.insert(name.to_owned(), class);
+        self.generation += 1;
+        Ok(previous)
+    }
+
     /// Remove a class; returns it if it was enrolled.
     pub fn forget(&mut self, name: &str) -> Option<Class> {
         let c = self.classes.remove(name);

@@ -1,0 +1,423 @@
+//! Fleet membership (cargo feature `fleet`, config `[fleet]`; `docs/fleet.md`): enrolls
+//! and forgets accepted on the admin path become signed records published to the fleet;
+//! records from peers are verified and applied to the bank; remote check / identify /
+//! status requests are answered. Zenoh runs on its own threads and hands everything to the
+//! serving loop through a channel that [`Member::poll`] drains between requests, waking
+//! the loop through the request event like the admin endpoint does.
+
+use std::path::Path;
+use std::sync::Arc;
+use std::sync::mpsc;
+
+use guardian_fleet::config::FleetConfig;
+use guardian_fleet::keys::{KeyError, hex, read_signing_key};
+use guardian_fleet::node::{Incoming, Node, NodeError, RemoteCall, frame_batch};
+use guardian_fleet::record::{Change, Record, Unsigned};
+use guardian_fleet::remote::{Gate, now_ms, seal_response};
+use guardian_fleet::store::{Offer, STORE_FILE, Store, StoreError};
+use guardian_fleet::{SigningKey, VerifyingKey};
+use guardian_models::bank::Class;
+use guardian_shared::wire::{ClassEntry, Op, RequestHeader, admin, decode_code, encode_text};
+
+use crate::screen::Screen;
+
+/// Starting fleet membership failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum FleetError {
+    /// The signing key or a public key is unusable.
+    #[error("fleet key: {0}")]
+    Key(#[from] KeyError),
+    /// The record store cannot be opened.
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    /// The Zenoh session cannot be started.
+    #[error(transparent)]
+    Node(#[from] NodeError),
+}
+
+/// Counters of what the member refused (for tests and logs).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Refusals {
+    /// Records refused (malformed, untrusted, other fleet/robot/model, stale).
+    pub records: u64,
+    /// Remote requests refused by the gate.
+    pub calls: u64,
+}
+
+/// A running fleet member.
+#[derive(Debug)]
+pub struct Member {
+    config: FleetConfig,
+    key: SigningKey,
+    trusted: Vec<VerifyingKey>,
+    store: Store,
+    gate: Gate,
+    node: Node,
+    rx: mpsc::Receiver<Incoming>,
+    robot: String,
+    model: String,
+    refused: Refusals,
+}
+
+/// The robot identity records carry: `<name>/<joints>/<URDF sha256>`.
+pub fn robot_id(screen: &Screen) -> String {
+    let r = screen.station().robot();
+    format!("{}/{}/{}", r.name(), r.joints(), r.urdf_sha256_hex())
+}
+
+impl Member {
+    /// Open the record store in `state_dir`, bring the bank in line with it, start the
+    /// Zenoh node. `wake` makes the waker that interrupts the serving loop's sleep.
+    pub fn start(
+        config: &FleetConfig,
+        state_dir: &Path,
+        screen: &mut Screen,
+        wake: (iceoryx2::config::Config, String),
+    ) -> Result<Self, FleetError> {
+        let key = read_signing_key(&config.signing_key)?;
+        let mut trusted = config.admin_public_keys()?;
+        if !trusted.contains(&key.verifying_key()) {
+            trusted.push(key.verifying_key());
+        }
+        let (store, report) = Store::open(&state_dir.join(STORE_FILE), &trusted)?;
+        if report.torn_bytes > 0 {
+            tracing::warn!(
+                torn_bytes = report.torn_bytes,
+                "fleet record store: cut off an incomplete last record (a crash while appending); peers will send it again"
+            );
+        }
+        if report.untrusted > 0 {
+            tracing::warn!(
+                records = report.untrusted,
+                "fleet record store: dropped records of keys no longer trusted"
+            );
+        }
+        let (tx, rx) = mpsc::channel();
+        let (wake_tx, wake_rx) = mpsc::channel::<()>();
+        std::thread::Builder::new()
+            .name("fleet-wake".into())
+            .spawn(move || wake_loop(&wake.0, &wake.1, &wake_rx))
+            .map_err(|e| NodeError::Zenoh {
+                what: "spawn the wake thread",
+                detail: e.to_string(),
+            })?;
+        let sink = Arc::new(move |i: Incoming| {
+            if tx.send(i).is_ok() {
+                let _ = wake_tx.send(());
+            }
+        });
+        let node = Node::start(config, sink)?;
+        let mut member = Self {
+            config: config.clone(),
+            gate: Gate::new(&config.name, &config.member, config.caller_public_keys()?),
+            key,
+            trusted,
+            store,
+            node,
+            rx,
+            robot: robot_id(screen),
+            model: screen.embedder().version().to_owned(),
+            refused: Refusals::default(),
+        };
+        member.reconcile(screen);
+        member.refresh(screen);
+        tracing::info!(
+            key = %hex(member.key.verifying_key().as_bytes()),
+            records = member.store.winners().count(),
+            compacted = report.compacted,
+            clock = member.store.clock(),
+            "fleet member ready"
+        );
+        Ok(member)
+    }
+
+    /// After a crash between a record's append and the bank's journal, the bank may lack
+    /// the store's last winners: apply every winner the bank does not hold as recorded.
+    fn reconcile(&mut self, screen: &mut Screen) {
+        let mut fixed = 0;
+        let winners: Vec<Record> = self.store.winners().cloned().collect();
+        for r in winners {
+            let f = r.fields();
+            if f.robot != self.robot || f.model != self.model {
+                continue;
+            }
+            let held = screen.bank().class(&f.class).map(serde_json::to_vec);
+            let (matches, class) = match &f.change {
+                Change::Forget => (held.is_none(), None),
+                Change::Put(v) => (
+                    matches!(&held, Some(Ok(b)) if b == v),
+                    serde_json::from_slice::<Class>(v).ok(),
+                ),
+            };
+            if matches || (class.is_none() && f.change != Change::Forget) {
+                continue;
+            }
+            match screen.apply_replicated(&f.class, class) {
+                Ok(()) => fixed += 1,
+                Err(e) => {
+                    tracing::error!(class = %f.class, error = ?e, "cannot apply a recorded fleet change to the bank")
+                }
+            }
+        }
+        if fixed > 0 {
+            tracing::warn!(
+                classes = fixed,
+                "applied fleet records the bank was missing (interrupted apply)"
+            );
+        }
+    }
+
+    /// Update what the catch-up queryable serves and the position status reports.
+    fn refresh(&mut self, screen: &mut Screen) {
+        let frames = frame_batch(self.store.winners().map(Record::bytes));
+        self.node.serve(self.store.digest(), frames);
+        screen.set_status_entries(position_entries(&self.store.position()));
+    }
+
+    /// What was refused so far.
+    pub fn refusals(&self) -> Refusals {
+        self.refused
+    }
+
+    /// Handle everything received since the last call; returns how many items.
+    pub fn poll(&mut self, screen: &mut Screen) -> usize {
+        let mut n = 0;
+        let mut changed = false;
+        while let Ok(item) = self.rx.try_recv() {
+            n += 1;
+            match item {
+                Incoming::Record(bytes) => changed |= self.receive(&bytes, screen, true),
+                Incoming::CaughtUp(bytes) => changed |= self.receive(&bytes, screen, false),
+                Incoming::Call(call) => self.answer(call, screen),
+            }
+        }
+        if changed {
+            self.refresh(screen);
+        }
+        n
+    }
+
+    fn refuse(&mut self, live: bool, reason: &str, detail: &str) {
+        self.refused.records += 1;
+        if live {
+            tracing::warn!(reason, detail, "fleet record refused; bank unchanged");
+        } else {
+            tracing::debug!(reason, detail, "catch-up record refused; bank unchanged");
+        }
+    }
+
+    /// Verify, store and apply one record; true if the bank changed.
+    fn receive(&mut self, bytes: &[u8], screen: &mut Screen, live: bool) -> bool {
+        let started = std::time::Instant::now();
+        tracing::debug!(bytes = bytes.len(), live, "fleet record received");
+        let record = match Record::decode(bytes) {
+            Ok(r) => r,
+            Err(e) => {
+                self.refuse(true, "malformed", &e.to_string());
+                return false;
+            }
+        };
+        if let Err(e) = record.verify(&self.trusted) {
+            self.refuse(true, "signature", &e.to_string());
+            return false;
+        }
+        let f = record.fields();
+        let mismatch = if f.fleet != self.config.name {
+            Some(("other fleet", &f.fleet))
+        } else if f.robot != self.robot {
+            Some(("other robot", &f.robot))
+        } else if f.model != self.model {
+            Some(("other model", &f.model))
+        } else {
+            None
+        };
+        if let Some((reason, got)) = mismatch {
+            let detail = format!("class {:?}: record is for {got:?}", f.class);
+            self.refuse(true, reason, &detail);
+            return false;
+        }
+        let class = match &f.change {
+            Change::Forget => None,
+            Change::Put(v) => match serde_json::from_slice::<Class>(v) {
+                Ok(c) => Some(c),
+                Err(e) => {
+                    self.refuse(true, "malformed class", &e.to_string());
+                    return false;
+                }
+            },
+        };
+        let name = f.class.clone();
+        let (lamport, signer) = (f.lamport, hex(&record.signer()[..8]));
+        let checked = started.elapsed();
+        let offered = self.store.offer(record);
+        let stored = started.elapsed();
+        match offered {
+            Ok(Offer::Applied) => match screen.apply_replicated(&name, class) {
+                Ok(()) => {
+                    tracing::info!(
+                        class = %name,
+                        lamport,
+                        signer = %signer,
+                        checked_us = checked.as_micros() as u64,
+                        stored_us = stored.as_micros() as u64,
+                        applied_us = started.elapsed().as_micros() as u64,
+                        "fleet change applied"
+                    );
+                    true
+                }
+                Err(e) => {
+                    tracing::error!(class = %name, lamport, error = ?e, "fleet change recorded but not applied to the bank");
+                    true
+                }
+            },
+            Ok(Offer::Duplicate) => false,
+            Ok(Offer::Stale { winner_lamport }) => {
+                let detail = format!(
+                    "class {name:?}: lamport {lamport} by {signer} is older than the current record (lamport {winner_lamport}): replayed or superseded"
+                );
+                self.refuse(live, "stale", &detail);
+                false
+            }
+            Err(e) => {
+                tracing::error!(class = %name, error = %e, "cannot persist a fleet record; not applied");
+                false
+            }
+        }
+    }
+
+    /// A change accepted on the admin path: sign it, store it, publish it.
+    pub fn local_change(&mut self, screen: &mut Screen, class: &str) {
+        let change = match screen.bank().class(class).map(serde_json::to_vec) {
+            Some(Ok(v)) => Change::Put(v),
+            Some(Err(e)) => {
+                tracing::error!(class, error = %e, "cannot encode the class for the fleet");
+                return;
+            }
+            None => Change::Forget,
+        };
+        let record = Record::sign(
+            Unsigned {
+                fleet: self.config.name.clone(),
+                robot: self.robot.clone(),
+                model: self.model.clone(),
+                class: class.to_owned(),
+                change,
+                lamport: self.store.next_lamport(),
+            },
+            &self.key,
+        );
+        match self.store.offer(record.clone()) {
+            Ok(Offer::Applied) => {}
+            Ok(other) => tracing::error!(class, ?other, "own fleet record did not win its class"),
+            Err(e) => {
+                tracing::error!(class, error = %e, "cannot persist the fleet record; change not replicated");
+                return;
+            }
+        }
+        if let Err(e) = self.node.publish(record.bytes()) {
+            tracing::warn!(class, error = %e, "cannot publish the fleet record; peers get it at their next catch-up");
+        }
+        tracing::info!(class, lamport = record.lamport(), "fleet change published");
+        self.refresh(screen);
+    }
+
+    /// Answer one remote request.
+    fn answer(&mut self, call: RemoteCall, screen: &mut Screen) {
+        let opened = match self.gate.open(&call.payload(), now_ms()) {
+            Ok(o) => o,
+            Err(e) => {
+                self.refused.calls += 1;
+                tracing::warn!(error = %e, "remote request refused");
+                call.refuse(&e.to_string());
+                return;
+            }
+        };
+        let (h, payload) = match admin::decode_request(&opened.body) {
+            Ok(x) => x,
+            Err(e) => {
+                tracing::warn!(error = %e, "remote request with a bad frame");
+                call.refuse(&format!("bad request frame: {e}"));
+                return;
+            }
+        };
+        let span = tracing::debug_span!("remote", id = h.request_id, op = h.op);
+        let _enter = span.enter();
+        let (r, entries) = screen.handle_remote(&h, &payload);
+        let frame = admin::encode_response(&r, &entries);
+        let envelope = seal_response(
+            &self.key,
+            &self.config.name,
+            &self.config.member,
+            opened.nonce,
+            &frame[4..],
+        );
+        call.reply(envelope);
+    }
+}
+
+/// The wake thread: on each signal from the Zenoh side, notify the serving loop's request
+/// event (its own iceoryx2 node and notifier, like the admin endpoint's waker).
+fn wake_loop(config: &iceoryx2::config::Config, event: &str, signals: &mpsc::Receiver<()>) {
+    use iceoryx2::prelude::*;
+    let ports = (|| {
+        let node = NodeBuilder::new()
+            .config(config)
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<ipc::Service>()
+            .ok()?;
+        let notifier = node
+            .service_builder(&ServiceName::new(event).ok()?)
+            .event()
+            .open()
+            .ok()?
+            .notifier_builder()
+            .create()
+            .ok()?;
+        // The notifier drops before its node.
+        Some((notifier, node))
+    })();
+    let Some((notifier, _node)) = ports else {
+        tracing::warn!("fleet: cannot wake the serving loop; fleet items wait for its tick");
+        while signals.recv().is_ok() {}
+        return;
+    };
+    while signals.recv().is_ok() {
+        while signals.try_recv().is_ok() {}
+        if let Err(e) = notifier.notify() {
+            tracing::debug!(error = ?e, "fleet: cannot notify the serving loop");
+        }
+    }
+}
+
+/// The serving loop's longest sleep with fleet membership on: fleet items are handed over
+/// with a wake-up, but replicated records were measured waiting for the loop's tick
+/// (`tick-ms`) after idle periods, so the tick is bounded by this while a member.
+pub const FLEET_TICK: std::time::Duration = std::time::Duration::from_millis(10);
+
+/// Whether an admin answer (`status` 0) to `h` changed the bank: an accepted enroll or
+/// forget. Returns the class.
+pub fn changed_class(h: &RequestHeader, status: u32) -> Option<String> {
+    if status != 0 || !matches!(decode_code::<Op>(h.op), Some(Op::Enroll | Op::Forget)) {
+        return None;
+    }
+    guardian_shared::wire::decode_class_name(&h.class_name)
+        .ok()
+        .map(str::to_owned)
+}
+
+/// The fleet position as status entries: per signer, name `fleet:<first 16 hex digits of
+/// its key>`, the Lamport counter in `examples` (low 32 bits) and `calibrated` (high 32
+/// bits), distance and threshold NaN.
+pub fn position_entries(position: &std::collections::BTreeMap<[u8; 32], u64>) -> Vec<ClassEntry> {
+    position
+        .iter()
+        .map(|(signer, &lamport)| ClassEntry {
+            name: encode_text(&format!("fleet:{}", hex(&signer[..8]))),
+            distance: f32::NAN,
+            threshold: f32::NAN,
+            examples: lamport as u32,
+            calibrated: (lamport >> 32) as u32,
+        })
+        .collect()
+}

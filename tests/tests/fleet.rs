@@ -1,0 +1,371 @@
+//! A fleet of real `guardiand` processes over Zenoh on loopback (explicit
+//! `tcp/127.0.0.1:<port>` endpoints, scouting off; separate state directories and iceoryx2
+//! roots): an enroll on one member is served by the others; a member killed while the
+//! others change the bank converges when it returns; two members enrolling the same class
+//! concurrently end identical; a remote check over Zenoh gets the local verdict, a remote
+//! enroll is refused; forged, replayed, truncated and other-robot records are refused,
+//! logged, and leave every bank unchanged. Functional deadlines only; the delays are
+//! printed (the figures come from `benches/fleet.rs`).
+
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use guardian_client::{CheckError, Trajectory};
+use guardian_fleet::SigningKey;
+use guardian_fleet::keys::read_signing_key;
+use guardian_fleet::record::{Change, Record, Unsigned};
+use guardian_shared::wire::{Op, RequestHeader, Status};
+use guardian_tests::fleet::{CONVERGE, Fleet, examples, has, keygen};
+use guardian_tests::harness::{self, traj};
+
+/// The verdict details every member gives one trajectory: identical banks answer
+/// bit-identical distances.
+fn answers(f: &Fleet, running: &[usize], t: &Trajectory, class: &str) -> Vec<(bool, u32)> {
+    running
+        .iter()
+        .map(|&i| {
+            let v = f.client(i).check(t, class).expect("check");
+            (v.is_go(), v.claimed_distance.map_or(0, f32::to_bits))
+        })
+        .collect()
+}
+
+#[test]
+fn three_members_replicate_catch_up_and_converge() {
+    let began = Instant::now();
+    let phase = |what: &str| eprintln!("[{:>6.2} s] {what}", began.elapsed().as_secs_f64());
+    let mut f = Fleet::new(3);
+    phase("keys made");
+    for i in 0..3 {
+        f.start(i);
+    }
+    phase("3 members started");
+    let all = [0, 1, 2];
+    // Warm-up: the first enroll also waits for the Zenoh links to come up.
+    f.admin(0)
+        .enroll("warmup", &examples(5, 0..3))
+        .expect("enroll");
+    f.converge(&all, |c| has(c, "warmup", 3));
+    phase("warm-up replicated");
+
+    // An enroll on A is served by B and C: the delay until each answers it, per round,
+    // from the admin request and from its acknowledgment (the record is published before).
+    let mut delays = Vec::new();
+    let mut after_ack = Vec::new();
+    let (admin, clients) = (f.admin(0), [f.client(1), f.client(2)]);
+    for round in 0..5u32 {
+        let class = format!("task{round}");
+        let t0 = Instant::now();
+        admin
+            .enroll(&class, &examples(round % 3, 0..3))
+            .expect("enroll");
+        let ack = t0.elapsed();
+        for (i, c) in clients.iter().enumerate() {
+            while !c
+                .classes()
+                .expect("classes")
+                .iter()
+                .any(|x| x.name == class)
+            {
+                assert!(
+                    t0.elapsed() < CONVERGE,
+                    "member {} never served {class}",
+                    i + 1
+                );
+                std::thread::sleep(Duration::from_micros(200));
+            }
+            delays.push(t0.elapsed());
+            after_ack.push(t0.elapsed().saturating_sub(ack));
+        }
+    }
+    delays.sort();
+    after_ack.sort();
+    eprintln!(
+        "replication delay (enroll on A -> served by B/C), {} samples: from the request median {:?} max {:?}; from A's acknowledgment median {:?} max {:?}",
+        delays.len(),
+        delays[delays.len() / 2],
+        delays[delays.len() - 1],
+        after_ack[after_ack.len() / 2],
+        after_ack[after_ack.len() - 1]
+    );
+    // B and C answer a check exactly as A does.
+    let probe = traj(1, 9);
+    let a = answers(&f, &all, &probe, "task1");
+    assert!(a.windows(2).all(|w| w[0] == w[1]), "{a:?}");
+
+    phase("5 rounds replicated");
+    // C is killed; A and B change the bank meanwhile; C restarts and converges.
+    let c = f.members[2].daemon.as_mut().expect("running");
+    let _ = c.child.kill();
+    let _ = c.child.wait();
+    f.members[2].daemon = None;
+    f.admin(0)
+        .enroll("while-c-down", &examples(2, 0..2))
+        .expect("enroll");
+    f.admin(1).forget("warmup").expect("forget");
+    f.admin(1)
+        .enroll("task0", &examples(0, 3..5))
+        .expect("enroll");
+    let ab = f.converge(&[0, 1], |c| {
+        has(c, "while-c-down", 2) && !c.iter().any(|x| x.name == "warmup") && has(c, "task0", 5)
+    });
+    phase("A and B changed the bank while C was down");
+    f.start(2);
+    phase("C restarted");
+    let abc = f.converge(&all, |c| c == ab.as_slice());
+    phase("C caught up");
+    assert_eq!(abc, ab);
+    assert!(
+        f.log(2).contains("fleet change applied"),
+        "C caught up through its peers:\n{}",
+        f.log(2)
+    );
+
+    // Two members enroll the same new class concurrently, with different examples: every
+    // member ends with one and the same class.
+    let (a0, a1) = (f.admin(0), f.admin(1));
+    let t = std::thread::spawn(move || a0.enroll("contested", &examples(0, 0..3)));
+    let r1 = a1.enroll("contested", &examples(2, 0..4));
+    t.join().expect("thread").expect("enroll on A");
+    r1.expect("enroll on B");
+    let last = f.converge(&all, |c| c.iter().any(|x| x.name == "contested"));
+    let contested = last.iter().find(|x| x.name == "contested").expect("class");
+    assert!(
+        contested.examples == 3 || contested.examples == 4,
+        "{contested:?}"
+    );
+    phase("concurrent enrolls converged");
+    // Identical banks: the same distances everywhere, and the same fleet position.
+    let probe = traj(2, 9);
+    let a = answers(&f, &all, &probe, "contested");
+    assert!(a.windows(2).all(|w| w[0] == w[1]), "{a:?}");
+    let start = Instant::now();
+    loop {
+        let positions: Vec<_> = all
+            .iter()
+            .map(|&i| f.client(i).status().expect("status").fleet)
+            .collect();
+        if positions.windows(2).all(|w| w[0] == w[1]) && positions[0].len() >= 2 {
+            eprintln!("fleet position on every member: {:?}", positions[0]);
+            break;
+        }
+        assert!(start.elapsed() < CONVERGE, "{positions:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    phase("fleet positions equal");
+    // guardianctl status prints it.
+    let out = Command::new(harness::ctl_bin())
+        .args(["--service", &f.members[0].setup.service])
+        .arg("--iceoryx2-root-path")
+        .arg(f.members[0].setup.dir.path().join("iox"))
+        .args(["--iceoryx2-prefix", &f.members[0].setup.prefix, "status"])
+        .output()
+        .expect("guardianctl");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success() && text.contains("fleet"),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    phase("guardianctl status shows the fleet position");
+    drop(f);
+    phase("members stopped");
+}
+
+/// Publish raw bytes on the fleet's record key from an outside session connected to every
+/// member (peers do not route for each other: a fleet is a full mesh).
+fn inject(f: &Fleet, bytes: Vec<u8>) {
+    let endpoints: Vec<String> = f
+        .members
+        .iter()
+        .map(|m| format!("tcp/127.0.0.1:{}", m.port))
+        .collect();
+    let session = guardian_fleet::node::open_session(&[], &endpoints).expect("session");
+    // Let the links come up and the subscriptions propagate, then publish.
+    std::thread::sleep(Duration::from_millis(500));
+    guardian_fleet::node::put(&session, &format!("guardian/{}/records", f.name), bytes)
+        .expect("put");
+    std::thread::sleep(Duration::from_millis(200));
+}
+
+/// Wait until member `i` logged a refusal with `reason`.
+fn wait_refusal(f: &Fleet, i: usize, reason: &str, before: usize) {
+    let start = Instant::now();
+    loop {
+        let n = f
+            .log(i)
+            .lines()
+            .filter(|l| l.contains("fleet record refused") && l.contains(reason))
+            .count();
+        if n > before {
+            return;
+        }
+        assert!(
+            start.elapsed() < CONVERGE,
+            "member {i} never refused a {reason:?} record:\n{}",
+            f.log(i)
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn refusals(f: &Fleet, i: usize, reason: &str) -> usize {
+    f.log(i)
+        .lines()
+        .filter(|l| l.contains("fleet record refused") && l.contains(reason))
+        .count()
+}
+
+#[test]
+fn remote_checks_and_bad_records() {
+    let mut f = Fleet::new(2);
+    f.start(0);
+    f.start(1);
+    let both = [0, 1];
+    for c in 0..3u32 {
+        f.admin(0)
+            .enroll(&format!("task{c}"), &examples(c, 0..3))
+            .expect("enroll");
+    }
+    // task0 again: its first record is superseded (kept in A's store file until compaction).
+    f.admin(0)
+        .enroll("task0", &examples(0, 3..5))
+        .expect("enroll");
+    let bank = f.converge(&both, |c| has(c, "task0", 5) && has(c, "task2", 3));
+
+    // A remote check on B gets B's local verdict, for a genuine and a wrong-task plan.
+    let remote = f.remote(1, f.caller_key.clone());
+    let local = f.client(1);
+    for (t, class) in [
+        (traj(1, 9), "task1"),
+        (traj(2, 9), "task0"),
+        (traj(0, 8), "nope"),
+    ] {
+        let r = remote.check(&t, class).expect("remote check");
+        let l = local.check(&t, class).expect("local check");
+        assert_eq!(
+            (&r.decision, r.claimed_distance, &r.nearest),
+            (&l.decision, l.claimed_distance, &l.nearest)
+        );
+    }
+    let ranking = remote.identify(&traj(2, 7)).expect("identify");
+    assert_eq!(
+        ranking.nearest,
+        local.identify(&traj(2, 7)).expect("identify").nearest
+    );
+    let status = remote.status().expect("status");
+    assert_eq!(status.classes, bank.len() as u32);
+    assert!(!status.fleet.is_empty(), "{status:?}");
+    // Loopback round trips, beside the local ones (figures: benches/fleet.rs).
+    let time = |f: &dyn Fn()| {
+        let mut v: Vec<Duration> = (0..20)
+            .map(|_| {
+                let t = Instant::now();
+                f();
+                t.elapsed()
+            })
+            .collect();
+        v.sort();
+        v[v.len() / 2]
+    };
+    let probe = traj(1, 9);
+    let zenoh = time(&|| {
+        remote.check(&probe, "task1").expect("check");
+    });
+    let iox = time(&|| {
+        local.check(&probe, "task1").expect("check");
+    });
+    eprintln!("check round trip median: zenoh {zenoh:?}, iceoryx2 {iox:?}");
+
+    // A remote caller never enrolls or forgets.
+    let (h, payload) = {
+        let t = traj(0, 1);
+        let h = RequestHeader::encode(Op::Enroll, Some("intruder"), t.channels(), &[t.len()])
+            .expect("header");
+        (h, t.as_flat().to_vec())
+    };
+    let (r, _) = remote.raw(h, &payload).expect("answered");
+    assert_eq!(r.status, Status::NotPermitted as u32);
+    let h = RequestHeader::encode(Op::Forget, Some("task0"), 0, &[]).expect("header");
+    let (r, _) = remote.raw(h, &[]).expect("answered");
+    assert_eq!(r.status, Status::NotPermitted as u32);
+    // A caller whose key is not configured is refused.
+    let stranger = f.keys.path().join("stranger.key");
+    keygen(&stranger);
+    match f.remote(1, stranger).check(&probe, "task1") {
+        Err(CheckError::NotPermitted { message }) => {
+            assert!(message.contains("not a configured caller"), "{message}")
+        }
+        other => panic!("expected a refusal, got {other:?}"),
+    }
+    assert_eq!(f.banks(&both), vec![bank.clone(), bank.clone()]);
+
+    let version = |i: usize| f.client(i).status().expect("status").bank_version;
+    let versions = [version(0), version(1)];
+    let a_key = read_signing_key(&f.members[0].key).expect("key");
+    let robot = {
+        let s = f.client(0).status().expect("status").robot;
+        format!("{}/{}/{}", s.name, s.joints, s.urdf_sha256)
+    };
+    let model = f.client(0).status().expect("status").model_version;
+    let record = |key: &SigningKey, class: &str, robot: &str, lamport: u64| {
+        Record::sign(
+            Unsigned {
+                fleet: f.name.clone(),
+                robot: robot.to_owned(),
+                model: model.clone(),
+                class: class.to_owned(),
+                change: Change::Forget,
+                lamport,
+            },
+            key,
+        )
+    };
+
+    // Signed by a key no member trusts.
+    let stranger = SigningKey::from_bytes(&[42; 32]);
+    let before = [
+        refusals(&f, 0, "unknown key"),
+        refusals(&f, 1, "unknown key"),
+    ];
+    inject(
+        &f,
+        record(&stranger, "task1", &robot, 1_000).bytes().to_vec(),
+    );
+    wait_refusal(&f, 0, "unknown key", before[0]);
+    wait_refusal(&f, 1, "unknown key", before[1]);
+
+    // A replayed old record: task0's first enroll, superseded by its second.
+    let store = std::fs::read(f.members[0].setup.state_dir().join("fleet.records")).expect("store");
+    let first = {
+        let body = &store[b"guardian-fleet-records 1\n".len()..];
+        let len = u32::from_le_bytes([body[0], body[1], body[2], body[3]]) as usize;
+        body[36..36 + len].to_vec()
+    };
+    assert_eq!(Record::decode(&first).expect("record").class(), "task0");
+    let before = [refusals(&f, 0, "stale"), refusals(&f, 1, "stale")];
+    inject(&f, first.clone());
+    wait_refusal(&f, 0, "stale", before[0]);
+    wait_refusal(&f, 1, "stale", before[1]);
+
+    // A truncated record.
+    let good = record(&a_key, "task2", &robot, 10_000);
+    let before = [refusals(&f, 0, "malformed"), refusals(&f, 1, "malformed")];
+    inject(&f, good.bytes()[..good.bytes().len() - 10].to_vec());
+    wait_refusal(&f, 0, "malformed", before[0]);
+    wait_refusal(&f, 1, "malformed", before[1]);
+
+    // A record signed by a trusted key, for another robot.
+    let before = [
+        refusals(&f, 0, "other robot"),
+        refusals(&f, 1, "other robot"),
+    ];
+    let other = "ur5e/6/0000000000000000000000000000000000000000000000000000000000000000";
+    inject(&f, record(&a_key, "task2", other, 10_001).bytes().to_vec());
+    wait_refusal(&f, 0, "other robot", before[0]);
+    wait_refusal(&f, 1, "other robot", before[1]);
+
+    // Nothing changed anywhere.
+    assert_eq!(f.banks(&both), vec![bank.clone(), bank]);
+    assert_eq!([version(0), version(1)], versions);
+}
