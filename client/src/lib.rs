@@ -867,42 +867,40 @@ pub(crate) fn daemon_status(
     r: &ResponseHeader,
     entries: &[ClassEntry],
 ) -> Result<DaemonStatus, CheckError> {
-    {
-        status_ok(r)?;
-        let s = wire::decode_state(r);
-        let lat = s.latency_us;
-        Ok(DaemonStatus {
-            model_version: s.model_version.into_owned(),
-            bank_version: s.bank_version,
-            classes: s.class_count,
-            uptime: Duration::from_millis(s.uptime_ms),
-            requests: s.requests,
-            errors: s.errors,
-            go: s.go,
-            no_go: s.no_go,
-            latency_us: if lat.iter().any(|v| v.is_nan()) {
-                None
-            } else {
-                Some(lat)
-            },
-            robot: RobotInfo {
-                urdf_sha256: s.robot.urdf_sha256_hex(),
-                name: s.robot.name.into_owned(),
-                joints: s.robot.joints,
-            },
-            fleet: entries
-                .iter()
-                .filter_map(|e| {
-                    let name = wire::decode_text(&e.name);
-                    let signer = name.strip_prefix("fleet:")?.to_owned();
-                    Some(FleetPosition {
-                        signer,
-                        lamport: u64::from(e.examples) | (u64::from(e.calibrated) << 32),
-                    })
+    status_ok(r)?;
+    let s = wire::decode_state(r);
+    let lat = s.latency_us;
+    Ok(DaemonStatus {
+        model_version: s.model_version.into_owned(),
+        bank_version: s.bank_version,
+        classes: s.class_count,
+        uptime: Duration::from_millis(s.uptime_ms),
+        requests: s.requests,
+        errors: s.errors,
+        go: s.go,
+        no_go: s.no_go,
+        latency_us: if lat.iter().any(|v| v.is_nan()) {
+            None
+        } else {
+            Some(lat)
+        },
+        robot: RobotInfo {
+            urdf_sha256: s.robot.urdf_sha256_hex(),
+            name: s.robot.name.into_owned(),
+            joints: s.robot.joints,
+        },
+        fleet: entries
+            .iter()
+            .filter_map(|e| {
+                let name = wire::decode_text(&e.name);
+                let signer = name.strip_prefix("fleet:")?.to_owned();
+                Some(FleetPosition {
+                    signer,
+                    lamport: u64::from(e.examples) | (u64::from(e.calibrated) << 32),
                 })
-                .collect(),
-        })
-    }
+            })
+            .collect(),
+    })
 }
 
 /// The header and payload of an enroll of `examples` into `class` (checked here as far as

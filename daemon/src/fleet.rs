@@ -286,6 +286,14 @@ impl Member {
         }
     }
 
+    /// An admin request was answered with `status`: replicate the change it made, if any
+    /// (signed, stored and published before the admin hears it is done).
+    pub fn after_admin(&mut self, screen: &mut Screen, h: &RequestHeader, status: u32) {
+        if let Some(class) = changed_class(h, status) {
+            self.local_change(screen, &class);
+        }
+    }
+
     /// A change accepted on the admin path: sign it, store it, publish it.
     pub fn local_change(&mut self, screen: &mut Screen, class: &str) {
         let change = match screen.bank().class(class).map(serde_json::to_vec) {
@@ -397,7 +405,7 @@ pub const FLEET_TICK: std::time::Duration = std::time::Duration::from_millis(10)
 
 /// Whether an admin answer (`status` 0) to `h` changed the bank: an accepted enroll or
 /// forget. Returns the class.
-pub fn changed_class(h: &RequestHeader, status: u32) -> Option<String> {
+fn changed_class(h: &RequestHeader, status: u32) -> Option<String> {
     if status != 0 || !matches!(decode_code::<Op>(h.op), Some(Op::Enroll | Op::Forget)) {
         return None;
     }

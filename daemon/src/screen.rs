@@ -230,18 +230,9 @@ impl Screen {
         let before = self.bank.class_bytes(name);
         let previous = match class {
             Some(class) => {
-                if self.bank.class(name).is_none() {
-                    self.limits
-                        .check_counts(&self.bank, name, 0)
-                        .map_err(limit_exceeded)?;
-                }
-                if class.embeddings.len() > self.limits.max_examples_per_class {
-                    return Err(limit_exceeded(guardian_shared::wire::Limit {
-                        kind: guardian_shared::wire::LimitKind::ExamplesPerClass,
-                        max: self.limits.max_examples_per_class as u64,
-                        requested: class.embeddings.len() as u64,
-                    }));
-                }
+                self.limits
+                    .check_class(&self.bank, name, class.embeddings.len())
+                    .map_err(limit_exceeded)?;
                 self.bank
                     .put_class(name, class)
                     .map_err(|e| Failure::BadRequest {

@@ -64,12 +64,30 @@ pub enum RunError {
     Fleet(#[from] crate::fleet::FleetError),
 }
 
-/// The fleet member, when the daemon is built with the `fleet` feature and configured.
 #[cfg(feature = "fleet")]
-type Fleet = Option<crate::fleet::Member>;
-/// Without the `fleet` feature there is no member.
+use crate::fleet::{FLEET_TICK, Member};
+
+/// Without the `fleet` feature there is no fleet member: the type has no values, so a
+/// daemon built without it is never in a fleet and the calls below compile to nothing.
 #[cfg(not(feature = "fleet"))]
-struct Fleet;
+enum Member {}
+
+#[cfg(not(feature = "fleet"))]
+const FLEET_TICK: Duration = Duration::MAX;
+
+#[cfg(not(feature = "fleet"))]
+impl Member {
+    fn poll(&mut self, _: &mut Screen) -> usize {
+        match *self {}
+    }
+
+    fn after_admin(&mut self, _: &mut Screen, _: &RequestHeader, _: u32) {
+        match *self {}
+    }
+}
+
+/// The fleet member, when the daemon is built with the `fleet` feature and configured.
+type Fleet = Option<Member>;
 
 #[cfg(feature = "fleet")]
 fn start_fleet(
@@ -83,7 +101,7 @@ fn start_fleet(
     // Every bank change must become a signed record: planners may not enroll or forget.
     screen.set_admin_separation(true);
     let wake = (iox_config.clone(), request_event_name(&config.service_name));
-    let member = crate::fleet::Member::start(f, &config.state_dir(), screen, wake)?;
+    let member = Member::start(f, &config.state_dir(), screen, wake)?;
     tracing::info!(fleet = %f.name, member = %f.member, "fleet membership on; enroll and forget only through the admin socket");
     Ok(Some(member))
 }
@@ -94,43 +112,8 @@ fn start_fleet(
     _: &mut Screen,
     _: &iceoryx2::config::Config,
 ) -> Result<Fleet, RunError> {
-    Ok(Fleet)
+    Ok(None)
 }
-
-/// Handle what the fleet delivered (records, remote requests); returns how many items.
-#[cfg(feature = "fleet")]
-fn poll_fleet(fleet: &mut Fleet, screen: &mut Screen) -> usize {
-    fleet.as_mut().map_or(0, |m| m.poll(screen))
-}
-
-/// The bound on the loop's sleep a fleet member needs ([`crate::fleet::FLEET_TICK`]).
-#[cfg(feature = "fleet")]
-fn fleet_tick(fleet: &Fleet) -> Option<Duration> {
-    fleet.as_ref().map(|_| crate::fleet::FLEET_TICK)
-}
-
-#[cfg(not(feature = "fleet"))]
-fn fleet_tick(_: &Fleet) -> Option<Duration> {
-    None
-}
-
-#[cfg(not(feature = "fleet"))]
-fn poll_fleet(_: &mut Fleet, _: &mut Screen) -> usize {
-    0
-}
-
-/// An admin request was answered: replicate the change it made, if any.
-#[cfg(feature = "fleet")]
-fn replicate(fleet: &mut Fleet, screen: &mut Screen, h: &RequestHeader, status: u32) {
-    if let Some(m) = fleet.as_mut()
-        && let Some(class) = crate::fleet::changed_class(h, status)
-    {
-        m.local_change(screen, &class);
-    }
-}
-
-#[cfg(not(feature = "fleet"))]
-fn replicate(_: &mut Fleet, _: &mut Screen, _: &RequestHeader, _: u32) {}
 
 impl From<LoadStateError> for RunError {
     fn from(e: LoadStateError) -> Self {
@@ -341,7 +324,12 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         Some(w) => config.tick().min(w),
         None => config.tick(),
     };
-    let tick = fleet_tick(&fleet).map_or(tick, |t| tick.min(t));
+    // A fleet member bounds its sleep (`docs/fleet.md`, serving-loop wake-up).
+    let tick = if fleet.is_some() {
+        tick.min(FLEET_TICK)
+    } else {
+        tick
+    };
     let mut last_ping = Instant::now();
     let mut last_cleanup = Instant::now();
     let mut last_request = Instant::now();
@@ -363,7 +351,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         // Answer everything queued first, so that a stop answers in-flight requests.
         let served = drain(&server, &mut out, &mut screen, config.max_batch)?
             + serve_admin(&admin, &mut screen, &mut fleet)
-            + poll_fleet(&mut fleet, &mut screen);
+            + fleet.as_mut().map_or(0, |m| m.poll(&mut screen));
         if served > 0 {
             last_request = Instant::now();
         }
@@ -475,7 +463,9 @@ fn serve_admin(admin: &AdminEndpoint, screen: &mut Screen, fleet: &mut Fleet) ->
         }
         let answer = screen.handle_admin(&job.header, &job.payload);
         // Replicated (signed, stored, published) before the admin hears it is done.
-        replicate(fleet, screen, &job.header, answer.0.status);
+        if let Some(m) = fleet.as_mut() {
+            m.after_admin(screen, &job.header, answer.0.status);
+        }
         job.answer(answer);
         n += 1;
     }

@@ -21,8 +21,14 @@ impl BankLimits {
     /// Would adding `examples` examples to class `name` keep the class and example counts
     /// within the limits? Cheap: call it before embedding anything.
     pub fn check_counts(&self, bank: &ClassBank, name: &str, examples: usize) -> Result<(), Limit> {
-        let existing = bank.class(name).map(|c| c.embeddings.len());
-        let classes = bank.len() + usize::from(existing.is_none());
+        let existing = bank.class(name).map_or(0, |c| c.embeddings.len());
+        self.check_class(bank, name, existing + examples)
+    }
+
+    /// Would class `name` holding `examples` examples in all (new, or replacing what the bank
+    /// holds) keep the class and example counts within the limits?
+    pub fn check_class(&self, bank: &ClassBank, name: &str, examples: usize) -> Result<(), Limit> {
+        let classes = bank.len() + usize::from(bank.class(name).is_none());
         if classes > self.max_classes {
             return Err(Limit {
                 kind: LimitKind::Classes,
@@ -30,12 +36,11 @@ impl BankLimits {
                 requested: classes as u64,
             });
         }
-        let per_class = existing.unwrap_or(0) + examples;
-        if per_class > self.max_examples_per_class {
+        if examples > self.max_examples_per_class {
             return Err(Limit {
                 kind: LimitKind::ExamplesPerClass,
                 max: self.max_examples_per_class as u64,
-                requested: per_class as u64,
+                requested: examples as u64,
             });
         }
         Ok(())

@@ -437,18 +437,7 @@ impl ClassBank {
         if embeddings.is_empty() {
             return Err(EnrollError::NoExamples);
         }
-        for (index, e) in embeddings.iter().enumerate() {
-            if e.len() != self.dim {
-                return Err(EnrollError::DimensionMismatch {
-                    index,
-                    expected: self.dim,
-                    got: e.len(),
-                });
-            }
-            if e.iter().any(|v| !v.is_finite()) {
-                return Err(EnrollError::NonFinite { index });
-            }
-        }
+        self.check_embeddings(embeddings)?;
         let dim = self.dim;
         let class = self
             .classes
@@ -480,20 +469,13 @@ impl ClassBank {
         Ok(&self.classes[name])
     }
 
-    /// Put class `name` in the state `class` as a whole (a class replicated from another
-    /// bank of the same model and robot), after the checks an enroll makes: at least one
-    /// embedding, each of the bank's dimension and finite, a prototype of that dimension,
-    /// examples of the bank's robot. Returns the class it replaced.
-    pub fn put_class(&mut self, name: &str, class: Class) -> Result<Option<Class>, EnrollError> {
-        if class.embeddings.is_empty() {
-            return Err(EnrollError::NoExamples);
-        }
-        for (index, e) in class
-            .embeddings
-            .iter()
-            .chain(std::iter::once(&class.prototype))
-            .enumerate()
-        {
+    /// Every vector of the bank's dimension and finite (the error names the first that is
+    /// not, by its position).
+    fn check_embeddings<'a>(
+        &self,
+        embeddings: impl IntoIterator<Item = &'a Vec<f32>>,
+    ) -> Result<(), EnrollError> {
+        for (index, e) in embeddings.into_iter().enumerate() {
             if e.len() != self.dim {
                 return Err(EnrollError::DimensionMismatch {
                     index,
@@ -505,6 +487,23 @@ impl ClassBank {
                 return Err(EnrollError::NonFinite { index });
             }
         }
+        Ok(())
+    }
+
+    /// Put class `name` in the state `class` as a whole (a class replicated from another
+    /// bank of the same model and robot), after the checks an enroll makes: at least one
+    /// embedding, each of the bank's dimension and finite, a prototype of that dimension,
+    /// examples of the bank's robot. Returns the class it replaced.
+    pub fn put_class(&mut self, name: &str, class: Class) -> Result<Option<Class>, EnrollError> {
+        if class.embeddings.is_empty() {
+            return Err(EnrollError::NoExamples);
+        }
+        self.check_embeddings(
+            class
+                .embeddings
+                .iter()
+                .chain(std::iter::once(&class.prototype)),
+        )?;
         if let Some(index) = class.geometry.iter().position(|g| !g.is_finite()) {
             return Err(EnrollError::NonFinite { index });
         }
