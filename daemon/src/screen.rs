@@ -610,7 +610,11 @@ mod tests {
         let embedder = Embedder::random(3);
         // The synthetic tasks are joint-space patterns, not drawings on the canvas.
         let station = Station::panda().with_workcell(Workcell::OFF);
-        let mut bank = ClassBank::new(embedder.config().embed_dim, embedder.version(), 0.8);
+        let mut bank = ClassBank::new(
+            guardian_models::embedder::EMBED_DIM,
+            embedder.version(),
+            0.8,
+        );
         for c in 0..3 {
             let es: Vec<Vec<f32>> = (0..4)
                 .map(|d| {
@@ -663,7 +667,11 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let embedder = Embedder::random(3);
         let station = Station::panda().with_workcell(Workcell::OFF);
-        let bank = ClassBank::new(embedder.config().embed_dim, embedder.version(), 0.8);
+        let bank = ClassBank::new(
+            guardian_models::embedder::EMBED_DIM,
+            embedder.version(),
+            0.8,
+        );
         let path = dir.path().join("bank.gcb");
         let mut screen = Screen::new(embedder, station, bank, path.clone(), 3);
         let (mut h, p) = request(Op::Enroll, "task0", &task(0, 1));

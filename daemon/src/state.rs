@@ -187,7 +187,7 @@ pub fn load_bank_with(
     } else {
         let t = config.default_threshold.unwrap_or(DEFAULT_THRESHOLD);
         (
-            ClassBank::new(embedder.config().embed_dim, embedder.version(), t),
+            ClassBank::new(guardian_models::embedder::EMBED_DIM, embedder.version(), t),
             BankSource::Empty,
         )
     };
@@ -214,7 +214,9 @@ pub fn load_bank_with(
         });
     }
     bank.set_robot(served);
-    if bank.dim() != embedder.config().embed_dim || bank.model_version() != embedder.version() {
+    if bank.dim() != guardian_models::embedder::EMBED_DIM
+        || bank.model_version() != embedder.version()
+    {
         bank = reembed(config, embedder, station, &bank, &path())?;
         if persist == Persist::Yes {
             let state = config.bank_path();
@@ -294,7 +296,7 @@ pub fn reembed(
         bank_model: bank.model_version().to_owned(),
         bank_dim: bank.dim(),
         model: embedder.version().to_owned(),
-        model_dim: embedder.config().embed_dim,
+        model_dim: guardian_models::embedder::EMBED_DIM,
         reason: format!("{reason}; {remedy}"),
     };
     let default = config.default_bank_path();

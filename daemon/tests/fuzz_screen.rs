@@ -47,7 +47,11 @@ fn screen(dir: &std::path::Path) -> Screen {
     let station = Station::panda().with_workcell(guardian_shared::workcell::Workcell::OFF);
     // A huge threshold: every well-formed genuine check would be `Go`, so garbage that got
     // through validation would show up as `Go`.
-    let mut bank = ClassBank::new(embedder.config().embed_dim, embedder.version(), 1e9);
+    let mut bank = ClassBank::new(
+        guardian_models::embedder::EMBED_DIM,
+        embedder.version(),
+        1e9,
+    );
     for (c, name) in ENROLLED.iter().enumerate() {
         let es: Vec<Vec<f32>> = (0..3)
             .map(|d| {

@@ -7,6 +7,9 @@
 # Usage: docs/report/loao-full.sh DATASET OUTDIR [extra train args...]
 # Writes OUTDIR/<alphabet>/{eval.jsonl,outliers.json}; summarise with
 # docs/report/loao-full-summary.py OUTDIR.
+# TRAIN_ONLY=1: train the fold models, measure nothing (the branches of a fused model).
+# EVAL_ONLY=1: measure the OUTDIR/<alphabet>/model.safetensors already there (a fused model
+# made by `guardian-lab fuse`, docs/report/loao-fuse.sh), train nothing.
 set -euo pipefail
 dataset=$1; out=$2; shift 2
 lab=${GUARDIAN_LAB:-target/release/guardian-lab}
@@ -24,13 +27,14 @@ for i in "${!alphabets[@]}"; do
     [[ $a == "$test_a" || $a == "$val_a" ]] || train+=("$a")
   done
   dir="$out/${test_a//[()]/}"
-  if [[ ! -f $dir/state.json ]] || ! grep -q '"finished": true' "$dir/state.json"; then
+  if [[ -z ${EVAL_ONLY:-} ]] && { [[ ! -f $dir/state.json ]] || ! grep -q '"finished": true' "$dir/state.json"; }; then
     resume=(); [[ -f $dir/state.json ]] && resume=(--resume)
     mkdir -p "$dir"
     "$lab" train --dataset "$dataset" --train-alphabets "$(IFS=,; echo "${train[*]}")" \
       --val-alphabets "$val_a" --out "$dir" --quiet --strokes "$strokes" "${resume[@]}" "$@" \
       > "$dir.train.log" 2>&1
   fi
+  [[ -n ${TRAIN_ONLY:-} ]] && continue
   if [[ ! -s $dir/eval.jsonl ]]; then
     for spec in "2 1" "10 1" "20 1" "20 5"; do
       read -r way shot <<< "$spec"

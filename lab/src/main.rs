@@ -21,6 +21,8 @@ enum Command {
     Train(Box<guardian_lab::train::Args>),
     /// Few-shot evaluation of a model or a baseline.
     Eval(guardian_lab::eval::Args),
+    /// Fuse trained networks into one model file (the branches of a fused model).
+    Fuse(guardian_lab::tools::fuse::Args),
     /// Markdown + PNG report of a trained model.
     Report(guardian_lab::eval::report::Args),
     /// Calibrate thresholds on validation alphabets and build a class bank.
@@ -46,6 +48,7 @@ fn main() -> anyhow::Result<()> {
         Command::Plot(args) => guardian_lab::tools::plot::run(args),
         Command::Train(args) => guardian_lab::train::run(args),
         Command::Eval(args) => guardian_lab::eval::run(args),
+        Command::Fuse(args) => guardian_lab::tools::fuse::run(args),
         Command::Report(args) => guardian_lab::eval::report::run(args),
         Command::Bank(args) => guardian_lab::tools::bank::run(args),
         Command::Outliers(args) => guardian_lab::eval::outliers::run(args),

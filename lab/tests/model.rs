@@ -438,79 +438,86 @@ fn training_gradients_match_candle_autograd_on_real_batches() {
         &Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/embedder.safetensors"),
     )
     .expect("the shipped model loads");
-    let config = shipped.config().clone();
-    let mut set = Prepared::new(data, &["Latin".to_string()], config.features).expect("prepare");
-    set.make_faults(data, &shared_strokes(), &train::TRAIN_FAULTS, 2, 3)
-        .expect("faults");
-    let cfg = TrainConfig {
-        net: config.clone(),
-        loss: LossKind::BatchAll,
-        fault_share: 1.0,
-        fault_variants: 2,
-        fault_weight: 1.0,
-        fault_margin: 0.4,
-        ..tiny_config()
-    };
-    let nets = [
-        ("shipped", shipped.fast().clone()),
-        ("random", FastNet::random(config.clone(), 3).expect("net")),
-    ];
-    let mut rng = StdRng::seed_from_u64(21);
+    // Every network of the model (the branches of a fused model), each on its own view.
     let mut compared = 0;
-    for (name, fast) in nets {
-        for _ in 0..2 {
-            let (idx, labels) = set.sample_pk(8, 4, &mut rng);
-            let (items, labels) = set.with_faults(&idx, &labels, 1.0, &mut rng);
-            let x = set.batch_items(&items, Some(&mut rng)).expect("batch");
-            let sources = set.sources(&items);
-            // candle autograd.
-            let net = fast.to_net().expect("net");
-            let vars: Vec<Var> = net
-                .params()
-                .iter()
-                .map(|t| Var::from_tensor(t).expect("var"))
-                .collect();
-            let net = Net::new(
-                config.clone(),
-                vars.iter().map(|v| v.as_tensor().clone()).collect(),
-            )
-            .expect("net");
-            let e = net.forward(&x).expect("forward");
-            let mut dummy = StdRng::seed_from_u64(0);
-            let (want_loss, _, _, _) =
-                train::objective(&e, &labels, &sources, &cfg, &mut dummy).expect("loss");
-            let store = want_loss.backward().expect("backward");
-            let want_loss = want_loss.to_scalar::<f32>().expect("scalar");
-            // The training path.
-            let mut learner = Learner::new(fast.clone(), 0.0);
-            let (grads, got_loss, _) = learner
-                .gradients(&x, |e| {
-                    let (l, _, _, _) = train::objective(e, &labels, &sources, &cfg, &mut dummy)?;
-                    Ok((l, ()))
-                })
-                .expect("gradients");
-            assert!(
-                (got_loss - want_loss).abs() <= 1e-5 * (1.0 + want_loss.abs()),
-                "{name}: loss {got_loss} vs {want_loss}"
-            );
-            assert!(want_loss > 0.0, "{name}: a batch without active triplets");
-            let shapes = config.param_shapes();
-            for ((var, got), (pname, _)) in vars.iter().zip(grads.params()).zip(&shapes) {
-                let want = store
-                    .get(var.as_tensor())
-                    .expect("every parameter gets a gradient")
-                    .flatten_all()
-                    .expect("flat")
-                    .to_vec1::<f32>()
-                    .expect("vec");
-                let d = rel_diff(got, &want);
-                eprintln!("{name} {pname}: relative difference {d:.2e}");
-                assert!(d <= 1e-4, "{name} {pname}: relative difference {d:e}");
-                compared += 1;
+    let mut expected = 0;
+    for branch in shipped.nets() {
+        let config = branch.config().clone();
+        let mut set =
+            Prepared::new(data, &["Latin".to_string()], config.features).expect("prepare");
+        set.make_faults(data, &shared_strokes(), &train::TRAIN_FAULTS, 2, 3)
+            .expect("faults");
+        let cfg = TrainConfig {
+            net: config.clone(),
+            loss: LossKind::BatchAll,
+            fault_share: 1.0,
+            fault_variants: 2,
+            fault_weight: 1.0,
+            fault_margin: 0.4,
+            ..tiny_config()
+        };
+        let nets = [
+            ("shipped", branch.clone()),
+            ("random", FastNet::random(config.clone(), 3).expect("net")),
+        ];
+        let mut rng = StdRng::seed_from_u64(21);
+        for (name, fast) in nets {
+            for _ in 0..2 {
+                let (idx, labels) = set.sample_pk(8, 4, &mut rng);
+                let (items, labels) = set.with_faults(&idx, &labels, 1.0, &mut rng);
+                let x = set.batch_items(&items, Some(&mut rng)).expect("batch");
+                let sources = set.sources(&items);
+                // candle autograd.
+                let net = fast.to_net().expect("net");
+                let vars: Vec<Var> = net
+                    .params()
+                    .iter()
+                    .map(|t| Var::from_tensor(t).expect("var"))
+                    .collect();
+                let net = Net::new(
+                    config.clone(),
+                    vars.iter().map(|v| v.as_tensor().clone()).collect(),
+                )
+                .expect("net");
+                let e = net.forward(&x).expect("forward");
+                let mut dummy = StdRng::seed_from_u64(0);
+                let (want_loss, _, _, _) =
+                    train::objective(&e, &labels, &sources, &cfg, &mut dummy).expect("loss");
+                let store = want_loss.backward().expect("backward");
+                let want_loss = want_loss.to_scalar::<f32>().expect("scalar");
+                // The training path.
+                let mut learner = Learner::new(fast.clone(), 0.0);
+                let (grads, got_loss, _) = learner
+                    .gradients(&x, |e| {
+                        let (l, _, _, _) =
+                            train::objective(e, &labels, &sources, &cfg, &mut dummy)?;
+                        Ok((l, ()))
+                    })
+                    .expect("gradients");
+                assert!(
+                    (got_loss - want_loss).abs() <= 1e-5 * (1.0 + want_loss.abs()),
+                    "{name}: loss {got_loss} vs {want_loss}"
+                );
+                assert!(want_loss > 0.0, "{name}: a batch without active triplets");
+                let shapes = config.param_shapes();
+                for ((var, got), (pname, _)) in vars.iter().zip(grads.params()).zip(&shapes) {
+                    let want = store
+                        .get(var.as_tensor())
+                        .expect("every parameter gets a gradient")
+                        .flatten_all()
+                        .expect("flat")
+                        .to_vec1::<f32>()
+                        .expect("vec");
+                    let d = rel_diff(got, &want);
+                    eprintln!("{name} {pname}: relative difference {d:.2e}");
+                    assert!(d <= 1e-4, "{name} {pname}: relative difference {d:e}");
+                    compared += 1;
+                }
             }
         }
+        expected += 4 * config.param_shapes().len();
     }
-    assert_eq!(compared, 4 * config.param_shapes().len());
+    assert_eq!(compared, expected);
 }
 
 #[test]

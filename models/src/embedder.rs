@@ -191,14 +191,70 @@ pub enum EmbedError {
     },
 }
 
-/// A trained (or random) embedding network with its feature computation. `Send + Sync`.
+/// A trained (or random) embedding model with its feature computation. `Send + Sync`.
+///
+/// A model is one network, or the **branches of a fused model** ([`Embedder::fuse`]): several
+/// networks, each with its own view of the pen path (the time sequence of pen features, the
+/// picture), whose L2-normalised embeddings are concatenated and scaled by `1/√branches`. The
+/// fused embedding is then a unit vector again, and its squared distance between two plans is
+/// the mean of the branches' squared distances — the fusion of distances the lab measured,
+/// computed by the bank's ordinary arithmetic. An embedding is always [`EMBED_DIM`] wide: the
+/// branches' dimensions must sum to at most that, and the rest is zero (which changes no
+/// distance).
+///
 /// The weights live in the fast path's buffers alone ([`FastNet`], loaded straight from the
 /// file); a candle network is built from them only on request (feature `train`).
 #[derive(Debug, Clone)]
 pub struct Embedder {
-    fast: Arc<FastNet>,
+    nets: Arc<Vec<FastNet>>,
     version: String,
     checksum: String,
+}
+
+/// A tensor as the file holds it: name, shape, values.
+type Named = (String, Vec<usize>, Vec<f32>);
+
+/// The tensor name of parameter `name` of branch `branch` in a file of `branches` networks:
+/// unprefixed for a single network (the format every earlier model file has), `b<i>.` for the
+/// branches of a fused model.
+fn tensor_name(branches: usize, branch: usize, name: &str) -> String {
+    if branches == 1 {
+        name.to_string()
+    } else {
+        format!("b{branch}.{name}")
+    }
+}
+
+/// The networks' configs are servable together: each valid, their embeddings fit in
+/// [`EMBED_DIM`], and the branches of a fused model are L2-normalised (else the scaling by
+/// `1/√branches` would not make their distances comparable).
+fn check_configs(configs: &[NetConfig]) -> Result<(), LoadModelError> {
+    let bad = |expected: String, got: String| LoadModelError::BadMetadata {
+        key: "config",
+        expected,
+        got,
+    };
+    if configs.is_empty() {
+        return Err(bad("at least one network".into(), "none".into()));
+    }
+    for c in configs {
+        c.check()
+            .map_err(|e| bad("a valid network config".into(), e))?;
+        if configs.len() > 1 && !c.l2_normalize {
+            return Err(bad(
+                "L2-normalised branches in a fused model".into(),
+                "a branch without l2-normalize".into(),
+            ));
+        }
+    }
+    let dim: usize = configs.iter().map(|c| c.embed_dim).sum();
+    if dim > EMBED_DIM {
+        return Err(bad(
+            format!("embed-dim at most {EMBED_DIM} in all"),
+            dim.to_string(),
+        ));
+    }
+    Ok(())
 }
 
 impl Embedder {
@@ -249,58 +305,67 @@ impl Embedder {
                 got: embed_dim.into(),
             });
         }
+        // One network's config (a JSON object), or the branches' of a fused model (an array).
         let config_json = get("config")?;
-        let config: NetConfig = serde_json::from_str(config_json).map_err(|e| {
-            match unknown_feature_kind(config_json) {
+        let configs: Vec<NetConfig> =
+            match serde_json::from_str::<serde_json::Value>(config_json) {
+                Ok(serde_json::Value::Array(items)) => items
+                    .into_iter()
+                    .map(serde_json::from_value)
+                    .collect::<Result<_, _>>(),
+                _ => serde_json::from_str(config_json).map(|c| vec![c]),
+            }
+            .map_err(|e| match unknown_feature_kind(config_json) {
                 Some(got) => LoadModelError::UnknownFeatureKind { got },
                 None => LoadModelError::BadMetadata {
                     key: "config",
-                    expected: "a network config".into(),
+                    expected: "a network config or an array of them".into(),
                     got: format!("{config_json} ({e})"),
                 },
-            }
-        })?;
-        if config.embed_dim != EMBED_DIM {
-            return Err(LoadModelError::BadMetadata {
-                key: "config",
-                expected: format!("embed-dim {EMBED_DIM}"),
-                got: config.embed_dim.to_string(),
-            });
-        }
-        config.check().map_err(|e| LoadModelError::BadMetadata {
-            key: "config",
-            expected: "a valid network config".into(),
-            got: e,
-        })?;
+            })?;
+        check_configs(&configs)?;
         let expected_sum = get("sha256")?.to_string();
 
-        let shapes = config.param_shapes();
+        let shapes: Vec<Vec<(String, Vec<usize>)>> = configs
+            .iter()
+            .enumerate()
+            .map(|(b, c)| {
+                c.param_shapes()
+                    .into_iter()
+                    .map(|(n, s)| (tensor_name(configs.len(), b, &n), s))
+                    .collect()
+            })
+            .collect();
         for name in st.names() {
-            if !shapes.iter().any(|(n, _)| n == name) {
+            if !shapes.iter().flatten().any(|(n, _)| n == name) {
                 return Err(LoadModelError::UnexpectedTensor { name: name.into() });
             }
         }
-        let mut named: Vec<(String, Vec<usize>, Vec<f32>)> = Vec::with_capacity(shapes.len());
-        for (name, shape) in &shapes {
-            let view = st
-                .tensor(name)
-                .map_err(|_| LoadModelError::MissingTensor { name: name.clone() })?;
-            if view.dtype() != Dtype::F32 || view.shape() != shape.as_slice() {
-                return Err(LoadModelError::ShapeMismatch {
-                    name: name.clone(),
-                    expected: shape.clone(),
-                    got: view.shape().to_vec(),
-                    dtype: format!("{:?}", view.dtype()),
-                });
+        let mut named: Vec<Vec<Named>> = Vec::with_capacity(shapes.len());
+        for branch in &shapes {
+            let mut tensors = Vec::with_capacity(branch.len());
+            for (name, shape) in branch {
+                let view = st
+                    .tensor(name)
+                    .map_err(|_| LoadModelError::MissingTensor { name: name.clone() })?;
+                if view.dtype() != Dtype::F32 || view.shape() != shape.as_slice() {
+                    return Err(LoadModelError::ShapeMismatch {
+                        name: name.clone(),
+                        expected: shape.clone(),
+                        got: view.shape().to_vec(),
+                        dtype: format!("{:?}", view.dtype()),
+                    });
+                }
+                let data: Vec<f32> = view
+                    .data()
+                    .chunks_exact(4)
+                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                    .collect();
+                tensors.push((name.clone(), shape.clone(), data));
             }
-            let data: Vec<f32> = view
-                .data()
-                .chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                .collect();
-            named.push((name.clone(), shape.clone(), data));
+            named.push(tensors);
         }
-        let got_sum = checksum(&named);
+        let got_sum = checksum(named.iter().flatten());
         if got_sum != expected_sum {
             return Err(LoadModelError::ChecksumMismatch {
                 expected: expected_sum,
@@ -309,11 +374,17 @@ impl Embedder {
         }
         if let Some((name, _, _)) = named
             .iter()
+            .flatten()
             .find(|(_, _, d)| d.iter().any(|v| !v.is_finite()))
         {
             return Err(LoadModelError::NonFinite { name: name.clone() });
         }
-        Self::from_named(config, named)
+        let nets = configs
+            .into_iter()
+            .zip(named)
+            .map(|(c, t)| FastNet::from_params(c, t.into_iter().map(|(_, _, d)| d).collect()))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Self::from_nets(nets))
     }
 
     /// A network with deterministic random weights (the default architecture) for tests
@@ -328,51 +399,65 @@ impl Embedder {
     /// `train`).
     #[cfg(any(test, feature = "train"))]
     pub fn random_with(config: NetConfig, seed: u64) -> Result<Self, LoadModelError> {
-        config.check().map_err(|e| LoadModelError::BadMetadata {
-            key: "config",
-            expected: "a valid network config".into(),
-            got: e,
-        })?;
-        let named = config.init(seed);
-        Self::from_named(config, named)
+        check_configs(std::slice::from_ref(&config))?;
+        let params = config.init(seed).into_iter().map(|(_, _, d)| d).collect();
+        Ok(Self::from_nets(vec![FastNet::from_params(config, params)?]))
     }
 
     /// Build from a trained network (the lab's trainer uses this; feature `train`).
     #[cfg(feature = "train")]
     pub fn from_trained(net: &Net) -> Result<Self, LoadModelError> {
         let config = net.config().clone();
-        let named = config
-            .param_shapes()
-            .into_iter()
-            .zip(net.params())
-            .map(|((name, shape), t)| {
-                let data = t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
-                Ok((name, shape, data))
-            })
+        check_configs(std::slice::from_ref(&config))?;
+        let params = net
+            .params()
+            .iter()
+            .map(|t| t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>())
             .collect::<candle_core::Result<Vec<_>>>()?;
-        Self::from_named(config, named)
+        Ok(Self::from_nets(vec![FastNet::from_params(config, params)?]))
     }
 
-    /// The embedder of named parameters in [`NetConfig::param_shapes`] order: their values
-    /// go straight into the fast path's buffers; the version is their checksum.
-    fn from_named(
-        config: NetConfig,
-        named: Vec<(String, Vec<usize>, Vec<f32>)>,
-    ) -> Result<Self, LoadModelError> {
-        let sum = checksum(&named);
-        let params = named.into_iter().map(|(_, _, d)| d).collect();
-        Ok(Self {
-            fast: Arc::new(FastNet::from_params(config, params)?),
+    /// A fused model of the networks of `parts`, in order (see [`Embedder`]): e.g. a
+    /// sequence network and a picture network of 64 dimensions each. Its version is the
+    /// checksum of the fused file's tensors, so it differs from every part's.
+    pub fn fuse(parts: &[Embedder]) -> Result<Self, LoadModelError> {
+        let nets: Vec<FastNet> = parts.iter().flat_map(|p| p.nets.iter().cloned()).collect();
+        let configs: Vec<NetConfig> = nets.iter().map(|n| n.config().clone()).collect();
+        check_configs(&configs)?;
+        Ok(Self::from_nets(nets))
+    }
+
+    /// The embedder of checked networks; the version is the checksum of their tensors under
+    /// their names in the file.
+    fn from_nets(nets: Vec<FastNet>) -> Self {
+        let sum = checksum(Self::named(&nets).iter());
+        Self {
+            nets: Arc::new(nets),
             version: sum[..16].to_string(),
             checksum: sum,
-        })
+        }
+    }
+
+    /// Every tensor of `nets` with its name in the file and its shape.
+    fn named(nets: &[FastNet]) -> Vec<Named> {
+        let mut out = Vec::new();
+        for (b, net) in nets.iter().enumerate() {
+            for ((name, shape), data) in net.config().param_shapes().into_iter().zip(net.params()) {
+                out.push((tensor_name(nets.len(), b, &name), shape, data.to_vec()));
+            }
+        }
+        out
     }
 
     /// Whether this model can embed plans of `robot`: pen-path models serve any arm; a model
     /// on joint features serves only a 7-joint robot (the Panda whose limits scale them).
     /// Every embedding call checks it.
     pub fn serves(&self, robot: &Robot) -> Result<(), EmbedError> {
-        if self.fast.config().features == FeatureKind::Joints && robot.joints() != PANDA_JOINTS {
+        let joints = self
+            .nets
+            .iter()
+            .any(|n| n.config().features == FeatureKind::Joints);
+        if joints && robot.joints() != PANDA_JOINTS {
             return Err(EmbedError::JointFeaturesNeedPanda {
                 robot: robot.name().to_string(),
             });
@@ -416,12 +501,13 @@ impl Embedder {
 
     /// The model file's bytes.
     pub fn to_bytes(&self) -> Result<Vec<u8>, SaveModelError> {
-        let shapes = self.fast.config().param_shapes();
-        let mut buffers = Vec::with_capacity(shapes.len());
-        for ((name, shape), data) in shapes.into_iter().zip(self.fast.params()) {
-            let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
-            buffers.push((name, shape, bytes));
-        }
+        let buffers: Vec<(String, Vec<usize>, Vec<u8>)> = Self::named(&self.nets)
+            .into_iter()
+            .map(|(name, shape, data)| {
+                let bytes = data.iter().flat_map(|v| v.to_le_bytes()).collect();
+                (name, shape, bytes)
+            })
+            .collect();
         let views = buffers
             .iter()
             .map(|(name, shape, bytes)| {
@@ -429,17 +515,26 @@ impl Embedder {
             })
             .collect::<Result<Vec<_>, _>>()
             .map_err(|e| SaveModelError::Serialize(e.to_string()))?;
-        let config = serde_json::to_string(self.fast.config())
-            .map_err(|e| SaveModelError::Serialize(e.to_string()))?;
         let meta = HashMap::from([
             ("format".to_string(), FORMAT.to_string()),
-            ("config".to_string(), config),
+            ("config".to_string(), self.config_json()),
             ("input-shape".to_string(), INPUT_SHAPE.to_string()),
             ("embed-dim".to_string(), EMBED_DIM.to_string()),
             ("sha256".to_string(), self.checksum.clone()),
         ]);
         safetensors::serialize(views, Some(meta))
             .map_err(|e| SaveModelError::Serialize(e.to_string()))
+    }
+
+    /// The architecture as the file's `config` records it: one network's config, or the
+    /// array of a fused model's.
+    pub fn config_json(&self) -> String {
+        let result = if let [net] = self.nets.as_slice() {
+            serde_json::to_string(net.config())
+        } else {
+            serde_json::to_string(&self.configs())
+        };
+        result.expect("a NetConfig always serialises")
     }
 
     /// Embed one resampled trajectory of `robot` (fast path, see [`crate::fast`]).
@@ -561,114 +656,85 @@ impl Embedder {
         }
         check_finite(xs)?;
         SCRATCH.with(|cell| match cell.try_borrow_mut() {
-            Ok(mut s) => self.embed_fast(robot, xs, out, &mut s, pen_path, path),
+            Ok(mut s) => self.embed_fast(xs, out, &mut s, pen_path, path),
             // Re-entered on this thread (cannot happen today): use a fresh scratch.
-            Err(_) => self.embed_fast(robot, xs, out, &mut EmbedScratch::default(), pen_path, path),
+            Err(_) => self.embed_fast(xs, out, &mut EmbedScratch::default(), pen_path, path),
         })
     }
 
+    /// The pen paths once, then every network on its view of them, each writing its part of
+    /// the embedding.
     fn embed_fast<P: PenPathFn>(
         &self,
-        robot: &Robot,
         xs: &[Resampled],
         out: &mut [Embedding],
         s: &mut EmbedScratch,
         pen_path: P,
         path: Option<&mut [[PenPoint; STEPS]]>,
     ) -> Result<(), EmbedError> {
-        let copies = self.features_into(robot, xs, &mut s.feats, pen_path, path);
-        let rows = copies * xs.len();
-        let raw = if s.raw.len() < rows * EMBED_DIM {
-            s.raw.resize(rows * EMBED_DIM, 0.0);
-            &mut s.raw[..]
-        } else {
-            &mut s.raw[..rows * EMBED_DIM]
-        };
-        let kind = self.fast.config().features;
-        self.fast.forward(
-            &s.feats[..rows * kind.values()],
-            rows,
-            kind.steps(),
-            &mut s.net,
-            raw,
-        )?;
-        for (index, (o, r)) in out
-            .iter_mut()
-            .zip(raw.chunks_exact(copies * EMBED_DIM))
-            .enumerate()
-        {
-            if copies == 2 {
-                let (a, b) = r.split_at(EMBED_DIM);
-                for ((v, x), y) in o.iter_mut().zip(a).zip(b) {
-                    *v = (x + y) / 2.0;
+        if s.paths.len() < xs.len() {
+            s.paths.resize(xs.len(), [[0.0; 3]; STEPS]);
+        }
+        let paths = &mut s.paths[..xs.len()];
+        for (p, x) in paths.iter_mut().zip(xs) {
+            *p = pen_path(x);
+        }
+        if let Some(path) = path {
+            path.copy_from_slice(paths);
+        }
+        if s.nets.len() < self.nets.len() {
+            s.nets.resize_with(self.nets.len(), Scratch::default);
+        }
+        let scale = branch_scale(self.nets.len());
+        let mut offset = 0;
+        for (net, scratch) in self.nets.iter().zip(&mut s.nets) {
+            let config = net.config();
+            let copies = features_into(config, xs, paths, &mut s.feats);
+            let rows = copies * xs.len();
+            let d = config.embed_dim;
+            if s.raw.len() < rows * d {
+                s.raw.resize(rows * d, 0.0);
+            }
+            let raw = &mut s.raw[..rows * d];
+            let kind = config.features;
+            net.forward(
+                &s.feats[..rows * kind.values()],
+                rows,
+                kind.steps(),
+                scratch,
+                raw,
+            )?;
+            for (o, r) in out.iter_mut().zip(raw.chunks_exact(copies * d)) {
+                let o = &mut o[offset..offset + d];
+                if copies == 2 {
+                    let (a, b) = r.split_at(d);
+                    for ((v, x), y) in o.iter_mut().zip(a).zip(b) {
+                        *v = (x + y) / 2.0;
+                    }
+                    if config.l2_normalize {
+                        let norm = (o.iter().map(|v| v * v).sum::<f32>() + 1e-12).sqrt();
+                        for v in o.iter_mut() {
+                            *v /= norm;
+                        }
+                    }
+                } else {
+                    o.copy_from_slice(r);
                 }
-                if self.fast.config().l2_normalize {
-                    let norm = (o.iter().map(|v| v * v).sum::<f32>() + 1e-12).sqrt();
+                if let Some(scale) = scale {
                     for v in o.iter_mut() {
-                        *v /= norm;
+                        *v *= scale;
                     }
                 }
-            } else {
-                o.copy_from_slice(r);
             }
+            offset += d;
+        }
+        for (index, o) in out.iter_mut().enumerate() {
+            o[offset..].fill(0.0);
             if o.iter().any(|v| !v.is_finite()) {
                 return Err(EmbedError::NonFiniteOutput { index });
             }
         }
         Ok(())
-    }
-
-    /// Write the network input for `xs` into `feats` (grown as needed): per trajectory one
-    /// feature sequence, or two (forwards, then time-reversed) with reverse averaging.
-    /// Returns the number of sequences per trajectory.
-    /// The pen path comes from `pen_path` ([`crate::features::pen_path`], or the general
-    /// kinematic chain for the reference). With `path_out`, the pen path of trajectory `i` is
-    /// written to `path_out[i]`.
-    fn features_into<P: PenPathFn>(
-        &self,
-        robot: &Robot,
-        xs: &[Resampled],
-        feats: &mut Vec<f32>,
-        pen_path: P,
-        mut path_out: Option<&mut [[PenPoint; STEPS]]>,
-    ) -> usize {
-        let kind = self.fast.config().features;
-        let v = kind.values();
-        let both = self.fast.config().reverse_average && kind != FeatureKind::Joints;
-        let copies = if both { 2 } else { 1 };
-        let n = copies * xs.len() * v;
-        if feats.len() < n {
-            feats.resize(n, 0.0);
-        }
-        let feats = &mut feats[..n];
-        let reverse = Augment {
-            reverse: true,
-            ..Augment::default()
-        };
-        for (i, (x, out)) in xs
-            .iter()
-            .zip(feats.chunks_exact_mut(copies * v))
-            .enumerate()
-        {
-            let path_slot = path_out.as_deref_mut().and_then(|p| p.get_mut(i));
-            if kind == FeatureKind::Joints {
-                crate::features::compute(kind, x, out);
-                if let Some(p) = path_slot {
-                    *p = pen_path_with(robot, x);
-                }
-                continue;
-            }
-            let path = pen_path(x);
-            if let Some(p) = path_slot {
-                *p = path;
-            }
-            let (fwd, bwd) = out.split_at_mut(v);
-            crate::features::path_features(kind, &path, &Augment::default(), fwd);
-            if both {
-                crate::features::path_features(kind, &path, &reverse, bwd);
-            }
-        }
-        copies
     }
 
     /// Embed a batch with candle's forward pass — the reference the fast path is tested
@@ -684,44 +750,68 @@ impl Embedder {
             return Ok(Vec::new());
         }
         check_finite(xs)?;
-        let kind = self.fast.config().features;
-        let mut feats = Vec::new();
-        let copies = self.features_into(
-            robot,
-            xs,
-            &mut feats,
-            |x: &Resampled| pen_path_with(robot, x),
-            None,
-        );
-        let input = Tensor::from_vec(
-            feats,
-            (copies * xs.len(), kind.steps(), kind.channels()),
-            &Device::Cpu,
-        )?;
-        let mut e = self.fast.to_net()?.forward(&input)?;
-        if copies == 2 {
-            e = e.reshape((xs.len(), 2, EMBED_DIM))?.mean(1)?;
-            if self.fast.config().l2_normalize {
-                let norm = (e.sqr()?.sum_keepdim(1)? + 1e-12)?.sqrt()?;
-                e = e.broadcast_div(&norm)?;
+        let paths: Vec<[PenPoint; STEPS]> = xs.iter().map(|x| pen_path_with(robot, x)).collect();
+        let mut embs = vec![[0.0f32; EMBED_DIM]; xs.len()];
+        let mut offset = 0;
+        for net in self.nets.iter() {
+            let config = net.config();
+            let kind = config.features;
+            let d = config.embed_dim;
+            let mut feats = Vec::new();
+            let copies = features_into(config, xs, &paths, &mut feats);
+            let input = Tensor::from_vec(
+                feats,
+                (copies * xs.len(), kind.steps(), kind.channels()),
+                &Device::Cpu,
+            )?;
+            let mut e = net.to_net()?.forward(&input)?;
+            if copies == 2 {
+                e = e.reshape((xs.len(), 2, d))?.mean(1)?;
+                if config.l2_normalize {
+                    let norm = (e.sqr()?.sum_keepdim(1)? + 1e-12)?.sqrt()?;
+                    e = e.broadcast_div(&norm)?;
+                }
             }
-        }
-        let out = e.flatten_all()?.to_vec1::<f32>()?;
-        let mut embs = Vec::with_capacity(xs.len());
-        for (index, chunk) in out.chunks_exact(EMBED_DIM).enumerate() {
-            if chunk.iter().any(|v| !v.is_finite()) {
-                return Err(EmbedError::NonFiniteOutput { index });
+            if let Some(scale) = branch_scale(self.nets.len()) {
+                e = (e * f64::from(scale))?;
             }
-            let mut e = [0.0f32; EMBED_DIM];
-            e.copy_from_slice(chunk);
-            embs.push(e);
+            let values = e.flatten_all()?.to_vec1::<f32>()?;
+            for (index, (o, chunk)) in embs.iter_mut().zip(values.chunks_exact(d)).enumerate() {
+                if chunk.iter().any(|v| !v.is_finite()) {
+                    return Err(EmbedError::NonFiniteOutput { index });
+                }
+                o[offset..offset + d].copy_from_slice(chunk);
+            }
+            offset += d;
         }
         Ok(embs)
     }
 
-    /// The fast-path network: the weights.
-    pub fn fast(&self) -> &FastNet {
-        &self.fast
+    /// The networks: one, or the branches of a fused model in embedding order.
+    pub fn nets(&self) -> &[FastNet] {
+        &self.nets
+    }
+
+    /// The networks' architectures, in embedding order.
+    pub fn configs(&self) -> Vec<&NetConfig> {
+        self.nets.iter().map(FastNet::config).collect()
+    }
+
+    /// Floating-point operations of the networks for one plan (both directions of a
+    /// reverse-averaged network).
+    pub fn flops(&self) -> u64 {
+        self.nets
+            .iter()
+            .map(|n| {
+                let c = n.config();
+                let copies = if c.reverse_average && c.features != FeatureKind::Joints {
+                    2
+                } else {
+                    1
+                };
+                copies * n.flops(c.features.steps())
+            })
+            .sum()
     }
 
     /// Stable id: the first 16 hex characters of the SHA-256 over the weights.
@@ -734,33 +824,84 @@ impl Embedder {
         &self.checksum
     }
 
-    /// The architecture.
-    pub fn config(&self) -> &NetConfig {
-        self.fast.config()
-    }
-
-    /// Turn test-time reverse averaging on or off (see [`NetConfig::reverse_average`]); the
-    /// weights and the version are unchanged.
+    /// Turn test-time reverse averaging on or off for every network on the pen features
+    /// (see [`NetConfig::reverse_average`]); the weights and the version are unchanged.
     pub fn set_reverse_average(&mut self, on: bool) {
-        Arc::make_mut(&mut self.fast).set_reverse_average(on);
+        for net in Arc::make_mut(&mut self.nets) {
+            net.set_reverse_average(on);
+        }
     }
 
-    /// The weights as a candle network (for training and analysis; feature `train`).
+    /// The weights of a single-network model as a candle network (for training and analysis;
+    /// feature `train`). `None` for a fused model.
     #[cfg(feature = "train")]
-    pub fn net(&self) -> candle_core::Result<Net> {
-        self.fast.to_net()
+    pub fn net(&self) -> Option<candle_core::Result<Net>> {
+        match self.nets.as_slice() {
+            [net] => Some(net.to_net()),
+            _ => None,
+        }
     }
 }
 
-/// The `features` a network config JSON names, if it is not a [`FeatureKind`] this build
-/// knows.
+/// What each branch's embedding is multiplied by: `1/√branches` for a fused model (so the
+/// concatenation is a unit vector), nothing for a single network.
+fn branch_scale(branches: usize) -> Option<f32> {
+    (branches > 1).then(|| 1.0 / (branches as f32).sqrt())
+}
+
+/// Write the input of a network with `config` for `xs` into `feats` (grown as needed): per
+/// trajectory one feature sequence (from its pen path in `paths`, or from its joints), or two
+/// (forwards, then time-reversed) with reverse averaging. Returns the number of sequences per
+/// trajectory.
+fn features_into(
+    config: &NetConfig,
+    xs: &[Resampled],
+    paths: &[[PenPoint; STEPS]],
+    feats: &mut Vec<f32>,
+) -> usize {
+    let kind = config.features;
+    let v = kind.values();
+    let both = config.reverse_average && kind != FeatureKind::Joints;
+    let copies = if both { 2 } else { 1 };
+    let n = copies * xs.len() * v;
+    if feats.len() < n {
+        feats.resize(n, 0.0);
+    }
+    let feats = &mut feats[..n];
+    let reverse = Augment {
+        reverse: true,
+        ..Augment::default()
+    };
+    for ((x, path), out) in xs.iter().zip(paths).zip(feats.chunks_exact_mut(copies * v)) {
+        if kind == FeatureKind::Joints {
+            crate::features::compute(kind, x, out);
+            continue;
+        }
+        let (fwd, bwd) = out.split_at_mut(v);
+        crate::features::path_features(kind, path, &Augment::default(), fwd);
+        if both {
+            crate::features::path_features(kind, path, &reverse, bwd);
+        }
+    }
+    copies
+}
+
+/// The first feature kind a network config JSON (an object, or an array of them) names that
+/// is not a [`FeatureKind`] this build knows.
 fn unknown_feature_kind(config_json: &str) -> Option<String> {
     let value: serde_json::Value = serde_json::from_str(config_json).ok()?;
-    let features = value.get("features")?;
-    let known = serde_json::from_value::<crate::features::FeatureKind>(features.clone()).is_ok();
-    (!known).then(|| match features.as_str() {
-        Some(name) => name.to_string(),
-        None => features.to_string(),
+    let configs = match value {
+        serde_json::Value::Array(items) => items,
+        one => vec![one],
+    };
+    configs.iter().find_map(|c| {
+        let features = c.get("features")?;
+        let known =
+            serde_json::from_value::<crate::features::FeatureKind>(features.clone()).is_ok();
+        (!known).then(|| match features.as_str() {
+            Some(name) => name.to_string(),
+            None => features.to_string(),
+        })
     })
 }
 
@@ -776,9 +917,11 @@ fn check_finite(xs: &[Resampled]) -> Result<(), EmbedError> {
 /// Per-thread buffers of [`Embedder::embed_into`].
 #[derive(Debug, Default)]
 struct EmbedScratch {
+    paths: Vec<[PenPoint; STEPS]>,
     feats: Vec<f32>,
     raw: Vec<f32>,
-    net: Scratch,
+    /// One per network of the model.
+    nets: Vec<Scratch>,
 }
 
 thread_local! {
@@ -791,8 +934,8 @@ pub fn sq_dist(a: &Embedding, b: &Embedding) -> f32 {
 }
 
 /// SHA-256 (hex) over tensors in name order: name bytes, shape (u64 LE each), f32 LE data.
-fn checksum(named: &[(String, Vec<usize>, Vec<f32>)]) -> String {
-    let mut order: Vec<&(String, Vec<usize>, Vec<f32>)> = named.iter().collect();
+fn checksum<'a>(named: impl Iterator<Item = &'a Named>) -> String {
+    let mut order: Vec<&Named> = named.collect();
     order.sort_by(|a, b| a.0.cmp(&b.0));
     let mut h = Sha256::new();
     for (name, shape, data) in order {
@@ -884,11 +1027,122 @@ mod tests {
         assert_eq!(e.version(), version);
         // The option survives a save/load round trip.
         let back = Embedder::from_bytes(&e.to_bytes().unwrap()).unwrap();
-        assert!(back.config().reverse_average);
+        assert!(back.configs()[0].reverse_average);
         assert_eq!(
             back.embed(crate::preprocess::default_panda(), &x).unwrap(),
             avg[0]
         );
+    }
+
+    /// A 64-dimensional network of `features` with random weights.
+    fn branch(features: FeatureKind, seed: u64) -> Embedder {
+        let config = NetConfig {
+            features,
+            channels: vec![8, 16],
+            kernel: 3,
+            embed_dim: EMBED_DIM / 2,
+            ..NetConfig::default()
+        };
+        Embedder::random_with(config, seed).unwrap()
+    }
+
+    #[test]
+    fn a_fused_model_concatenates_its_branches_and_averages_their_distances() {
+        let panda = crate::preprocess::default_panda();
+        let mut seq = branch(FeatureKind::Pen, 1);
+        seq.set_reverse_average(true);
+        let pic = branch(FeatureKind::Picture, 2);
+        let xs = [sample(0.0), sample(0.7), sample(2.0)];
+        let (a, b) = (
+            seq.embed_batch(panda, &xs).unwrap(),
+            pic.embed_batch(panda, &xs).unwrap(),
+        );
+        // A branch alone: its 64 values, then zeros.
+        assert!(
+            a.iter()
+                .all(|e| e[EMBED_DIM / 2..].iter().all(|v| *v == 0.0))
+        );
+        let fused = Embedder::fuse(&[seq.clone(), pic.clone()]).unwrap();
+        assert_eq!(fused.nets().len(), 2);
+        let f = fused.embed_batch(panda, &xs).unwrap();
+        let h = std::f32::consts::FRAC_1_SQRT_2;
+        for ((f, a), b) in f.iter().zip(&a).zip(&b) {
+            for (got, want) in f.iter().zip(a[..64].iter().chain(&b[..64])) {
+                assert!((got - want * h).abs() <= 1e-6, "{got} vs {}", want * h);
+            }
+            let norm: f32 = f.iter().map(|v| v * v).sum();
+            assert!((norm - 1.0).abs() < 1e-4, "{norm}");
+        }
+        // A fused distance is the mean of the branches' distances.
+        for (i, j) in [(0, 1), (0, 2), (1, 2)] {
+            let want = (sq_dist(&a[i], &a[j]) + sq_dist(&b[i], &b[j])) / 2.0;
+            let got = sq_dist(&f[i], &f[j]);
+            assert!((got - want).abs() <= 1e-5, "{got} vs {want}");
+            assert!(got > 0.0);
+        }
+        // The pen path comes out as from a single network.
+        let (e, path) = fused.embed_with_pen_path(panda, &xs[1]).unwrap();
+        assert_eq!(e, f[1]);
+        assert_eq!(path, crate::features::pen_path_with(panda, &xs[1]));
+        // The file round-trips with both branches, under a version of its own.
+        let bytes = fused.to_bytes().unwrap();
+        let back = Embedder::from_bytes(&bytes).unwrap();
+        assert_eq!(back.version(), fused.version());
+        assert_ne!(fused.version(), seq.version());
+        assert_ne!(fused.version(), pic.version());
+        assert_eq!(back.embed_batch(panda, &xs).unwrap(), f);
+        assert_eq!(back.configs()[0].features, FeatureKind::Pen);
+        assert!(back.configs()[0].reverse_average);
+        assert_eq!(back.configs()[1].features, FeatureKind::Picture);
+        // The branch order is part of the model.
+        let swapped = Embedder::fuse(&[pic, seq]).unwrap();
+        assert_ne!(swapped.version(), fused.version());
+        // A flipped bit in a branch is a checksum error.
+        let mut flipped = bytes.clone();
+        let n = flipped.len();
+        flipped[n - 2] ^= 0x10;
+        let err = Embedder::from_bytes(&flipped).unwrap_err();
+        assert!(
+            matches!(err, LoadModelError::ChecksumMismatch { .. }),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn a_fused_model_that_cannot_be_served_is_refused() {
+        // Two 128-dimensional networks do not fit one embedding.
+        let err = Embedder::fuse(&[Embedder::random(1), Embedder::random(2)]).unwrap_err();
+        assert!(
+            matches!(&err, LoadModelError::BadMetadata { key: "config", got, .. } if got == "256"),
+            "{err}"
+        );
+        // A branch without L2 normalisation would weigh its distances arbitrarily.
+        let raw = Embedder::random_with(
+            NetConfig {
+                l2_normalize: false,
+                embed_dim: 64,
+                ..NetConfig::default()
+            },
+            3,
+        )
+        .unwrap();
+        let err = Embedder::fuse(&[raw.clone(), branch(FeatureKind::Picture, 4)]).unwrap_err();
+        assert!(err.to_string().contains("L2-normalised"), "{err}");
+        // Alone, the same network is a model of its own.
+        assert!(Embedder::fuse(&[raw]).is_ok());
+        // A file whose config array names an unknown feature kind is refused by name.
+        let fused = Embedder::fuse(&[branch(FeatureKind::Pen, 5), branch(FeatureKind::Picture, 6)])
+            .unwrap();
+        let bytes = fused.to_bytes().unwrap();
+        let edited = edit_header(
+            &bytes,
+            r#"\"features\":\"picture\""#,
+            r#"\"features\":\"sonar\""#,
+        );
+        match Embedder::from_bytes(&edited).unwrap_err() {
+            LoadModelError::UnknownFeatureKind { got } => assert_eq!(got, "sonar"),
+            other => panic!("expected UnknownFeatureKind, got {other}"),
+        }
     }
 
     #[test]
@@ -951,7 +1205,7 @@ mod tests {
     fn a_model_file_with_an_unknown_feature_kind_is_refused() {
         let model = Embedder::random(2);
         let bytes = model.to_bytes().unwrap();
-        let kind = serde_json::to_value(model.config().features).unwrap();
+        let kind = serde_json::to_value(model.configs()[0].features).unwrap();
         let kind = kind.as_str().unwrap().to_string();
         // The config is a JSON string inside the JSON header, so its quotes are escaped.
         let field = |k: &str| format!(r#"\"features\":\"{k}\""#);
@@ -1029,6 +1283,28 @@ mod reference_tests {
         ] {
             embedders.push(Embedder::random_with(config, 9).unwrap());
         }
+        let mut seq = Embedder::random_with(
+            NetConfig {
+                embed_dim: EMBED_DIM / 2,
+                reverse_average: true,
+                ..NetConfig::default()
+            },
+            12,
+        )
+        .unwrap();
+        seq.set_reverse_average(true);
+        let pic = Embedder::random_with(
+            NetConfig {
+                features: FeatureKind::Picture,
+                channels: vec![8, 16],
+                kernel: 3,
+                embed_dim: EMBED_DIM / 2,
+                ..NetConfig::default()
+            },
+            13,
+        )
+        .unwrap();
+        embedders.push(Embedder::fuse(&[seq, pic]).unwrap());
         let xs = trajectories(5, 2);
         for (i, e) in embedders.iter().enumerate() {
             let want = e

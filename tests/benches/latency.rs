@@ -770,15 +770,12 @@ fn run(o: Opts) -> Result<()> {
         }
     };
     let embedder = Embedder::load(&model_path)?;
-    let cfg = embedder.config().clone();
     println!(
-        "  model {} ({}), features {:?}, channels {:?}, kernel {}, reverse-average {}",
+        "  model {} ({}), {} network(s): {}",
         model_path.display(),
         embedder.version(),
-        cfg.features,
-        cfg.channels,
-        cfg.kernel,
-        cfg.reverse_average
+        embedder.nets().len(),
+        embedder.config_json()
     );
     let t = Instant::now();
     let drawings = load_drawings(&o.strokes)?;
@@ -795,55 +792,77 @@ fn run(o: Opts) -> Result<()> {
         t.elapsed().as_secs_f64()
     );
 
-    // ---- forward passes, batch 1
+    // ---- forward passes, batch 1: every network of the model on its view of one plan
     let samples: Vec<_> = drawings
         .checks
         .iter()
         .map(|(_, w)| guardian_models::preprocess::preprocess(w))
         .collect::<Result<_, _>>()?;
-    let c = cfg.features.channels();
-    let copies =
-        if cfg.reverse_average && cfg.features != guardian_models::features::FeatureKind::Joints {
-            2
-        } else {
-            1
-        };
-    // Network input of the first check drawing (forward, and reversed when averaging).
-    let (steps, values) = (cfg.features.steps(), cfg.features.values());
-    let mut feats = vec![0.0f32; copies * values];
-    {
-        let path = guardian_models::features::pen_path(&samples[0]);
-        let (fwd, bwd) = feats.split_at_mut(values);
-        guardian_models::features::path_features(cfg.features, &path, &Default::default(), fwd);
-        if copies == 2 {
-            let rev = guardian_models::features::Augment {
-                reverse: true,
-                ..Default::default()
-            };
-            guardian_models::features::path_features(cfg.features, &path, &rev, bwd);
-        } else if cfg.features == guardian_models::features::FeatureKind::Joints {
-            guardian_models::features::compute(cfg.features, &samples[0], fwd);
-        }
-    }
-    let net = embedder.net()?;
+    // Per network: its input for the first check drawing (forward, and reversed when
+    // averaging), copies, steps and channels.
+    let path = guardian_models::features::pen_path(&samples[0]);
+    let inputs: Vec<(Vec<f32>, usize, usize, usize)> = embedder
+        .nets()
+        .iter()
+        .map(|net| {
+            let cfg = net.config();
+            let joints = cfg.features == guardian_models::features::FeatureKind::Joints;
+            let copies = if cfg.reverse_average && !joints { 2 } else { 1 };
+            let values = cfg.features.values();
+            let mut feats = vec![0.0f32; copies * values];
+            let (fwd, bwd) = feats.split_at_mut(values);
+            if joints {
+                guardian_models::features::compute(cfg.features, &samples[0], fwd);
+            } else {
+                guardian_models::features::path_features(
+                    cfg.features,
+                    &path,
+                    &Default::default(),
+                    fwd,
+                );
+            }
+            if copies == 2 {
+                let rev = guardian_models::features::Augment {
+                    reverse: true,
+                    ..Default::default()
+                };
+                guardian_models::features::path_features(cfg.features, &path, &rev, bwd);
+            }
+            (feats, copies, cfg.features.steps(), cfg.features.channels())
+        })
+        .collect();
+    let candle_nets = embedder
+        .nets()
+        .iter()
+        .map(|n| n.to_net())
+        .collect::<candle_core::Result<Vec<_>>>()?;
     let candle_fwd = time_n(50, n_fwd, || {
-        let x =
-            candle_core::Tensor::from_slice(&feats, (copies, steps, c), &candle_core::Device::Cpu)?;
-        let e = net.forward(&x)?.flatten_all()?.to_vec1::<f32>()?;
-        std::hint::black_box(e);
+        for (net, (feats, copies, steps, c)) in candle_nets.iter().zip(&inputs) {
+            let x = candle_core::Tensor::from_slice(
+                feats,
+                (*copies, *steps, *c),
+                &candle_core::Device::Cpu,
+            )?;
+            let e = net.forward(&x)?.flatten_all()?.to_vec1::<f32>()?;
+            std::hint::black_box(e);
+        }
         Ok(())
     })?;
-    let fast = embedder.fast();
-    let mut scratch = Scratch::default();
-    let mut out = vec![0.0f32; copies * EMBED_DIM];
+    let mut scratch: Vec<Scratch> = embedder.nets().iter().map(|_| Scratch::default()).collect();
+    let mut out = vec![0.0f32; 2 * EMBED_DIM];
     let mut forward_once = || -> Result<()> {
-        fast.forward(&feats, copies, steps, &mut scratch, &mut out)?;
-        std::hint::black_box(&out);
+        for ((net, (feats, copies, steps, _)), scratch) in
+            embedder.nets().iter().zip(&inputs).zip(&mut scratch)
+        {
+            let d = net.config().embed_dim;
+            net.forward(feats, *copies, *steps, scratch, &mut out[..copies * d])?;
+            std::hint::black_box(&out);
+        }
         Ok(())
     };
     // The compute floor's GEMM rate, timed in rounds alternating with the fast forward so
     // that both see the same machine: one 512^3 GEMM, then n_fwd / rounds forwards.
-    let flops = fast.flops(steps) * copies as u64;
+    let flops = embedder.flops();
     let (m, n, kk) = (512usize, 512usize, 512usize);
     let a = vec![0.5f32; m * kk];
     let b = vec![0.25f32; kk * n];

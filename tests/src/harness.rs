@@ -394,7 +394,7 @@ pub fn random_bank(
     seed: u64,
 ) -> guardian_models::bank::ClassBank {
     let embedder = Embedder::load(model).expect("load model");
-    let dim = embedder.config().embed_dim;
+    let dim = guardian_models::embedder::EMBED_DIM;
     let mut bank = guardian_models::bank::ClassBank::new(dim, embedder.version(), 1e9);
     let mut x = seed | 1;
     let mut next = || {

@@ -480,11 +480,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         args.episodes,
         args.seed
     )?;
-    writeln!(
-        md,
-        "Architecture: `{}`\n",
-        serde_json::to_string(model.config())?
-    )?;
+    writeln!(md, "Architecture: `{}`\n", model.config_json())?;
 
     // Accuracy vs N.
     let mut methods: Vec<(&str, Scorer<'_>)> = vec![("triplet", Scorer::Prototype(&emb))];
@@ -653,7 +649,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     writeln!(md)?;
 
     // Distances before and after training.
-    let untrained = Embedder::random_with(model.config().clone(), 1)?;
+    let untrained = model
+        .configs()
+        .into_iter()
+        .map(|c| Embedder::random_with(c.clone(), 1))
+        .collect::<Result<Vec<_>, _>>()?;
+    let untrained = Embedder::fuse(&untrained)?;
     let emb0 = pool.embed(&untrained)?;
     let mut panels = Vec::new();
     for (name, v) in [

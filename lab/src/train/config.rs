@@ -215,6 +215,10 @@ pub struct Args {
     /// Convolution kernel size.
     #[arg(long, default_value_t = 5)]
     pub kernel: usize,
+    /// Embedding dimension, at most 128 (`EMBED_DIM`; a smaller embedding is served
+    /// zero-padded). The two branches of a fused model (`guardian-lab fuse`): 64 each.
+    #[arg(long, default_value_t = guardian_models::embedder::EMBED_DIM)]
+    pub embed_dim: usize,
     /// Do not L2-normalise embeddings.
     #[arg(long)]
     pub no_l2: bool,
@@ -306,7 +310,7 @@ impl Args {
                 features: self.features.into(),
                 channels: self.channels.clone(),
                 kernel: self.kernel,
-                embed_dim: guardian_models::embedder::EMBED_DIM,
+                embed_dim: self.embed_dim,
                 l2_normalize: !self.no_l2,
                 reverse_average: self.reverse_average,
             },

@@ -172,7 +172,13 @@ pub fn train(
         write_json(&config_path, cfg)?;
         let last = Embedder::load(&last_path)?;
         let opt = load_opt(&opt_path)?;
-        let params = last.fast().params().iter().map(|p| p.to_vec()).collect();
+        let [net] = last.nets() else {
+            return Err(TrainError::Setup(format!(
+                "{} is a fused model, not a training checkpoint",
+                last_path.display()
+            )));
+        };
+        let params = net.params().iter().map(|p| p.to_vec()).collect();
         (
             FastNet::from_params(cfg.net.clone(), params)?,
             state,
@@ -187,7 +193,11 @@ pub fn train(
     };
     if state.finished {
         let mut best = Embedder::load(&best_path)?;
-        if best.config().reverse_average != cfg.net.reverse_average {
+        if best
+            .configs()
+            .iter()
+            .any(|c| c.reverse_average != cfg.net.reverse_average)
+        {
             best.set_reverse_average(cfg.net.reverse_average);
             best.save(&best_path)?;
         }

@@ -166,7 +166,7 @@ impl ClassBank {
             });
         }
         let mut out = ClassBank::new(
-            embedder.config().embed_dim,
+            crate::embedder::EMBED_DIM,
             model.clone(),
             calibrated.map_or(self.default_threshold, |c| c.default_threshold),
         );
@@ -245,7 +245,7 @@ mod tests {
     /// A bank of `embedder`'s model with three classes enrolled as the daemon enrolls them,
     /// calibrated with `cal`.
     fn enrolled(embedder: &Embedder, cal: Option<Calibration>) -> ClassBank {
-        let mut b = ClassBank::new(embedder.config().embed_dim, embedder.version(), 0.5);
+        let mut b = ClassBank::new(crate::embedder::EMBED_DIM, embedder.version(), 0.5);
         b.set_robot(RobotRecord::of(panda()));
         if let Some(cal) = cal {
             b.apply_calibration(cal);

@@ -1,0 +1,50 @@
+//! `guardian-lab fuse`: one model file of several trained networks (the branches of a fused
+//! model, [`Embedder::fuse`]): e.g. a sequence network and a picture network of 64
+//! dimensions each, whose embeddings the served model concatenates.
+
+use std::path::PathBuf;
+
+use guardian_models::embedder::Embedder;
+
+/// Arguments of `fuse`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The branch models, in embedding order (at least two; their embedding dimensions sum
+    /// to at most 128).
+    #[arg(required = true, num_args = 2..)]
+    pub models: Vec<PathBuf>,
+    /// The fused model file to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Store every pen-feature branch without test-time reverse averaging (a branch keeps
+    /// what its file says otherwise).
+    #[arg(long)]
+    pub no_reverse_average: bool,
+}
+
+/// Load the branches, fuse them, write the model; print its version and architecture.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let mut parts = args
+        .models
+        .iter()
+        .map(|p| Embedder::load(p).map_err(|e| anyhow::anyhow!("loading {}: {e}", p.display())))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    if args.no_reverse_average {
+        parts.iter_mut().for_each(|p| p.set_reverse_average(false));
+    }
+    let fused = Embedder::fuse(&parts)?;
+    fused.save(&args.out)?;
+    println!(
+        "{} {} ({} networks: {}): {}",
+        args.out.display(),
+        fused.version(),
+        fused.nets().len(),
+        parts
+            .iter()
+            .map(Embedder::version)
+            .collect::<Vec<_>>()
+            .join(" + "),
+        fused.config_json()
+    );
+    Ok(())
+}
