@@ -1034,6 +1034,18 @@ mod tests {
         );
     }
 
+    /// A model file with one bit of its last weight flipped is refused by its checksum.
+    fn assert_a_flipped_bit_is_a_checksum_error(bytes: &[u8]) {
+        let mut flipped = bytes.to_vec();
+        let n = flipped.len();
+        flipped[n - 2] ^= 0x10;
+        let err = Embedder::from_bytes(&flipped).unwrap_err();
+        assert!(
+            matches!(err, LoadModelError::ChecksumMismatch { .. }),
+            "{err}"
+        );
+    }
+
     /// A 64-dimensional network of `features` with random weights.
     fn branch(features: FeatureKind, seed: u64) -> Embedder {
         let config = NetConfig {
@@ -1098,14 +1110,7 @@ mod tests {
         let swapped = Embedder::fuse(&[pic, seq]).unwrap();
         assert_ne!(swapped.version(), fused.version());
         // A flipped bit in a branch is a checksum error.
-        let mut flipped = bytes.clone();
-        let n = flipped.len();
-        flipped[n - 2] ^= 0x10;
-        let err = Embedder::from_bytes(&flipped).unwrap_err();
-        assert!(
-            matches!(err, LoadModelError::ChecksumMismatch { .. }),
-            "{err}"
-        );
+        assert_a_flipped_bit_is_a_checksum_error(&bytes);
     }
 
     #[test]
@@ -1152,15 +1157,7 @@ mod tests {
         // Truncated.
         let err = Embedder::from_bytes(&bytes[..bytes.len() - 10]).unwrap_err();
         assert!(matches!(err, LoadModelError::Format(_)), "{err}");
-        // A flipped bit in the last weight.
-        let mut flipped = bytes.clone();
-        let n = flipped.len();
-        flipped[n - 2] ^= 0x10;
-        let err = Embedder::from_bytes(&flipped).unwrap_err();
-        assert!(
-            matches!(err, LoadModelError::ChecksumMismatch { .. }),
-            "{err}"
-        );
+        assert_a_flipped_bit_is_a_checksum_error(&bytes);
         // Wrong shape: a file for another architecture, relabelled with this config.
         let other = Embedder::random_with(
             NetConfig {

@@ -386,11 +386,6 @@ pub struct Args {
     /// Print one JSON object (otherwise a short text summary).
     #[arg(long)]
     pub json: bool,
-    /// Fuse a second model with `--model`: the two L2-normalised embeddings concatenated
-    /// (scaled by 1/√2), so a squared distance is the mean of the two models' — what a screen
-    /// running both networks and combining their distances would decide on.
-    #[arg(long, conflicts_with = "baseline")]
-    pub fuse_model: Option<PathBuf>,
 }
 
 /// A full evaluation line.
@@ -483,27 +478,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         m.set_reverse_average(args.reverse_average);
     }
     let spec = args.episodes.spec();
-    let report = match (&args.fuse_model, &model) {
-        (Some(other), Some(first)) => {
-            let second = data.embedder(other)?;
-            let (a, b) = (pool.embed(first)?, pool.embed(&second)?);
-            let h = std::f32::consts::FRAC_1_SQRT_2;
-            let e: Vec<Vec<f32>> = a
-                .iter()
-                .zip(&b)
-                .map(|(x, y)| x.iter().chain(y).map(|v| v * h).collect())
-                .collect();
-            EvalReport {
-                method: "fused".into(),
-                model_version: Some(format!("{}+{}", first.version(), second.version())),
-                alphabets: pool.alphabets.clone(),
-                classes: pool.class_names.len(),
-                seed: spec.seed,
-                result: run_episodes(&pool.labels, &spec, &mut Scorer::Prototype(&e))?,
-            }
-        }
-        _ => evaluate(&pool, args.baseline, model.as_ref(), &spec)?,
-    };
+    let report = evaluate(&pool, args.baseline, model.as_ref(), &spec)?;
     if args.json {
         println!("{}", serde_json::to_string(&report)?);
     } else {
