@@ -5,6 +5,7 @@
 # (`guardian-lab fuse`), then measured like any fold model (loao-full.sh with EVAL_ONLY=1)
 # and with the cross-fitted calibration (crossfit.sh).
 # Usage: docs/report/loao-fuse.sh DATASET OUTDIR BRANCHDIR...
+# FUSE_ARGS: extra options for `guardian-lab fuse` (e.g. --no-reverse-average).
 set -euo pipefail
 dataset=$1; out=$2; shift 2
 lab=${GUARDIAN_LAB:-target/release/guardian-lab}
@@ -16,7 +17,7 @@ for a in "${alphabets[@]}"; do
   branches=()
   for b in "$@"; do branches+=("$b/$fold/model.safetensors"); done
   [[ -f $out/$fold/model.safetensors ]] || \
-    "$lab" fuse "${branches[@]}" --out "$out/$fold/model.safetensors" > "$out/$fold/fuse.log"
+    "$lab" fuse "${branches[@]}" ${FUSE_ARGS:-} --out "$out/$fold/model.safetensors" > "$out/$fold/fuse.log"
 done
 EVAL_ONLY=1 "$here/loao-full.sh" "$dataset" "$out"
 "$here/crossfit.sh" "$dataset" "$out"
