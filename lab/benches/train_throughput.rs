@@ -14,23 +14,28 @@
 //! Rounds alternate between the implementations so that each ratio compares figures taken
 //! under the same load; the median round is reported.
 //!
-//! Both architectures are measured: the sequence network on pen features (32,64,128,
-//! kernel 5) and the picture network (32 x 32 pictures, 32,64,64,128, kernel 3).
+//! By default every network of the shipped model is measured, with its own architecture as
+//! the model file records it (`models/embedder.safetensors`: today the sequence branch on pen
+//! features, 32,64,128, kernel 5, and the picture branch, 16,32,64,128, kernel 3, each with
+//! a 64-dimensional embedding); `BENCH_ARCH=pen,picture` measures the fourth session's
+//! 128-dimensional networks instead (pen 32,64,128; picture 32,64,64,128).
 //!
 //! `cargo bench -p guardian-lab --bench train_throughput`
 //! (`BENCH_STEPS` steps per round, default 40; `BENCH_ROUNDS`, default 3;
-//! `BENCH_ARCH`, default `pen,picture`).
+//! `BENCH_ARCH`, default `shipped`).
 
 use std::io::Write as _;
 use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
 
+use anyhow::Context as _;
 use candle_core::{DType, Tensor, Var};
 use guardian_lab::dataset::generate_files;
 use guardian_lab::path::Geometry;
 use guardian_lab::strokes::scan;
 use guardian_lab::train::{Learner, LossKind, Prepared, batch_loss};
+use guardian_models::embedder::Embedder;
 use guardian_models::fast::FastNet;
 use guardian_models::features::FeatureKind;
 use guardian_models::net::{Net, NetConfig};
@@ -197,22 +202,33 @@ fn main() -> anyhow::Result<()> {
     let (data, _) = generate_files(&files, &Geometry::default(), &|| {})?;
     let steps = env_usize("BENCH_STEPS", 40);
     let rounds = env_usize("BENCH_ROUNDS", 3).max(1);
-    let arches = std::env::var("BENCH_ARCH").unwrap_or_else(|_| "pen,picture".into());
+    let arches = std::env::var("BENCH_ARCH").unwrap_or_else(|_| "shipped".into());
+    let mut configs = Vec::new();
     for arch in arches.split(',') {
-        let config = match arch {
-            "pen" => NetConfig {
+        match arch {
+            "shipped" => {
+                let model = here.join("../models/embedder.safetensors");
+                let shipped = Embedder::load(&model)
+                    .with_context(|| format!("BENCH_ARCH=shipped: {}", model.display()))?;
+                configs.extend(shipped.configs().into_iter().cloned());
+            }
+            "pen" => configs.push(NetConfig {
                 channels: vec![32, 64, 128],
                 ..NetConfig::default()
-            },
-            "picture" => NetConfig {
+            }),
+            "picture" => configs.push(NetConfig {
                 features: FeatureKind::Picture,
                 channels: vec![32, 64, 64, 128],
                 kernel: 3,
                 ..NetConfig::default()
-            },
-            other => anyhow::bail!("BENCH_ARCH: unknown architecture {other} (pen, picture)"),
-        };
-        bench(here, &data, &config, steps, rounds)?;
+            }),
+            other => {
+                anyhow::bail!("BENCH_ARCH: unknown architecture {other} (shipped, pen, picture)")
+            }
+        }
+    }
+    for config in &configs {
+        bench(here, &data, config, steps, rounds)?;
     }
     Ok(())
 }
