@@ -10,6 +10,9 @@
 # TRAIN_ONLY=1: train the fold models, measure nothing (the branches of a fused model).
 # EVAL_ONLY=1: measure the OUTDIR/<alphabet>/model.safetensors already there (a fused model
 # made by `guardian-lab fuse`, docs/report/loao-fuse.sh), train nothing.
+# NO_VAL=1: train on all five other alphabets without validation (needs --schedule
+# one-cycle, which keeps the last model); the go/no-go figures calibrated on the validation
+# alphabet are then skipped (it was trained on): use crossfit.sh's.
 set -euo pipefail
 dataset=$1; out=$2; shift 2
 lab=${GUARDIAN_LAB:-target/release/guardian-lab}
@@ -22,16 +25,17 @@ for i in "${!alphabets[@]}"; do
   test_a=${alphabets[$i]}
   [[ " ${folds[*]} " == *" $test_a "* ]] || continue
   val_a=${alphabets[$(( (i + 1) % n ))]}
-  train=()
+  train=(); val=(--val-alphabets "$val_a")
+  [[ -n ${NO_VAL:-} ]] && val=()
   for a in "${alphabets[@]}"; do
-    [[ $a == "$test_a" || $a == "$val_a" ]] || train+=("$a")
+    [[ $a == "$test_a" ]] || { [[ -z ${NO_VAL:-} && $a == "$val_a" ]]; } || train+=("$a")
   done
   dir="$out/${test_a//[()]/}"
   if [[ -z ${EVAL_ONLY:-} ]] && { [[ ! -f $dir/state.json ]] || ! grep -q '"finished": true' "$dir/state.json"; }; then
     resume=(); [[ -f $dir/state.json ]] && resume=(--resume)
     mkdir -p "$dir"
     "$lab" train --dataset "$dataset" --train-alphabets "$(IFS=,; echo "${train[*]}")" \
-      --val-alphabets "$val_a" --out "$dir" --quiet --strokes "$strokes" "${resume[@]}" "$@" \
+      "${val[@]}" --out "$dir" --quiet --strokes "$strokes" "${resume[@]}" "$@" \
       > "$dir.train.log" 2>&1
   fi
   [[ -n ${TRAIN_ONLY:-} ]] && continue
@@ -43,7 +47,7 @@ for i in "${!alphabets[@]}"; do
     done > "$dir/eval.jsonl.tmp"
     mv "$dir/eval.jsonl.tmp" "$dir/eval.jsonl"
   fi
-  if [[ ! -s $dir/outliers.json ]]; then
+  if [[ -z ${NO_VAL:-} && ! -s $dir/outliers.json ]]; then
     "$lab" outliers --model "$dir/model.safetensors" --dataset "$dataset" --strokes "$strokes" \
       --alphabets "$test_a" --calib-alphabets "$val_a" --shots 5 --target-frr 0.01 \
       --geometry-share 0.25 --calib-reps 20 --reps 5 --sources 200 --seed 0 --json \

@@ -239,6 +239,40 @@ fn the_training_pipeline_checkpoints_resumes_and_ships_a_loadable_model() {
     assert!(sq_dist(&e[0], &e[1]).is_finite());
 }
 
+/// With the one-cycle schedule a run needs no validation alphabet: every epoch is recorded
+/// (validation figures null), and the shipped model is the last epoch's.
+#[test]
+fn a_one_cycle_run_trains_without_validation_and_ships_the_last_model() {
+    let data = small_dataset();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut cfg = tiny_config();
+    cfg.val_alphabets.clear();
+    cfg.schedule = train::Schedule::OneCycle;
+    let s = train::train(data, &cfg, None, dir.path(), false, true).expect("train");
+    assert_eq!(s.epochs, 2);
+    let lines = std::fs::read_to_string(dir.path().join("metrics.jsonl")).expect("metrics");
+    let rows: Vec<serde_json::Value> = lines
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("json"))
+        .collect();
+    assert_eq!(rows.len(), 2);
+    for r in &rows {
+        assert!(r["train_loss"].as_f64().is_some_and(f64::is_finite), "{r}");
+        assert!(
+            r["val_loss"].is_null() && r["val_acc_5way1shot"].is_null(),
+            "{r}"
+        );
+    }
+    let best = Embedder::load(&dir.path().join("model.safetensors")).expect("model");
+    let last = Embedder::load(&dir.path().join("last.safetensors")).expect("last");
+    assert_eq!(best.version(), last.version());
+    assert_eq!(best.version(), s.model_version);
+    // The plateau schedule stops on the validation loss: it refuses to run without one.
+    cfg.schedule = train::Schedule::Plateau;
+    let other = tempfile::tempdir().expect("tempdir");
+    assert!(train::train(data, &cfg, None, other.path(), false, true).is_err());
+}
+
 #[test]
 fn evaluator_baselines_on_real_data() {
     let data = small_dataset();

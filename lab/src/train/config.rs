@@ -84,7 +84,8 @@ pub struct TrainConfig {
     pub margin: f64,
     /// Training alphabets.
     pub train_alphabets: Vec<String>,
-    /// Validation alphabets (early stopping, LR schedule).
+    /// Validation alphabets (early stopping, LR schedule). Empty only with
+    /// [`Schedule::OneCycle`], which keeps the last model and needs no validation.
     pub val_alphabets: Vec<String>,
     /// Classes per batch.
     pub p_classes: usize,
@@ -159,6 +160,13 @@ impl TrainConfig {
                 "need p-classes >= 2 and k-samples >= 2".into(),
             ));
         }
+        if self.val_alphabets.is_empty() && self.schedule != Schedule::OneCycle {
+            return Err(TrainError::Setup(
+                "the plateau schedule stops on the validation loss: give --val-alphabets \
+                 (only --schedule one-cycle trains without validation)"
+                    .into(),
+            ));
+        }
         for a in &self.val_alphabets {
             if self.train_alphabets.contains(a) {
                 return Err(TrainError::Setup(format!(
@@ -191,8 +199,10 @@ pub struct Args {
     /// Training alphabets, comma-separated.
     #[arg(long, value_delimiter = ',', required = true)]
     pub train_alphabets: Vec<String>,
-    /// Validation alphabets, comma-separated.
-    #[arg(long, value_delimiter = ',', required = true)]
+    /// Validation alphabets, comma-separated (per-epoch loss and 5-way accuracy; the
+    /// plateau schedule stops on them). Optional with `--schedule one-cycle`, which keeps
+    /// the last model: then every labelled alphabet can be trained on.
+    #[arg(long, value_delimiter = ',')]
     pub val_alphabets: Vec<String>,
     /// Output directory.
     #[arg(long)]
@@ -462,6 +472,14 @@ pub(crate) mod tests {
         c.val_alphabets = vec!["Latin".into()];
         let err = c.check().unwrap_err();
         assert!(err.to_string().contains("Latin"), "{err}");
+        // No validation set: only the one-cycle schedule, which keeps the last model.
+        let mut c = good.clone();
+        c.val_alphabets.clear();
+        c.schedule = Schedule::Plateau;
+        let err = c.check().unwrap_err();
+        assert!(err.to_string().contains("one-cycle"), "{err}");
+        c.schedule = Schedule::OneCycle;
+        c.check().expect("one-cycle trains without validation");
         let mut c = good.clone();
         c.fault_share = 1.5;
         assert!(c.check().is_err());

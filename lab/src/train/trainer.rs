@@ -89,6 +89,9 @@ pub fn train(
     std::fs::create_dir_all(out).map_err(io_err(out))?;
     let mut train_set = Prepared::new(data, &cfg.train_alphabets, cfg.net.features)?;
     train_set.set_reverse_augment(cfg.reverse_augment);
+    // Without validation alphabets (one-cycle only, see `TrainConfig::check`) an epoch
+    // records no validation figures and the last model is kept, as with validation.
+    let validate = !cfg.val_alphabets.is_empty();
     let mut val_set = Prepared::new(data, &cfg.val_alphabets, cfg.net.features)?;
     if cfg.fault_share > 0.0 {
         let root = strokes.ok_or_else(|| {
@@ -97,8 +100,11 @@ pub fn train(
         let t0 = Instant::now();
         let kinds = &cfg.fault_kinds;
         let n_train = train_set.make_faults(data, root, kinds, cfg.fault_variants, cfg.seed)?;
-        let n_val =
-            val_set.make_faults(data, root, kinds, cfg.fault_variants, cfg.seed ^ 0x7a11)?;
+        let n_val = if validate {
+            val_set.make_faults(data, root, kinds, cfg.fault_variants, cfg.seed ^ 0x7a11)?
+        } else {
+            0
+        };
         if n_train == 0 {
             return Err(TrainError::Setup(format!(
                 "no fault negatives could be made from {}",
@@ -133,7 +139,7 @@ pub fn train(
         }
         write_json(&out.join("class-augment.json"), &plan)?;
     }
-    if train_set.classes() < cfg.p_classes.min(2) || val_set.classes() < 5 {
+    if train_set.classes() < cfg.p_classes.min(2) || (validate && val_set.classes() < 5) {
         return Err(TrainError::Setup(format!(
             "too few classes: train {}, val {} (val needs >= 5)",
             train_set.classes(),
@@ -216,7 +222,7 @@ pub fn train(
 
     // Fixed validation batches and episodes.
     let mut vrng = StdRng::seed_from_u64(cfg.seed ^ 0x005e_ed0f_7a11);
-    let val_batches: Vec<(Vec<Item>, Vec<u32>)> = (0..10)
+    let val_batches: Vec<(Vec<Item>, Vec<u32>)> = (0..if validate { 10 } else { 0 })
         .map(|_| {
             let (idx, labels) = val_set.sample_pk(cfg.p_classes, cfg.k_samples, &mut vrng);
             val_set.with_faults(&idx, &labels, cfg.fault_share, &mut vrng)
@@ -283,20 +289,23 @@ pub fn train(
         let train_secs = t0.elapsed().as_secs_f64();
         let train_loss = loss_sum / cfg.steps_per_epoch as f64;
 
-        // Validation.
-        let mut val_loss = 0.0;
-        let mut dummy = StdRng::seed_from_u64(0);
-        for (items, labels) in &val_batches {
-            let x = val_set.batch_items(items, None)?;
-            let sources = val_set.sources(items);
-            let e = embed(learner.net(), &x)?;
-            val_loss += objective(&e, labels, &sources, cfg, &mut dummy)?.1;
+        // Validation (NaN without a validation set: written as null).
+        let (mut val_loss, mut val_acc) = (f64::NAN, f64::NAN);
+        if validate {
+            val_loss = 0.0;
+            let mut dummy = StdRng::seed_from_u64(0);
+            for (items, labels) in &val_batches {
+                let x = val_set.batch_items(items, None)?;
+                let sources = val_set.sources(items);
+                let e = embed(learner.net(), &x)?;
+                val_loss += objective(&e, labels, &sources, cfg, &mut dummy)?.1;
+            }
+            val_loss /= val_batches.len() as f64;
+            let embs = embed_all(learner.net(), &val_set)?;
+            val_acc =
+                eval::run_episodes(&val_labels, &val_spec, &mut eval::Scorer::Prototype(&embs))?
+                    .accuracy;
         }
-        val_loss /= val_batches.len() as f64;
-        let embs = embed_all(learner.net(), &val_set)?;
-        let val_acc =
-            eval::run_episodes(&val_labels, &val_spec, &mut eval::Scorer::Prototype(&embs))?
-                .accuracy;
 
         let m = EpochMetrics {
             epoch,
@@ -369,10 +378,14 @@ pub fn embed_all(net: &FastNet, set: &Prepared) -> Result<Vec<Vec<f32>>, TrainEr
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let data = Dataset::load(&args.data.dataset)?;
     let cfg = args.config();
+    let validation = if cfg.val_alphabets.is_empty() {
+        "without validation (the last model is kept)".to_string()
+    } else {
+        format!("validating on {:?}", cfg.val_alphabets)
+    };
     eprintln!(
-        "training on {:?}, validating on {:?}; {} rayon threads",
+        "training on {:?}, {validation}; {} rayon threads",
         cfg.train_alphabets,
-        cfg.val_alphabets,
         rayon::current_num_threads()
     );
     let summary = train(
