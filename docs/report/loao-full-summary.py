@@ -7,7 +7,9 @@ import json, os, statistics, sys
 
 out = sys.argv[1]
 ofile = sys.argv[sys.argv.index("--outliers") + 1] if "--outliers" in sys.argv else "outliers.json"
-folds = sorted(d for d in os.listdir(out) if os.path.isfile(os.path.join(out, d, ofile)))
+# Folds with accuracy figures; the go/no-go figures where the fold has them (NO_VAL=1 runs
+# of loao-full.sh have them only from crossfit.sh).
+folds = sorted(d for d in os.listdir(out) if os.path.isfile(os.path.join(out, d, "eval.jsonl")))
 rows = {}
 for f in folds:
     r = {}
@@ -15,7 +17,8 @@ for f in folds:
         if line.strip().startswith("{"):
             e = json.loads(line)
             r[f"{e['shot']}-shot {e['way']}-way"] = e["accuracy"]
-    o = json.load(open(os.path.join(out, f, ofile)))
+    opath = os.path.join(out, f, ofile)
+    o = json.load(open(opath)) if os.path.isfile(opath) else {"methods": []}
     for m in o["methods"]:
         if m["method"] != "guardian":
             continue
