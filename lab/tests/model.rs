@@ -202,6 +202,15 @@ fn the_picture_network_learns_real_characters() {
     assert!(err < 1e-5, "embedder vs training embedding: {err}");
 }
 
+/// The rows of a training run's `metrics.jsonl`.
+fn metrics(dir: &std::path::Path) -> Vec<serde_json::Value> {
+    let lines = std::fs::read_to_string(dir.join("metrics.jsonl")).expect("metrics");
+    lines
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("json"))
+        .collect()
+}
+
 #[test]
 fn the_training_pipeline_checkpoints_resumes_and_ships_a_loadable_model() {
     let data = small_dataset();
@@ -212,11 +221,7 @@ fn the_training_pipeline_checkpoints_resumes_and_ships_a_loadable_model() {
     cfg.max_epochs = 3;
     let s = train::train(data, &cfg, None, dir.path(), true, true).expect("resume");
     assert_eq!(s.epochs, 3);
-    let lines = std::fs::read_to_string(dir.path().join("metrics.jsonl")).expect("metrics");
-    let rows: Vec<serde_json::Value> = lines
-        .lines()
-        .map(|l| serde_json::from_str(l).expect("json"))
-        .collect();
+    let rows = metrics(dir.path());
     assert_eq!(rows.len(), 3);
     for (i, r) in rows.iter().enumerate() {
         assert_eq!(r["epoch"], i + 1);
@@ -250,11 +255,7 @@ fn a_one_cycle_run_trains_without_validation_and_ships_the_last_model() {
     cfg.schedule = train::Schedule::OneCycle;
     let s = train::train(data, &cfg, None, dir.path(), false, true).expect("train");
     assert_eq!(s.epochs, 2);
-    let lines = std::fs::read_to_string(dir.path().join("metrics.jsonl")).expect("metrics");
-    let rows: Vec<serde_json::Value> = lines
-        .lines()
-        .map(|l| serde_json::from_str(l).expect("json"))
-        .collect();
+    let rows = metrics(dir.path());
     assert_eq!(rows.len(), 2);
     for r in &rows {
         assert!(r["train_loss"].as_f64().is_some_and(f64::is_finite), "{r}");
