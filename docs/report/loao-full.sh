@@ -25,10 +25,11 @@ for i in "${!alphabets[@]}"; do
   test_a=${alphabets[$i]}
   [[ " ${folds[*]} " == *" $test_a "* ]] || continue
   val_a=${alphabets[$(( (i + 1) % n ))]}
-  train=(); val=(--val-alphabets "$val_a")
-  [[ -n ${NO_VAL:-} ]] && val=()
+  held_out=("$test_a"); val=()
+  [[ -z ${NO_VAL:-} ]] && { held_out+=("$val_a"); val=(--val-alphabets "$val_a"); }
+  train=()
   for a in "${alphabets[@]}"; do
-    [[ $a == "$test_a" ]] || { [[ -z ${NO_VAL:-} && $a == "$val_a" ]]; } || train+=("$a")
+    [[ " ${held_out[*]} " == *" $a "* ]] || train+=("$a")
   done
   dir="$out/${test_a//[()]/}"
   if [[ -z ${EVAL_ONLY:-} ]] && { [[ ! -f $dir/state.json ]] || ! grep -q '"finished": true' "$dir/state.json"; }; then
