@@ -9,6 +9,18 @@
 //! could keep the daemon down. Dead-node cleanup does not remove such a file (the service
 //! never came to exist).
 //!
+//! A kill can also fall between the creation of a **shared-memory segment** (a file in
+//! `/dev/shm` named after the deployment's iceoryx2 prefix: a service's dynamic
+//! configuration, or the prefix's global node-management segment) and the call that gives
+//! it its size. iceoryx2 (0.10) waits for such a zero-byte segment to be sized without a
+//! timeout when the opener may open it (root), and fails every open after its creation
+//! timeout otherwise: either way every later start of the daemon (and node creation by the
+//! planners on the same prefix) stalls or fails. iceoryx2 never maps a segment of zero
+//! bytes, and a live creator sizes its segment microseconds after creating it, so at start a
+//! zero-byte segment under the prefix older than the creation timeout was left by a dead
+//! creator: it is removed before the daemon's node is created, and the removal is logged
+//! ([`remove_unsized_segments`]).
+//!
 //! The daemon is the only creator of its own services (the request-response service and
 //! its request and response events; planners only open them, and a second daemon on the
 //! same service would be refused its server port), so at start a file of one of those
@@ -16,7 +28,7 @@
 //! dead creator: it is removed, and the removal is logged.
 
 use std::os::unix::fs::PermissionsExt;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant, SystemTime};
 
 use iceoryx2::prelude::*;
@@ -111,4 +123,92 @@ pub fn remove_half_created_services(
         }
     }
     removed
+}
+
+/// Where Linux keeps POSIX shared memory: iceoryx2's segments are files here.
+pub const SHM_DIR: &str = "/dev/shm";
+
+/// Remove the zero-byte shared-memory segments of the deployment's iceoryx2 prefix (files in
+/// [`SHM_DIR`] whose names start with it) last modified longer ago than iceoryx2's creation
+/// timeout: what a process killed between creating a segment and sizing it left (module
+/// docs). Returns the files removed; a file that cannot be removed is logged and left.
+pub fn remove_unsized_segments(config: &iceoryx2::config::Config) -> Vec<PathBuf> {
+    let prefix = String::from_utf8_lossy(config.global.prefix.as_bytes()).into_owned();
+    remove_unsized_segments_in(Path::new(SHM_DIR), &prefix, config.global.creation_timeout)
+}
+
+/// [`remove_unsized_segments`] in `dir`, for names starting with `prefix`, older than `age`.
+fn remove_unsized_segments_in(dir: &Path, prefix: &str, age: Duration) -> Vec<PathBuf> {
+    let mut removed = Vec::new();
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return removed;
+    };
+    for entry in entries.flatten() {
+        if prefix.is_empty() || !entry.file_name().to_string_lossy().starts_with(prefix) {
+            continue;
+        }
+        let path = entry.path();
+        let Ok(meta) = std::fs::symlink_metadata(&path) else {
+            continue;
+        };
+        let old = meta
+            .modified()
+            .ok()
+            .and_then(|m| SystemTime::now().duration_since(m).ok())
+            .is_some_and(|a| a >= age);
+        if !meta.file_type().is_file() || meta.len() != 0 || !old {
+            continue;
+        }
+        match std::fs::remove_file(&path) {
+            Ok(()) => removed.push(path),
+            Err(e) => tracing::warn!(
+                file = %path.display(),
+                error = %e,
+                "cannot remove an unsized iceoryx2 shared-memory segment"
+            ),
+        }
+    }
+    removed.sort();
+    removed
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Only zero-byte files of the prefix, older than the timeout, are removed.
+    #[test]
+    fn only_old_unsized_segments_of_the_prefix_are_removed() {
+        let dir = tempfile::tempdir().unwrap();
+        let old = SystemTime::now() - Duration::from_secs(60);
+        let make = |name: &str, bytes: &[u8], modified: Option<SystemTime>| {
+            let path = dir.path().join(name);
+            std::fs::write(&path, bytes).unwrap();
+            if let Some(t) = modified {
+                std::fs::File::options()
+                    .write(true)
+                    .open(&path)
+                    .unwrap()
+                    .set_modified(t)
+                    .unwrap();
+            }
+            path
+        };
+        let stale = make("gd_node.0_10_0.global_mgmt", b"", Some(old));
+        let stale_service = make("gd_abc123.dynamic", b"", Some(old));
+        let young = make("gd_young.dynamic", b"", None);
+        let sized = make("gd_sized.dynamic", b"state", Some(old));
+        let other = make("other_node.0_10_0.global_mgmt", b"", Some(old));
+        std::fs::create_dir(dir.path().join("gd_dir")).unwrap();
+        let removed = remove_unsized_segments_in(dir.path(), "gd_", Duration::from_secs(1));
+        let mut want = vec![stale.clone(), stale_service.clone()];
+        want.sort();
+        assert_eq!(removed, want);
+        assert!(!stale.exists() && !stale_service.exists());
+        assert!(young.exists() && sized.exists() && other.exists());
+        assert!(dir.path().join("gd_dir").is_dir());
+        // No prefix, nothing removed (a deployment always has one).
+        make("x.dynamic", b"", Some(old));
+        assert!(remove_unsized_segments_in(dir.path(), "", Duration::ZERO).is_empty());
+    }
 }

@@ -211,6 +211,14 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     }
 
     let iox_config = iceoryx2_config(&config)?;
+    // Before the node: creating it opens the prefix's segments (dead-node clean-up), and a
+    // zero-byte one left by a kill would stall it (crate::recovery).
+    for file in crate::recovery::remove_unsized_segments(&iox_config) {
+        tracing::warn!(
+            file = %file.display(),
+            "removed an unsized iceoryx2 shared-memory segment (its creator was killed before sizing it)"
+        );
+    }
     let node = NodeBuilder::new()
         .config(&iox_config)
         .signal_handling_mode(SignalHandlingMode::Disabled)

@@ -1,7 +1,8 @@
 //! Start-up after a kill, across real processes: a `guardiand` SIGKILLed while iceoryx2
 //! creates its services leaves a service file "being created" (mode 0600, often zero bytes)
-//! that made every later start fail with `HangsInCreation`. The daemon must remove what a
-//! crash of its own left behind, say so, and serve.
+//! that made every later start fail with `HangsInCreation`, or a zero-byte shared-memory
+//! segment on which iceoryx2 waited forever. The daemon must remove what a crash of its own
+//! left behind, say so, and serve.
 
 use std::os::unix::fs::PermissionsExt;
 use std::path::PathBuf;
@@ -102,6 +103,49 @@ fn a_half_created_service_file_left_by_a_kill_is_removed_at_start() {
     );
 }
 
+/// The prefix's node-management segment in /dev/shm as a kill between its creation and its
+/// sizing leaves it: zero bytes, write-only (iceoryx2 makes it readable once initialised).
+/// Before the fix, node creation as root waited for it forever (iceoryx2 0.10 has no
+/// timeout for a zero-byte segment), so the daemon never came up; as another user, every
+/// start failed.
+#[test]
+fn an_unsized_shared_memory_segment_left_by_a_kill_is_removed_at_start() {
+    let s = Setup::new(92);
+    // Where iceoryx2 keeps the segment: found after a normal start, not named by hand.
+    drop(Daemon::start(&s));
+    let segment = std::fs::read_dir("/dev/shm")
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.path())
+        .find(|p| {
+            let name = p.file_name().unwrap().to_string_lossy().into_owned();
+            name.starts_with(&s.prefix) && name.ends_with(".global_mgmt")
+        })
+        .expect("the prefix's node-management segment in /dev/shm");
+    let file = std::fs::File::options().write(true).open(&segment).unwrap();
+    file.set_len(0).unwrap();
+    file.set_modified(std::time::SystemTime::now() - Duration::from_secs(60))
+        .unwrap();
+    drop(file);
+    std::fs::set_permissions(&segment, std::fs::Permissions::from_mode(0o200)).unwrap();
+
+    let d = Daemon::start(&s);
+    let log = d.log();
+    assert!(
+        log.contains("removed an unsized iceoryx2 shared-memory segment")
+            && log.contains(&segment.display().to_string()),
+        "the removal is not logged with the segment:\n{log}"
+    );
+    let client = s.client();
+    client
+        .enroll("task0", &[traj(0, 1), traj(0, 2)])
+        .expect("enroll after recovery");
+    assert_eq!(
+        client.check(&traj(0, 3), "task0").expect("check").decision,
+        Decision::Go
+    );
+}
+
 /// SIGKILL `guardiand` at random moments of its start-up (within an undisturbed start's
 /// time to READY), over and over: every restart after a kill must come up and serve.
 /// Prints the counts for `docs/reliability.md`.
@@ -122,7 +166,7 @@ fn kills_during_start_up_never_keep_the_daemon_down() {
         .unwrap();
     let window_us = (ready.as_micros() as u64).max(1_000);
     let mut rng: u64 = 0x9e37_79b9_7f4a_7c15;
-    let (mut killed_before_ready, mut served, mut recovered) = (0, 0, 0);
+    let (mut killed_before_ready, mut served, mut recovered, mut unsized_segments) = (0, 0, 0, 0);
     for round in 0..ROUNDS {
         rng ^= rng << 13;
         rng ^= rng >> 7;
@@ -149,11 +193,17 @@ fn kills_during_start_up_never_keep_the_daemon_down() {
         {
             recovered += 1;
         }
+        if d.log()
+            .contains("removed an unsized iceoryx2 shared-memory segment")
+        {
+            unsized_segments += 1;
+        }
     }
     eprintln!(
         "{ROUNDS} kills during start-up (undisturbed start {ready:?}, kill within it): \
          {killed_before_ready} before READY; restarts served {served} of {ROUNDS}, \
-         {recovered} of them after removing a half-created service file"
+         {recovered} of them after removing a half-created service file, {unsized_segments} after \
+         removing an unsized shared-memory segment"
     );
     assert_eq!(served, ROUNDS);
 }
