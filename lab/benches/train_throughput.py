@@ -31,19 +31,19 @@ class PictureNet(torch.nn.Module):
     """guardian's picture network: per layer a "same" 3x3 convolution, ReLU and a 2x2 max
     pool; the global mean, a linear layer, L2 normalisation."""
 
-    def __init__(self, c_in, channels, kernel, embed_dim):
+    def __init__(self, channels, kernel, embed_dim):
         super().__init__()
         self.convs = torch.nn.ModuleList()
+        c_in = 1
         for c in channels:
             self.convs.append(torch.nn.Conv2d(c_in, c, kernel, padding=kernel // 2))
             c_in = c
         self.fc = torch.nn.Linear(c_in, embed_dim)
 
     def forward(self, x):
-        b, pixels, c = x.shape
+        b, pixels, _ = x.shape
         side = int(round(pixels ** 0.5))
-        # guardian's pictures are channels last.
-        h = x.reshape(b, side, side, c).permute(0, 3, 1, 2)
+        h = x.reshape(b, 1, side, side)
         for conv in self.convs:
             h = F.max_pool2d(F.relu(conv(h)), 2)
         return F.normalize(self.fc(h.mean((2, 3))), dim=1, eps=1e-6)
@@ -97,7 +97,7 @@ def main():
     batches, c_in = load(a.data)
     channels = [int(v) for v in a.channels.split(",")]
     if a.picture:
-        net = PictureNet(c_in, channels, a.kernel, a.embed_dim)
+        net = PictureNet(channels, a.kernel, a.embed_dim)
     else:
         net = Net(c_in, channels, a.kernel, a.embed_dim)
     opt = torch.optim.AdamW(net.parameters(), lr=a.lr, weight_decay=a.weight_decay)

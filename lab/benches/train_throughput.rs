@@ -18,9 +18,7 @@
 //! the model file records it (`models/embedder.safetensors`: today the sequence branch on pen
 //! features, 32,64,128, kernel 5, and the picture branch, 16,32,64,128, kernel 3, each with
 //! a 64-dimensional embedding); `BENCH_ARCH=pen,picture` measures the fourth session's
-//! 128-dimensional networks instead (pen 32,64,128; picture 32,64,64,128), and
-//! `BENCH_ARCH=picture-oriented` the oriented picture (three channels per pixel) with the
-//! shipped picture branch's layers.
+//! 128-dimensional networks instead (pen 32,64,128; picture 32,64,64,128).
 //!
 //! `cargo bench -p guardian-lab --bench train_throughput`
 //! (`BENCH_STEPS` steps per round, default 40; `BENCH_ROUNDS`, default 3;
@@ -224,16 +222,9 @@ fn main() -> anyhow::Result<()> {
                 kernel: 3,
                 ..NetConfig::default()
             }),
-            "picture-oriented" => configs.push(NetConfig {
-                features: FeatureKind::PictureOriented,
-                channels: vec![16, 32, 64, 128],
-                kernel: 3,
-                embed_dim: 64,
-                ..NetConfig::default()
-            }),
-            other => anyhow::bail!(
-                "BENCH_ARCH: unknown architecture {other} (shipped, pen, picture, picture-oriented)"
-            ),
+            other => {
+                anyhow::bail!("BENCH_ARCH: unknown architecture {other} (shipped, pen, picture)")
+            }
         }
     }
     for config in &configs {

@@ -31,13 +31,6 @@ pub enum FeatureKind {
     /// construction. One channel, [`PICTURE_SIDE`]² "steps" (pixels, row-major, top row
     /// first).
     Picture,
-    /// [`FeatureKind::Picture`] with the local orientation of the ink: per pixel the ink and
-    /// the ink's undirected tangent `(cos 2θ, sin 2θ)` weighted by it (see
-    /// [`picture_oriented`]). Still blind to stroke order and direction (a segment drawn
-    /// either way has one orientation), but two strokes that cross, or a curl too small for
-    /// the picture's resolution, keep their directions. Three channels per pixel, channels
-    /// last.
-    PictureOriented,
 }
 
 impl FeatureKind {
@@ -47,14 +40,13 @@ impl FeatureKind {
             Self::Joints => 8,
             Self::Pen => PEN_CHANNELS,
             Self::Picture => 1,
-            Self::PictureOriented => 3,
         }
     }
 
     /// Steps of the network input: [`STEPS`] time steps, or the pixels of a picture.
     pub fn steps(self) -> usize {
         match self {
-            Self::Picture | Self::PictureOriented => PICTURE_SIDE * PICTURE_SIDE,
+            Self::Picture => PICTURE_SIDE * PICTURE_SIDE,
             _ => STEPS,
         }
     }
@@ -66,7 +58,7 @@ impl FeatureKind {
 
     /// A picture, read by a 2D network, rather than a sequence.
     pub fn is_picture(self) -> bool {
-        matches!(self, Self::Picture | Self::PictureOriented)
+        self == Self::Picture
     }
 }
 
@@ -151,7 +143,6 @@ pub fn compute(kind: FeatureKind, x: &Resampled, out: &mut [f32]) {
         FeatureKind::Joints => joint_features(x, out),
         FeatureKind::Pen => pen_features(&pen_path(x), &Augment::default(), out),
         FeatureKind::Picture => picture(&pen_path(x), &Augment::default(), out),
-        FeatureKind::PictureOriented => picture_oriented(&pen_path(x), &Augment::default(), out),
     }
 }
 
@@ -161,7 +152,6 @@ pub fn path_features(kind: FeatureKind, path: &[PenPoint; STEPS], aug: &Augment,
     match kind {
         FeatureKind::Pen => pen_features(path, aug, out),
         FeatureKind::Picture => picture(path, aug, out),
-        FeatureKind::PictureOriented => picture_oriented(path, aug, out),
         FeatureKind::Joints => out.fill(0.0),
     }
 }
@@ -173,25 +163,8 @@ pub fn path_features(kind: FeatureKind, path: &[PenPoint; STEPS], aug: &Augment,
 /// four points (its start and three quarters), and a pixel saturates at 1. A path that never
 /// touches the canvas gives a blank picture.
 pub fn picture(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
-    draw(path, aug, 1, out);
-}
-
-/// The oriented picture of a pen path ([`FeatureKind::PictureOriented`]) into `out`
-/// (`PICTURE_SIDE`² x 3, row-major, channels last): the splats of [`picture`], each also
-/// adding its weight times its segment's undirected tangent `(cos 2θ, sin 2θ)` (zero for a
-/// segment of no length) to the second and third channels. Where the ink of a pixel passes
-/// 1, all three channels are divided by it: the ink saturates at 1, as in [`picture`], and
-/// the other two hold the ink-weighted mean orientation, never longer than the ink.
-pub fn picture_oriented(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
-    draw(path, aug, 3, out);
-}
-
-/// Draw the pen-down segments of a path into `channels` channels per pixel: the ink, and with
-/// three channels the ink-weighted undirected tangent.
-fn draw(path: &[PenPoint; STEPS], aug: &Augment, channels: usize, out: &mut [f32]) {
     const R: usize = PICTURE_SIDE;
-    let c = channels;
-    let out = &mut out[..R * R * c];
+    let out = &mut out[..R * R];
     out.fill(0.0);
     let p = augmented(path, aug);
     let (lo, hi) = pen_down_box(&p);
@@ -215,45 +188,26 @@ fn draw(path: &[PenPoint; STEPS], aug: &Augment, channels: usize, out: &mut [f32
             continue;
         }
         let (a, b) = (px(&w[0]), px(&w[1]));
-        // The undirected tangent of the segment (the same drawn either way).
-        let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
-        let len2 = dx * dx + dy * dy;
-        let orient = if len2 > 1e-12 {
-            [(dx * dx - dy * dy) / len2, 2.0 * dx * dy / len2]
-        } else {
-            [0.0, 0.0]
-        };
         for s in 0..4 {
             let t = s as f32 * 0.25;
-            let (x, y) = (a[0] + dx * t, a[1] + dy * t);
+            let (x, y) = (a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t);
             let (x0, y0) = (x.floor(), y.floor());
             let (fx, fy) = (x - x0, y - y0);
-            for (ox, oy, wgt) in [
+            for (dx, dy, wgt) in [
                 (0.0, 0.0, (1.0 - fx) * (1.0 - fy)),
                 (1.0, 0.0, fx * (1.0 - fy)),
                 (0.0, 1.0, (1.0 - fx) * fy),
                 (1.0, 1.0, fx * fy),
             ] {
-                let xi = (x0 + ox).clamp(0.0, last) as usize;
-                let yi = (y0 + oy).clamp(0.0, last) as usize;
+                let xi = (x0 + dx).clamp(0.0, last) as usize;
+                let yi = (y0 + dy).clamp(0.0, last) as usize;
                 // Drawing "up" is the top of the picture.
-                let px = &mut out[((R - 1 - yi) * R + xi) * c..][..c];
-                px[0] += wgt;
-                if c == 3 {
-                    px[1] += wgt * orient[0];
-                    px[2] += wgt * orient[1];
-                }
+                out[(R - 1 - yi) * R + xi] += wgt;
             }
         }
     }
-    for px in out.chunks_exact_mut(c) {
-        if px[0] > 1.0 {
-            let inv = 1.0 / px[0];
-            for v in &mut px[1..] {
-                *v *= inv;
-            }
-            px[0] = 1.0;
-        }
+    for v in out.iter_mut() {
+        *v = v.min(1.0);
     }
 }
 
@@ -346,77 +300,6 @@ mod tests {
             *q = [offset + scale * s, offset + 0.5 * scale * s, 1.0];
         }
         p
-    }
-
-    /// The oriented picture: its ink is the picture's, bit for bit; a horizontal stroke has
-    /// `cos 2θ = +1`, a vertical one `-1`, a diagonal `sin 2θ = ±1`; drawing the strokes
-    /// the other way round changes nothing; the orientation is never longer than the ink.
-    #[test]
-    fn an_oriented_picture_keeps_the_ink_and_adds_undirected_orientation() {
-        const N: usize = PICTURE_SIDE * PICTURE_SIDE;
-        // A horizontal bar, then a vertical post, then a diagonal, pen up between them.
-        let mut p = [[0.0f32; 3]; STEPS];
-        for (t, q) in p.iter_mut().enumerate() {
-            let s = |a: usize| (t - a) as f32 / 39.0;
-            *q = match t {
-                0..40 => [s(0), 0.0, 1.0],
-                40..44 => [0.0, 0.0, 0.0],
-                44..84 => [0.0, 0.2 + 0.8 * s(44), 1.0],
-                84..88 => [0.0, 0.0, 0.0],
-                _ => [0.5 + 0.4 * s(88), 0.5 + 0.4 * s(88), 1.0],
-            };
-        }
-        let p = p.map(|q| [0.1 + 0.05 * q[0], 0.2 + 0.05 * q[1], q[2]]);
-        let mut ink = vec![0.0f32; N];
-        picture(&p, &Augment::default(), &mut ink);
-        let mut img = vec![0.0f32; 3 * N];
-        picture_oriented(&p, &Augment::default(), &mut img);
-        assert!(
-            img.chunks_exact(3).zip(&ink).all(|(px, v)| px[0] == *v),
-            "channel 0 is the picture"
-        );
-        assert!(
-            img.chunks_exact(3)
-                .all(|px| px[1].hypot(px[2]) <= px[0] + 1e-6 && px[0] <= 1.0)
-        );
-        // The ink-weighted mean orientation of each stroke drawn alone.
-        let mean = |from: usize, to: usize| {
-            let mut only = p;
-            for (t, q) in only.iter_mut().enumerate() {
-                if !(from..to).contains(&t) {
-                    q[2] = 0.0;
-                }
-            }
-            let mut mine = vec![0.0f32; 3 * N];
-            picture_oriented(&only, &Augment::default(), &mut mine);
-            let (mut c, mut s, mut w) = (0.0, 0.0, 0.0);
-            for px in mine.chunks_exact(3) {
-                c += px[1];
-                s += px[2];
-                w += px[0];
-            }
-            (c / w, s / w)
-        };
-        let (c, s) = mean(0, 40);
-        assert!(c > 0.8 && s.abs() < 0.2, "horizontal: cos {c} sin {s}");
-        let (c, s) = mean(44, 84);
-        assert!(c < -0.8 && s.abs() < 0.2, "vertical: cos {c} sin {s}");
-        let (c, s) = mean(88, STEPS);
-        assert!(c.abs() < 0.2 && s > 0.8, "diagonal: cos {c} sin {s}");
-        // Drawn backwards (every stroke reversed, strokes in reverse order): the same.
-        let mut back = vec![0.0f32; 3 * N];
-        let reverse = Augment {
-            reverse: true,
-            ..Augment::default()
-        };
-        picture_oriented(&p, &reverse, &mut back);
-        let diff: f32 = img.iter().zip(&back).map(|(a, b)| (a - b).abs()).sum();
-        let total: f32 = img.iter().map(|v| v.abs()).sum();
-        assert!(diff < 0.15 * total, "reversed differs by {diff} of {total}");
-        // A blank path gives a blank picture.
-        let blank = p.map(|q| [q[0], q[1], 0.0]);
-        picture_oriented(&blank, &Augment::default(), &mut back);
-        assert!(back.iter().all(|v| *v == 0.0));
     }
 
     #[test]
