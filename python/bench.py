@@ -97,6 +97,8 @@ def main():
     finally:
         daemon.terminate()
         daemon.wait()
+        for leftover in Path("/dev/shm").glob(f"{prefix}*"):
+            leftover.unlink(missing_ok=True)
 
 
 if __name__ == "__main__":

@@ -179,6 +179,17 @@ mod tests {
         assert!(w.is_empty());
         assert_eq!(w.wake(&node, 1), Woken::Own);
         assert_eq!(count(&l1), 1);
-        drop(l2);
+        drop((l1, l2, w, node));
+        // iceoryx2 keeps one small global_mgmt file per prefix in /dev/shm.
+        let prefix = format!("gw{}_", std::process::id());
+        for entry in std::fs::read_dir("/dev/shm")
+            .into_iter()
+            .flatten()
+            .flatten()
+        {
+            if entry.file_name().to_string_lossy().starts_with(&prefix) {
+                let _ = std::fs::remove_file(entry.path());
+            }
+        }
     }
 }

@@ -126,6 +126,10 @@ class Daemon:
                 self.proc.wait()
         self.log.close()
         shutil.rmtree(self.root, ignore_errors=True)
+        # iceoryx2 keeps one small global_mgmt file per prefix in /dev/shm; each daemon here
+        # has its own prefix.
+        for leftover in Path("/dev/shm").glob(f"{self.prefix}*"):
+            leftover.unlink(missing_ok=True)
 
 
 @pytest.fixture

@@ -36,6 +36,27 @@ pub struct Setup {
     pub default_bank: Option<PathBuf>,
 }
 
+/// Remove what iceoryx2 left in `/dev/shm` under `prefix` (a name ending in `_`, so no
+/// other test's prefix starts with it): the daemon and the clients remove their services'
+/// segments, but iceoryx2 keeps one small `…global_mgmt` file per prefix, and each test has
+/// its own prefix.
+pub fn remove_shm(prefix: &str) {
+    if let Ok(dir) = std::fs::read_dir("/dev/shm") {
+        for entry in dir.flatten() {
+            if entry.file_name().to_string_lossy().starts_with(prefix) {
+                let _ = std::fs::remove_file(entry.path());
+            }
+        }
+    }
+}
+
+impl Drop for Setup {
+    /// After the test's daemon and clients (declared after the setup, so dropped first).
+    fn drop(&mut self) {
+        remove_shm(&self.prefix);
+    }
+}
+
 impl Setup {
     pub fn new(seed: u64) -> Self {
         let dir = tempfile::tempdir().expect("tempdir");
