@@ -86,12 +86,18 @@ fn a_half_created_service_file_left_by_a_kill_is_removed_at_start() {
     std::fs::write(&file, b"").unwrap();
     std::fs::set_permissions(&file, std::fs::Permissions::from_mode(0o600)).unwrap();
 
-    let d = Daemon::start(&s);
+    starts_after_removing(&s, "removed a half-created iceoryx2 service file", &file);
+}
+
+/// Start `guardiand` over what a kill left: it must log `removal` with the path of `file`,
+/// become ready, enroll and check.
+fn starts_after_removing(s: &Setup, removal: &str, file: &std::path::Path) {
+    let d = Daemon::start(s);
     let log = d.log();
     assert!(
-        log.contains("removed a half-created iceoryx2 service file")
-            && log.contains(&file.display().to_string()),
-        "the removal is not logged with the file:\n{log}"
+        log.contains(removal) && log.contains(&file.display().to_string()),
+        "the removal is not logged with {}:\n{log}",
+        file.display()
     );
     let client = s.client();
     client
@@ -129,20 +135,10 @@ fn an_unsized_shared_memory_segment_left_by_a_kill_is_removed_at_start() {
     drop(file);
     std::fs::set_permissions(&segment, std::fs::Permissions::from_mode(0o200)).unwrap();
 
-    let d = Daemon::start(&s);
-    let log = d.log();
-    assert!(
-        log.contains("removed an unsized iceoryx2 shared-memory segment")
-            && log.contains(&segment.display().to_string()),
-        "the removal is not logged with the segment:\n{log}"
-    );
-    let client = s.client();
-    client
-        .enroll("task0", &[traj(0, 1), traj(0, 2)])
-        .expect("enroll after recovery");
-    assert_eq!(
-        client.check(&traj(0, 3), "task0").expect("check").decision,
-        Decision::Go
+    starts_after_removing(
+        &s,
+        "removed an unsized iceoryx2 shared-memory segment",
+        &segment,
     );
 }
 
