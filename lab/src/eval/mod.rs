@@ -383,49 +383,9 @@ pub struct Args {
     /// Force test-time reverse averaging off.
     #[arg(long, conflicts_with = "reverse_average")]
     pub no_reverse_average: bool,
-    /// Each branch's share of the squared distance of a fused model, comma-separated, one
-    /// per branch, summing to 1 (default: equal shares, as the model serves). Measurement
-    /// only: a model file cannot carry shares.
-    #[arg(long, value_delimiter = ',')]
-    pub branch_shares: Vec<f64>,
     /// Print one JSON object (otherwise a short text summary).
     #[arg(long)]
     pub json: bool,
-}
-
-/// Reweigh the branches of fused-model embeddings `e` so that branch `i` contributes
-/// `shares[i]` of every squared distance (a fused model gives each `1 / branches`): its
-/// slice is scaled by `sqrt(branches * shares[i])`. The embeddings stay unit vectors.
-pub fn weigh_branches(
-    e: &mut [Vec<f32>],
-    model: &Embedder,
-    shares: &[f64],
-) -> Result<(), EvalError> {
-    let dims: Vec<usize> = model.configs().iter().map(|c| c.embed_dim).collect();
-    let sum: f64 = shares.iter().sum();
-    if dims.len() < 2
-        || shares.len() != dims.len()
-        || shares.iter().any(|s| !(0.0..=1.0).contains(s))
-        || (sum - 1.0).abs() > 1e-6
-    {
-        return Err(EvalError::Invalid(format!(
-            "branch shares {shares:?}: one share in [0, 1] per branch of a fused model ({} \
-             branches), summing to 1",
-            dims.len()
-        )));
-    }
-    let n = dims.len() as f64;
-    for row in e.iter_mut() {
-        let mut at = 0;
-        for (d, share) in dims.iter().zip(shares) {
-            let k = (n * share).sqrt() as f32;
-            for v in &mut row[at..at + d] {
-                *v *= k;
-            }
-            at += d;
-        }
-    }
-    Ok(())
 }
 
 /// A full evaluation line.
@@ -518,22 +478,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         m.set_reverse_average(args.reverse_average);
     }
     let spec = args.episodes.spec();
-    let report = match (args.branch_shares.is_empty(), model.as_ref(), args.baseline) {
-        (true, _, _) => evaluate(&pool, args.baseline, model.as_ref(), &spec)?,
-        (false, Some(m), None) => {
-            let mut e = pool.embed(m)?;
-            weigh_branches(&mut e, m, &args.branch_shares)?;
-            EvalReport {
-                method: "triplet".into(),
-                model_version: Some(m.version().to_string()),
-                alphabets: pool.alphabets.clone(),
-                classes: pool.class_names.len(),
-                seed: spec.seed,
-                result: run_episodes(&pool.labels, &spec, &mut Scorer::Prototype(&e))?,
-            }
-        }
-        _ => anyhow::bail!("--branch-shares needs a fused --model and no --baseline"),
-    };
+    let report = evaluate(&pool, args.baseline, model.as_ref(), &spec)?;
     if args.json {
         println!("{}", serde_json::to_string(&report)?);
     } else {
@@ -569,58 +514,6 @@ mod tests {
             episodes,
             seed: 3,
         }
-    }
-
-    /// Shares reweigh each branch's squared distance and keep the embeddings unit vectors;
-    /// shares that do not fit the model are refused.
-    #[test]
-    fn branch_shares_weigh_each_branch_distance() {
-        use guardian_models::features::FeatureKind;
-        use guardian_models::net::NetConfig;
-        let branch = |features, seed| {
-            let config = NetConfig {
-                features,
-                channels: vec![4, 8],
-                kernel: 3,
-                embed_dim: EMBED_DIM / 2,
-                ..NetConfig::default()
-            };
-            Embedder::random_with(config, seed).unwrap()
-        };
-        let fused = Embedder::fuse(&[branch(FeatureKind::Pen, 1), branch(FeatureKind::Picture, 2)])
-            .unwrap();
-        // Two fused embeddings: unit branch parts a, b scaled by 1/sqrt(2).
-        let half = EMBED_DIM / 2;
-        let unit = |k: usize| {
-            let v: Vec<f32> = (0..half).map(|i| ((i * k + 1) as f32).sin()).collect();
-            let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
-            v.into_iter().map(|x| x / n).collect::<Vec<_>>()
-        };
-        let (a, b, a2, b2) = (unit(1), unit(2), unit(3), unit(5));
-        let d = |x: &[f32], y: &[f32]| x.iter().zip(y).map(|(p, q)| (p - q).powi(2)).sum::<f32>();
-        let h = std::f32::consts::FRAC_1_SQRT_2;
-        let row = |p: &[f32], q: &[f32]| p.iter().chain(q).map(|v| v * h).collect::<Vec<f32>>();
-        let mut e = vec![row(&a, &b), row(&a2, &b2)];
-        let equal = e.clone();
-        weigh_branches(&mut e, &fused, &[0.5, 0.5]).unwrap();
-        for (x, y) in e.iter().zip(&equal) {
-            assert!(x.iter().zip(y).all(|(p, q)| (p - q).abs() < 1e-6));
-        }
-        weigh_branches(&mut e, &fused, &[0.25, 0.75]).unwrap();
-        let want = 0.25 * d(&a, &a2) + 0.75 * d(&b, &b2);
-        assert!(
-            (d(&e[0], &e[1]) - want).abs() < 1e-5,
-            "{} vs {want}",
-            d(&e[0], &e[1])
-        );
-        for x in &e {
-            assert!((x.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-5);
-        }
-        for bad in [&[0.5][..], &[0.6, 0.6], &[1.5, -0.5], &[0.2, 0.3, 0.5]] {
-            assert!(weigh_branches(&mut e, &fused, bad).is_err(), "{bad:?}");
-        }
-        let single = branch(FeatureKind::Pen, 3);
-        assert!(weigh_branches(&mut e, &single, &[1.0]).is_err());
     }
 
     #[test]
