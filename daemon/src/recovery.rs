@@ -80,12 +80,15 @@ fn being_created(path: &std::path::Path) -> Option<Duration> {
     if !meta.file_type().is_file() || meta.permissions().mode() & 0o777 != BEING_CREATED_MODE {
         return None;
     }
-    let age = meta
-        .modified()
+    Some(age(&meta))
+}
+
+/// How long ago a file was last modified (zero if unknown or in the future).
+fn age(meta: &std::fs::Metadata) -> Duration {
+    meta.modified()
         .ok()
         .and_then(|m| SystemTime::now().duration_since(m).ok())
-        .unwrap_or_default();
-    Some(age)
+        .unwrap_or_default()
 }
 
 /// Remove the static configuration files of the daemon's own services (for `service_name`)
@@ -137,26 +140,25 @@ pub fn remove_unsized_segments(config: &iceoryx2::config::Config) -> Vec<PathBuf
     remove_unsized_segments_in(Path::new(SHM_DIR), &prefix, config.global.creation_timeout)
 }
 
-/// [`remove_unsized_segments`] in `dir`, for names starting with `prefix`, older than `age`.
-fn remove_unsized_segments_in(dir: &Path, prefix: &str, age: Duration) -> Vec<PathBuf> {
+/// [`remove_unsized_segments`] in `dir`, for names starting with `prefix`, older than
+/// `older_than`.
+fn remove_unsized_segments_in(dir: &Path, prefix: &str, older_than: Duration) -> Vec<PathBuf> {
     let mut removed = Vec::new();
     let Ok(entries) = std::fs::read_dir(dir) else {
         return removed;
     };
+    if prefix.is_empty() {
+        return removed;
+    }
     for entry in entries.flatten() {
-        if prefix.is_empty() || !entry.file_name().to_string_lossy().starts_with(prefix) {
+        if !entry.file_name().to_string_lossy().starts_with(prefix) {
             continue;
         }
         let path = entry.path();
         let Ok(meta) = std::fs::symlink_metadata(&path) else {
             continue;
         };
-        let old = meta
-            .modified()
-            .ok()
-            .and_then(|m| SystemTime::now().duration_since(m).ok())
-            .is_some_and(|a| a >= age);
-        if !meta.file_type().is_file() || meta.len() != 0 || !old {
+        if !meta.file_type().is_file() || meta.len() != 0 || age(&meta) < older_than {
             continue;
         }
         match std::fs::remove_file(&path) {

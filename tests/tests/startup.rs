@@ -184,14 +184,11 @@ fn kills_during_start_up_never_keep_the_daemon_down() {
             );
         }
         served += 1;
-        if d.log()
-            .contains("removed a half-created iceoryx2 service file")
-        {
+        let log = d.log();
+        if log.contains("removed a half-created iceoryx2 service file") {
             recovered += 1;
         }
-        if d.log()
-            .contains("removed an unsized iceoryx2 shared-memory segment")
-        {
+        if log.contains("removed an unsized iceoryx2 shared-memory segment") {
             unsized_segments += 1;
         }
     }
