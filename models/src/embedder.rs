@@ -572,18 +572,6 @@ impl Embedder {
         )
     }
 
-    /// [`Embedder::embed_into`] with the pen path of each trajectory mapped by `f` (a
-    /// geometric augmentation of the plan for measurements: `lab/examples/embedding_dump.rs`).
-    pub fn embed_into_mapped<F: Fn(&Resampled) -> [PenPoint; STEPS] + Copy>(
-        &self,
-        robot: &Robot,
-        xs: &[Resampled],
-        out: &mut [Embedding],
-        f: F,
-    ) -> Result<(), EmbedError> {
-        self.embed_into_with(robot, xs, out, f, None)
-    }
-
     /// [`Embedder::embed`], also returning the pen path ([`crate::features::pen_path`]) the
     /// features were computed from, so a caller that needs the path too (the plan geometry)
     /// does not run the forward kinematics of the 128 points a second time.

@@ -25,11 +25,6 @@ pub enum FeatureKind {
     Joints,
     /// Normalised pen-tip path features from forward kinematics (7 channels).
     Pen,
-    /// The pen features of the path with its strokes put in a canonical order and
-    /// direction (see [`canonical_order`]): what varies between drawers of one character
-    /// (which stroke first, which end first) is removed, the course of each stroke kept.
-    /// 7 channels, as [`FeatureKind::Pen`].
-    PenCanonical,
     /// A picture of the pen-down path: the segments whose both ends are pen down, splatted
     /// bilinearly into a [`PICTURE_SIDE`] x [`PICTURE_SIDE`] image after the pen features'
     /// bounding-box normalisation (see [`picture`]). Blind to stroke order and direction by
@@ -43,7 +38,7 @@ impl FeatureKind {
     pub fn channels(self) -> usize {
         match self {
             Self::Joints => 8,
-            Self::Pen | Self::PenCanonical => PEN_CHANNELS,
+            Self::Pen => PEN_CHANNELS,
             Self::Picture => 1,
         }
     }
@@ -147,9 +142,6 @@ pub fn compute(kind: FeatureKind, x: &Resampled, out: &mut [f32]) {
     match kind {
         FeatureKind::Joints => joint_features(x, out),
         FeatureKind::Pen => pen_features(&pen_path(x), &Augment::default(), out),
-        FeatureKind::PenCanonical => {
-            pen_features(&canonical_order(&pen_path(x)), &Augment::default(), out)
-        }
         FeatureKind::Picture => picture(&pen_path(x), &Augment::default(), out),
     }
 }
@@ -159,11 +151,6 @@ pub fn compute(kind: FeatureKind, x: &Resampled, out: &mut [f32]) {
 pub fn path_features(kind: FeatureKind, path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
     match kind {
         FeatureKind::Pen => pen_features(path, aug, out),
-        FeatureKind::PenCanonical => pen_features(
-            &canonical_order(&augmented(path, aug)),
-            &Augment::default(),
-            out,
-        ),
         FeatureKind::Picture => picture(path, aug, out),
         FeatureKind::Joints => out.fill(0.0),
     }
@@ -222,86 +209,6 @@ pub fn picture(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
     for v in out.iter_mut() {
         *v = v.min(1.0);
     }
-}
-
-/// The path with its strokes (maximal runs of pen-down samples) in a canonical direction
-/// and order, the same samples permuted, so the course of every stroke is kept:
-///
-/// - each stroke starts at the end of smaller key `0.4 x - y` (the upper, then the left
-///   end: drawing "up" is `+y`; the weight 0.4 puts the key's ties on lines of about 22°,
-///   rarer in handwriting than horizontal, vertical or 45° strokes);
-/// - the strokes follow each other by the key of their (canonical) start;
-/// - the pen-up runs keep their lengths and their places in the sequence (before the
-///   first stroke, between two strokes, after the last), their samples moved onto the
-///   straight line from the end of the stroke before to the start of the stroke after.
-///
-/// A path that never touches the canvas is returned as it is. Two drawers who drew one
-/// character in another stroke order or direction give the same sequence up to the
-/// drawing itself; a key near a tie (a closed loop, a stroke at about 22°) can still flip.
-pub fn canonical_order(path: &[PenPoint; STEPS]) -> [PenPoint; STEPS] {
-    let key = |q: &PenPoint| 0.4 * q[0] - q[1];
-    // Strokes as (first, end, reversed), at most one per two samples.
-    let mut strokes = [(0usize, 0usize, false); STEPS / 2 + 1];
-    let mut n = 0;
-    let mut t = 0;
-    while t < STEPS {
-        if path[t][2] > 0.5 {
-            let a = t;
-            while t < STEPS && path[t][2] > 0.5 {
-                t += 1;
-            }
-            strokes[n] = (a, t, key(&path[t - 1]) < key(&path[a]));
-            n += 1;
-        } else {
-            t += 1;
-        }
-    }
-    if n == 0 {
-        return *path;
-    }
-    // The pen-up runs' lengths, in sequence order: before stroke 0, ..., after stroke n-1.
-    let mut gaps = [0usize; STEPS / 2 + 2];
-    gaps[0] = strokes[0].0;
-    for i in 1..n {
-        gaps[i] = strokes[i].0 - strokes[i - 1].1;
-    }
-    gaps[n] = STEPS - strokes[n - 1].1;
-    let start = |s: &(usize, usize, bool)| if s.2 { path[s.1 - 1] } else { path[s.0] };
-    let end = |s: &(usize, usize, bool)| if s.2 { path[s.0] } else { path[s.1 - 1] };
-    let strokes = &mut strokes[..n];
-    strokes.sort_by(|a, b| key(&start(a)).total_cmp(&key(&start(b))));
-    let mut out = [[0.0f32; 3]; STEPS];
-    let mut o = 0;
-    let pen_up = |out: &mut [PenPoint; STEPS], o: &mut usize, from: PenPoint, to: PenPoint, g| {
-        for k in 0..g {
-            let f = (k + 1) as f32 / (g + 1) as f32;
-            out[*o] = [
-                from[0] + (to[0] - from[0]) * f,
-                from[1] + (to[1] - from[1]) * f,
-                0.0,
-            ];
-            *o += 1;
-        }
-    };
-    let first = start(&strokes[0]);
-    pen_up(&mut out, &mut o, first, first, gaps[0]);
-    for (i, s) in strokes.iter().enumerate() {
-        if i > 0 {
-            pen_up(&mut out, &mut o, end(&strokes[i - 1]), start(s), gaps[i]);
-        }
-        for k in 0..s.1 - s.0 {
-            out[o] = if s.2 {
-                path[s.1 - 1 - k]
-            } else {
-                path[s.0 + k]
-            };
-            o += 1;
-        }
-    }
-    let last = end(&strokes[n - 1]);
-    pen_up(&mut out, &mut o, last, last, gaps[n]);
-    debug_assert_eq!(o, STEPS);
-    out
 }
 
 /// Rotate, shear, scale and optionally reverse a path (see [`Augment`]).
@@ -393,56 +300,6 @@ mod tests {
             *q = [offset + scale * s, offset + 0.5 * scale * s, 1.0];
         }
         p
-    }
-
-    #[test]
-    fn the_canonical_order_removes_stroke_order_and_direction_and_keeps_each_stroke() {
-        // A "T": a bar (60 samples), 8 pen-up samples, a post (60 samples).
-        let bar = |t: usize| [t as f32 / 59.0, 1.0, 1.0];
-        let post = |t: usize| [0.5, 1.0 - t as f32 / 59.0, 1.0];
-        let build = |first: &dyn Fn(usize) -> PenPoint, second: &dyn Fn(usize) -> PenPoint| {
-            let mut p = [[0.3f32, -2.0, 0.0]; STEPS];
-            for t in 0..60 {
-                p[t] = first(t);
-                p[68 + t] = second(t);
-            }
-            p
-        };
-        let base = build(&bar, &post);
-        let canonical = canonical_order(&base);
-        // Each stroke starts at its upper-left end; the bar (key -1) before the post (-0.8).
-        assert_eq!(canonical[..60], base[..60]);
-        assert_eq!(canonical[68..], base[68..]);
-        // The pen-up run keeps its length, on the line from the bar's end to the post's start.
-        for (k, q) in canonical[60..68].iter().enumerate() {
-            let f = (k + 1) as f32 / 9.0;
-            assert_eq!(q[2], 0.0);
-            assert!(
-                (q[0] - (1.0 - 0.5 * f)).abs() < 1e-6 && (q[1] - 1.0).abs() < 1e-6,
-                "{q:?}"
-            );
-        }
-        // Another order, other directions, the whole path reversed: the same sequence.
-        let rev_bar = |t: usize| bar(59 - t);
-        let rev_post = |t: usize| post(59 - t);
-        let mut reversed = base;
-        reversed.reverse();
-        for other in [
-            build(&post, &bar),
-            build(&rev_bar, &rev_post),
-            build(&rev_post, &bar),
-            reversed,
-        ] {
-            assert_eq!(canonical_order(&other), canonical);
-        }
-        // What was drawn is kept: the same pen-down samples, another shape differs.
-        let down = |p: &[PenPoint; STEPS]| p.iter().filter(|q| q[2] > 0.5).count();
-        assert_eq!(down(&canonical), 120);
-        let other_shape = build(&bar, &|t: usize| [0.2, 1.0 - t as f32 / 59.0, 1.0]);
-        assert_ne!(canonical_order(&other_shape), canonical);
-        // A path that never touches the canvas is left as it is.
-        let up = [[0.1f32, 0.2, 0.0]; STEPS];
-        assert_eq!(canonical_order(&up), up);
     }
 
     #[test]

@@ -33,8 +33,6 @@ pub enum FeatureArg {
     Joints,
     /// A picture of the pen-down path, read by a 2D CNN.
     Picture,
-    /// The pen features with the strokes in a canonical order and direction.
-    PenCanonical,
 }
 
 impl From<FeatureArg> for FeatureKind {
@@ -43,7 +41,6 @@ impl From<FeatureArg> for FeatureKind {
             FeatureArg::Pen => FeatureKind::Pen,
             FeatureArg::Joints => FeatureKind::Joints,
             FeatureArg::Picture => FeatureKind::Picture,
-            FeatureArg::PenCanonical => FeatureKind::PenCanonical,
         }
     }
 }
