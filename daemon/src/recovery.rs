@@ -17,9 +17,10 @@
 //! timeout otherwise: either way every later start of the daemon (and node creation by the
 //! planners on the same prefix) stalls or fails. iceoryx2 never maps a segment of zero
 //! bytes, and a live creator sizes its segment microseconds after creating it, so at start a
-//! zero-byte segment under the prefix older than the creation timeout was left by a dead
-//! creator: it is removed before the daemon's node is created, and the removal is logged
-//! ([`remove_unsized_segments`]).
+//! segment under the prefix that stays zero bytes until the creation timeout has passed
+//! since it was written was left by a dead creator (a younger one, as a restart right after
+//! a kill finds, is waited for): it is removed before the daemon's node is created, and the
+//! removal is logged ([`remove_unsized_segments`]).
 //!
 //! The daemon is the only creator of its own services (the request-response service and
 //! its request and response events; planners only open them, and a second daemon on the
@@ -132,33 +133,50 @@ pub fn remove_half_created_services(
 pub const SHM_DIR: &str = "/dev/shm";
 
 /// Remove the zero-byte shared-memory segments of the deployment's iceoryx2 prefix (files in
-/// [`SHM_DIR`] whose names start with it) last modified longer ago than iceoryx2's creation
-/// timeout: what a process killed between creating a segment and sizing it left (module
-/// docs). Returns the files removed; a file that cannot be removed is logged and left.
+/// [`SHM_DIR`] whose names start with it) that stay zero bytes until iceoryx2's creation
+/// timeout has passed since they were last written: what a process killed between creating
+/// a segment and sizing it left (module docs). A younger one is waited for (at most the
+/// timeout, once for all: a restart right after a kill finds the segment younger than
+/// that), since a live creator sizes it microseconds after creating it. Returns the files
+/// removed; a file that cannot be removed is logged and left.
 pub fn remove_unsized_segments(config: &iceoryx2::config::Config) -> Vec<PathBuf> {
     let prefix = String::from_utf8_lossy(config.global.prefix.as_bytes()).into_owned();
     remove_unsized_segments_in(Path::new(SHM_DIR), &prefix, config.global.creation_timeout)
 }
 
-/// [`remove_unsized_segments`] in `dir`, for names starting with `prefix`, older than
-/// `older_than`.
-fn remove_unsized_segments_in(dir: &Path, prefix: &str, older_than: Duration) -> Vec<PathBuf> {
+/// The age of `path` if it is a regular file of zero bytes.
+fn unsized_age(path: &Path) -> Option<Duration> {
+    let meta = std::fs::symlink_metadata(path).ok()?;
+    (meta.file_type().is_file() && meta.len() == 0).then(|| age(&meta))
+}
+
+/// [`remove_unsized_segments`] in `dir`, for names starting with `prefix`, zero bytes for
+/// `timeout` since they were last written.
+fn remove_unsized_segments_in(dir: &Path, prefix: &str, timeout: Duration) -> Vec<PathBuf> {
     let mut removed = Vec::new();
-    let Ok(entries) = std::fs::read_dir(dir) else {
-        return removed;
-    };
     if prefix.is_empty() {
         return removed;
     }
-    for entry in entries.flatten() {
-        if !entry.file_name().to_string_lossy().starts_with(prefix) {
-            continue;
-        }
-        let path = entry.path();
-        let Ok(meta) = std::fs::symlink_metadata(&path) else {
-            continue;
-        };
-        if !meta.file_type().is_file() || meta.len() != 0 || age(&meta) < older_than {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return removed;
+    };
+    let candidates: Vec<PathBuf> = entries
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().starts_with(prefix))
+        .map(|e| e.path())
+        .filter(|p| unsized_age(p).is_some())
+        .collect();
+    let wait = candidates
+        .iter()
+        .filter_map(|p| unsized_age(p))
+        .map(|a| timeout.saturating_sub(a))
+        .max()
+        .unwrap_or_default();
+    if !wait.is_zero() {
+        std::thread::sleep(wait);
+    }
+    for path in candidates {
+        if !unsized_age(&path).is_some_and(|a| a >= timeout) {
             continue;
         }
         match std::fs::remove_file(&path) {
@@ -178,9 +196,10 @@ fn remove_unsized_segments_in(dir: &Path, prefix: &str, older_than: Duration) ->
 mod tests {
     use super::*;
 
-    /// Only zero-byte files of the prefix, older than the timeout, are removed.
+    /// Only zero-byte files of the prefix that stay so for the timeout are removed; a young
+    /// one is waited for, and kept if it is sized meanwhile.
     #[test]
-    fn only_old_unsized_segments_of_the_prefix_are_removed() {
+    fn only_unsized_segments_of_the_prefix_are_removed_after_the_timeout() {
         let dir = tempfile::tempdir().unwrap();
         let old = SystemTime::now() - Duration::from_secs(60);
         let make = |name: &str, bytes: &[u8], modified: Option<SystemTime>| {
@@ -198,16 +217,33 @@ mod tests {
         };
         let stale = make("gd_node.0_10_0.global_mgmt", b"", Some(old));
         let stale_service = make("gd_abc123.dynamic", b"", Some(old));
+        // Left by a kill just before this start: zero bytes, younger than the timeout.
         let young = make("gd_young.dynamic", b"", None);
+        // A live creator's: sized while the start waits.
+        let sized_later = make("gd_live.dynamic", b"", None);
         let sized = make("gd_sized.dynamic", b"state", Some(old));
         let other = make("other_node.0_10_0.global_mgmt", b"", Some(old));
         std::fs::create_dir(dir.path().join("gd_dir")).unwrap();
-        let removed = remove_unsized_segments_in(dir.path(), "gd_", Duration::from_secs(1));
-        let mut want = vec![stale.clone(), stale_service.clone()];
+        let timeout = Duration::from_millis(600);
+        let creator = {
+            let path = sized_later.clone();
+            std::thread::spawn(move || {
+                std::thread::sleep(Duration::from_millis(100));
+                std::fs::write(path, b"sized").unwrap();
+            })
+        };
+        let start = std::time::Instant::now();
+        let removed = remove_unsized_segments_in(dir.path(), "gd_", timeout);
+        creator.join().unwrap();
+        assert!(
+            start.elapsed() >= Duration::from_millis(400),
+            "the young ones were waited for"
+        );
+        let mut want = vec![stale.clone(), stale_service.clone(), young.clone()];
         want.sort();
         assert_eq!(removed, want);
-        assert!(!stale.exists() && !stale_service.exists());
-        assert!(young.exists() && sized.exists() && other.exists());
+        assert!(!stale.exists() && !stale_service.exists() && !young.exists());
+        assert!(sized_later.exists() && sized.exists() && other.exists());
         assert!(dir.path().join("gd_dir").is_dir());
         // No prefix, nothing removed (a deployment always has one).
         make("x.dynamic", b"", Some(old));
