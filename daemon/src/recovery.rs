@@ -176,7 +176,7 @@ fn remove_unsized_segments_in(dir: &Path, prefix: &str, timeout: Duration) -> Ve
         std::thread::sleep(wait);
     }
     for path in candidates {
-        if !unsized_age(&path).is_some_and(|a| a >= timeout) {
+        if unsized_age(&path).is_none_or(|a| a < timeout) {
             continue;
         }
         match std::fs::remove_file(&path) {
