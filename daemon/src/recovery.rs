@@ -160,22 +160,20 @@ fn remove_unsized_segments_in(dir: &Path, prefix: &str, timeout: Duration) -> Ve
     let Ok(entries) = std::fs::read_dir(dir) else {
         return removed;
     };
-    let candidates: Vec<PathBuf> = entries
+    let candidates: Vec<(PathBuf, Duration)> = entries
         .flatten()
         .filter(|e| e.file_name().to_string_lossy().starts_with(prefix))
-        .map(|e| e.path())
-        .filter(|p| unsized_age(p).is_some())
+        .filter_map(|e| unsized_age(&e.path()).map(|a| (e.path(), a)))
         .collect();
     let wait = candidates
         .iter()
-        .filter_map(|p| unsized_age(p))
-        .map(|a| timeout.saturating_sub(a))
+        .map(|(_, a)| timeout.saturating_sub(*a))
         .max()
         .unwrap_or_default();
     if !wait.is_zero() {
         std::thread::sleep(wait);
     }
-    for path in candidates {
+    for (path, _) in candidates {
         if unsized_age(&path).is_none_or(|a| a < timeout) {
             continue;
         }
