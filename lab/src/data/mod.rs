@@ -6,3 +6,4 @@ pub mod dataset;
 pub mod faults;
 pub mod path;
 pub mod strokes;
+pub mod synthetic;
