@@ -6,4 +6,3 @@ pub mod dataset;
 pub mod faults;
 pub mod path;
 pub mod strokes;
-pub mod synthetic;

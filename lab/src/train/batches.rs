@@ -16,8 +16,7 @@ use rayon::prelude::*;
 
 use crate::data::dataset::{Dataset, StrokeIndex};
 use crate::data::faults::{self, Fault};
-use crate::data::path::{Geometry, PathSolver};
-use crate::data::synthetic::Spec;
+use crate::data::path::PathSolver;
 use crate::train::TrainError;
 use crate::train::classaug::{self, AugmentPlan, Dihedral, SymmetryRule};
 
@@ -196,75 +195,6 @@ impl Prepared {
             }
         }
         Ok(plan)
-    }
-
-    /// Add the synthetic classes of `spec` (`data::synthetic`), drawn through `geometry`'s
-    /// path and IK like the real drawings, with `variants` corrupted plans each made from
-    /// their strokes as [`Prepared::make_faults`] does (none when `kinds` is empty).
-    /// Deterministic in `spec.seed`. Returns the drawings added (a drawing whose path cannot
-    /// be solved is left out, a class left with fewer than two drawings too).
-    pub fn add_synthetic(
-        &mut self,
-        geometry: &Geometry,
-        spec: &Spec,
-        kinds: &[Fault],
-        variants: usize,
-    ) -> Result<usize, TrainError> {
-        let seed = spec.seed;
-        if self.kind == FeatureKind::Joints {
-            return Err(TrainError::Setup(
-                "synthetic classes need pen features".into(),
-            ));
-        }
-        let solver = PathSolver::new(geometry)
-            .map_err(|e| TrainError::Setup(format!("synthetic classes: {e}")))?;
-        let drawn = spec.draw();
-        type Drawing = ([PenPoint; STEPS], Resampled, Vec<[PenPoint; STEPS]>);
-        let made: Vec<Vec<Drawing>> = drawn
-            .par_iter()
-            .enumerate()
-            .map(|(c, class)| {
-                class
-                    .iter()
-                    .enumerate()
-                    .filter_map(|(d, st)| {
-                        let x = crate::data::dataset::convert_strokes(&solver, st)
-                            .ok()?
-                            .sample;
-                        let mut rng = StdRng::seed_from_u64(
-                            seed ^ ((c * 64 + d) as u64).wrapping_mul(0x9e37_79b9) ^ 0x5717,
-                        );
-                        let mut f = Vec::with_capacity(variants);
-                        let mut tries = 0;
-                        while !kinds.is_empty() && f.len() < variants && tries < 4 * variants {
-                            tries += 1;
-                            let fault = kinds[rng.random_range(0..kinds.len())];
-                            let severity = rng.random_range(0.25..=1.0);
-                            if let Ok(y) = faults::corrupt(&solver, fault, severity, st, &mut rng) {
-                                f.push(features::pen_path_with(solver.robot(), &y));
-                            }
-                        }
-                        Some((features::pen_path_with(solver.robot(), &x), x, f))
-                    })
-                    .collect()
-            })
-            .collect();
-        let mut added = 0;
-        for class in made.into_iter().filter(|c| c.len() >= 2) {
-            let label = self.by_class.len() as u32;
-            let mut members = Vec::with_capacity(class.len());
-            for (p, x, f) in class {
-                members.push(self.raw.len());
-                self.pen.push(p);
-                self.raw.push(x);
-                self.faults.push(f);
-                self.labels.push(label);
-                self.data_index.push(usize::MAX);
-                added += 1;
-            }
-            self.by_class.push(members);
-        }
-        Ok(added)
     }
 
     /// The source class of every item: `Some(class label)` for a corrupted plan, `None`
@@ -545,54 +475,5 @@ mod tests {
         assert!(!b.reverse);
         set.set_reverse_augment(false);
         assert!(!set.reverse_augment);
-    }
-
-    /// Synthetic classes go through the real path and IK: each becomes a class of its own
-    /// with its drawings' pen paths (ink on the canvas) and corrupted plans, and the same
-    /// seed adds the same paths.
-    #[test]
-    fn synthetic_classes_are_drawn_through_the_ik_with_their_own_faults() {
-        let add = || {
-            let mut set = lines(3, 4);
-            let kinds = [Fault::Rotated, Fault::Truncated];
-            let n = set
-                .add_synthetic(
-                    &Geometry::default(),
-                    &Spec {
-                        classes: 4,
-                        family: 2,
-                        drawers: 3,
-                        seed: 5,
-                    },
-                    &kinds,
-                    2,
-                )
-                .unwrap();
-            (set, n)
-        };
-        let (set, n) = add();
-        assert_eq!(n, 12, "every drawing solved");
-        assert_eq!((set.classes(), set.len()), (7, 24));
-        for i in 12..24 {
-            assert_eq!(set.labels()[i], 3 + (i as u32 - 12) / 3);
-            let ink = set.pen_paths()[i].iter().filter(|q| q[2] > 0.5).count();
-            assert!(ink > 20, "sample {i}: {ink} pen-down steps");
-            assert_eq!(set.faults_of(i), 2);
-            assert_ne!(set.faults[i][0], set.pen_paths()[i]);
-        }
-        // Two drawers of one class differ; the batch features of a new sample are finite.
-        assert_ne!(set.pen_paths()[12], set.pen_paths()[13]);
-        let x = set
-            .batch_items(&[Item::Genuine(20), Item::Fault(20, 1)], None)
-            .unwrap();
-        assert!(
-            x.flatten_all()
-                .unwrap()
-                .to_vec1::<f32>()
-                .unwrap()
-                .iter()
-                .all(|v| v.is_finite())
-        );
-        assert_eq!(add().0.pen_paths(), set.pen_paths());
     }
 }

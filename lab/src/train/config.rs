@@ -145,12 +145,6 @@ pub struct TrainConfig {
     /// The split-half quantile of `classaug::SymmetryRule` (with `class_augment`).
     #[serde(default)]
     pub symmetry_quantile: f64,
-    /// Synthetic classes added to training (`data::synthetic`); 0 = none.
-    #[serde(default)]
-    pub synthetic_classes: usize,
-    /// Classes per synthetic family (a base character and its one-bump variants).
-    #[serde(default)]
-    pub synthetic_family: usize,
 }
 
 impl TrainConfig {
@@ -315,14 +309,6 @@ pub struct Args {
     /// template is as similar to it as this quantile of the split-half similarities.
     #[arg(long, default_value_t = 0.1)]
     pub symmetry_quantile: f64,
-    /// Synthetic classes added to training: random characters of curled strokes, 20
-    /// simulated drawers each, drawn through the dataset's path and IK.
-    #[arg(long, default_value_t = 0)]
-    pub synthetic_classes: usize,
-    /// Classes per synthetic family: a base character and variants that differ from it in
-    /// one bend or curl.
-    #[arg(long, default_value_t = 4)]
-    pub synthetic_family: usize,
 }
 
 impl Args {
@@ -372,12 +358,6 @@ impl Args {
                 self.symmetry_quantile
             } else {
                 0.0
-            },
-            synthetic_classes: self.synthetic_classes,
-            synthetic_family: if self.synthetic_classes > 0 {
-                self.synthetic_family
-            } else {
-                0
             },
         }
     }

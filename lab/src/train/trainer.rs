@@ -139,29 +139,6 @@ pub fn train(
         }
         write_json(&out.join("class-augment.json"), &plan)?;
     }
-    if cfg.synthetic_classes > 0 {
-        let t0 = Instant::now();
-        let variants = if cfg.fault_share > 0.0 {
-            cfg.fault_variants
-        } else {
-            0
-        };
-        let spec = crate::data::synthetic::Spec {
-            classes: cfg.synthetic_classes,
-            family: cfg.synthetic_family,
-            drawers: 20,
-            seed: cfg.seed ^ 0x5e7,
-        };
-        let n = train_set.add_synthetic(&data.geometry, &spec, &cfg.fault_kinds, variants)?;
-        if !quiet {
-            eprintln!(
-                "synthetic classes: {n} drawings of {} classes ({} classes in all) in {:.1} s",
-                cfg.synthetic_classes,
-                train_set.classes(),
-                t0.elapsed().as_secs_f64()
-            );
-        }
-    }
     if train_set.classes() < cfg.p_classes.min(2) || (validate && val_set.classes() < 5) {
         return Err(TrainError::Setup(format!(
             "too few classes: train {}, val {} (val needs >= 5)",

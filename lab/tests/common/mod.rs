@@ -47,7 +47,5 @@ pub fn tiny_config() -> TrainConfig {
         fault_kinds: Vec::new(),
         class_augment: false,
         symmetry_quantile: 0.0,
-        synthetic_classes: 0,
-        synthetic_family: 0,
     }
 }
