@@ -33,6 +33,8 @@ pub enum FeatureArg {
     Joints,
     /// A picture of the pen-down path, read by a 2D CNN.
     Picture,
+    /// The picture with the pen's progress along the path (two channels).
+    PictureProgress,
 }
 
 impl From<FeatureArg> for FeatureKind {
@@ -41,6 +43,7 @@ impl From<FeatureArg> for FeatureKind {
             FeatureArg::Pen => FeatureKind::Pen,
             FeatureArg::Joints => FeatureKind::Joints,
             FeatureArg::Picture => FeatureKind::Picture,
+            FeatureArg::PictureProgress => FeatureKind::PictureProgress,
         }
     }
 }
