@@ -31,11 +31,6 @@ pub enum FeatureKind {
     /// construction. One channel, [`PICTURE_SIDE`]² "steps" (pixels, row-major, top row
     /// first).
     Picture,
-    /// [`FeatureKind::Picture`] with the pen's progress: per pixel the ink and the
-    /// ink-weighted mean progress along the pen-down path (0 at its first pen-down sample,
-    /// 1 at its last; see [`picture_progress`]). Sees stroke order and direction, as the
-    /// sequence does, in the picture's geometry. Two channels per pixel, channels last.
-    PictureProgress,
 }
 
 impl FeatureKind {
@@ -45,14 +40,13 @@ impl FeatureKind {
             Self::Joints => 8,
             Self::Pen => PEN_CHANNELS,
             Self::Picture => 1,
-            Self::PictureProgress => 2,
         }
     }
 
     /// Steps of the network input: [`STEPS`] time steps, or the pixels of a picture.
     pub fn steps(self) -> usize {
         match self {
-            Self::Picture | Self::PictureProgress => PICTURE_SIDE * PICTURE_SIDE,
+            Self::Picture => PICTURE_SIDE * PICTURE_SIDE,
             _ => STEPS,
         }
     }
@@ -64,7 +58,7 @@ impl FeatureKind {
 
     /// A picture, read by a 2D network, rather than a sequence.
     pub fn is_picture(self) -> bool {
-        matches!(self, Self::Picture | Self::PictureProgress)
+        self == Self::Picture
     }
 }
 
@@ -149,7 +143,6 @@ pub fn compute(kind: FeatureKind, x: &Resampled, out: &mut [f32]) {
         FeatureKind::Joints => joint_features(x, out),
         FeatureKind::Pen => pen_features(&pen_path(x), &Augment::default(), out),
         FeatureKind::Picture => picture(&pen_path(x), &Augment::default(), out),
-        FeatureKind::PictureProgress => picture_progress(&pen_path(x), &Augment::default(), out),
     }
 }
 
@@ -159,7 +152,6 @@ pub fn path_features(kind: FeatureKind, path: &[PenPoint; STEPS], aug: &Augment,
     match kind {
         FeatureKind::Pen => pen_features(path, aug, out),
         FeatureKind::Picture => picture(path, aug, out),
-        FeatureKind::PictureProgress => picture_progress(path, aug, out),
         FeatureKind::Joints => out.fill(0.0),
     }
 }
@@ -171,26 +163,8 @@ pub fn path_features(kind: FeatureKind, path: &[PenPoint; STEPS], aug: &Augment,
 /// four points (its start and three quarters), and a pixel saturates at 1. A path that never
 /// touches the canvas gives a blank picture.
 pub fn picture(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
-    draw(path, aug, 1, out);
-}
-
-/// The progress picture of a pen path ([`FeatureKind::PictureProgress`]) into `out`
-/// (`PICTURE_SIDE`² x 2, row-major, channels last): the splats of [`picture`], each also
-/// adding its weight times the pen's progress at the splat point (the pen-down segments
-/// counted in drawing order, 0 at the first one's start, 1 at the last one's end) to the
-/// second channel. Where the ink of a pixel passes 1, both channels are divided by it: the
-/// ink saturates at 1, as in [`picture`], and the second holds the ink-weighted mean
-/// progress, never above the ink.
-pub fn picture_progress(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
-    draw(path, aug, 2, out);
-}
-
-/// Draw the pen-down segments of a path into `channels` channels per pixel: the ink, and with
-/// two channels the ink-weighted progress.
-fn draw(path: &[PenPoint; STEPS], aug: &Augment, channels: usize, out: &mut [f32]) {
     const R: usize = PICTURE_SIDE;
-    let c = channels;
-    let out = &mut out[..R * R * c];
+    let out = &mut out[..R * R];
     out.fill(0.0);
     let p = augmented(path, aug);
     let (lo, hi) = pen_down_box(&p);
@@ -209,47 +183,31 @@ fn draw(path: &[PenPoint; STEPS], aug: &Augment, channels: usize, out: &mut [f32
         ]
     };
     let last = (R - 1) as f32;
-    let down = |w: &[PenPoint]| w[0][2] > 0.5 && w[1][2] > 0.5;
-    let segments = p.windows(2).filter(|w| down(w)).count().max(1) as f32;
-    let mut k = 0.0f32;
     for w in p.windows(2) {
-        if !down(w) {
+        if w[0][2] <= 0.5 || w[1][2] <= 0.5 {
             continue;
         }
         let (a, b) = (px(&w[0]), px(&w[1]));
-        let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
-        let first = k;
-        k += 1.0;
         for s in 0..4 {
             let t = s as f32 * 0.25;
-            let (x, y) = (a[0] + dx * t, a[1] + dy * t);
+            let (x, y) = (a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t);
             let (x0, y0) = (x.floor(), y.floor());
             let (fx, fy) = (x - x0, y - y0);
-            for (ox, oy, wgt) in [
+            for (dx, dy, wgt) in [
                 (0.0, 0.0, (1.0 - fx) * (1.0 - fy)),
                 (1.0, 0.0, fx * (1.0 - fy)),
                 (0.0, 1.0, (1.0 - fx) * fy),
                 (1.0, 1.0, fx * fy),
             ] {
-                let xi = (x0 + ox).clamp(0.0, last) as usize;
-                let yi = (y0 + oy).clamp(0.0, last) as usize;
+                let xi = (x0 + dx).clamp(0.0, last) as usize;
+                let yi = (y0 + dy).clamp(0.0, last) as usize;
                 // Drawing "up" is the top of the picture.
-                let px = &mut out[((R - 1 - yi) * R + xi) * c..][..c];
-                px[0] += wgt;
-                if c == 2 {
-                    px[1] += wgt * (first + t) / segments;
-                }
+                out[(R - 1 - yi) * R + xi] += wgt;
             }
         }
     }
-    for px in out.chunks_exact_mut(c) {
-        if px[0] > 1.0 {
-            let inv = 1.0 / px[0];
-            for v in &mut px[1..] {
-                *v *= inv;
-            }
-            px[0] = 1.0;
-        }
+    for v in out.iter_mut() {
+        *v = v.min(1.0);
     }
 }
 
@@ -342,84 +300,6 @@ mod tests {
             *q = [offset + scale * s, offset + 0.5 * scale * s, 1.0];
         }
         p
-    }
-
-    /// The progress picture: its ink is the picture's, bit for bit; the progress is never
-    /// above the ink, low where the first stroke lies and high where the last one does;
-    /// drawn backwards, progress p becomes ink - p; a blank path gives a blank picture.
-    #[test]
-    fn a_progress_picture_keeps_the_ink_and_adds_the_order_of_drawing() {
-        const N: usize = PICTURE_SIDE * PICTURE_SIDE;
-        // A horizontal bar, then a vertical post, then a diagonal, pen up between them.
-        let mut p = [[0.0f32; 3]; STEPS];
-        for (t, q) in p.iter_mut().enumerate() {
-            let s = |a: usize| (t - a) as f32 / 39.0;
-            *q = match t {
-                0..40 => [s(0), 0.0, 1.0],
-                40..44 => [0.0, 0.0, 0.0],
-                44..84 => [0.0, 0.2 + 0.8 * s(44), 1.0],
-                84..88 => [0.0, 0.0, 0.0],
-                _ => [0.5 + 0.4 * s(88), 0.5 + 0.4 * s(88), 1.0],
-            };
-        }
-        let p = p.map(|q| [0.1 + 0.05 * q[0], 0.2 + 0.05 * q[1], q[2]]);
-        let mut ink = vec![0.0f32; N];
-        picture(&p, &Augment::default(), &mut ink);
-        let mut img = vec![0.0f32; 2 * N];
-        picture_progress(&p, &Augment::default(), &mut img);
-        assert!(
-            img.chunks_exact(2).zip(&ink).all(|(px, v)| px[0] == *v),
-            "channel 0 is the picture"
-        );
-        assert!(
-            img.chunks_exact(2)
-                .all(|px| (0.0..=px[0] + 1e-6).contains(&px[1]) && px[0] <= 1.0)
-        );
-        // The ink-weighted mean progress in a region of the picture (rows and columns):
-        // the bar is the bottom rows, the post the left columns, the diagonal the upper right.
-        let mean = |rows: std::ops::Range<usize>, cols: std::ops::Range<usize>| {
-            let (mut a, mut w) = (0.0, 0.0);
-            for r in rows {
-                for c in cols.clone() {
-                    let px = &img[(r * PICTURE_SIDE + c) * 2..][..2];
-                    a += px[1];
-                    w += px[0];
-                }
-            }
-            assert!(w > 1.0, "ink {w} in the region");
-            a / w
-        };
-        let r = PICTURE_SIDE;
-        let bar = mean(r - 4..r, 6..r);
-        let post = mean(4..r - 10, 0..5);
-        let diagonal = mean(0..r / 2 - 2, r / 2 + 2..r);
-        // Drawn backwards: the same ink, progress p becomes ink - p.
-        let mut back = vec![0.0f32; 2 * N];
-        let reverse = Augment {
-            reverse: true,
-            ..Augment::default()
-        };
-        picture_progress(&p, &reverse, &mut back);
-        // (The splats of a reversed segment fall at its other quarter points, so the ink
-        // of the two drawings differs a little at stroke ends.)
-        let total: f32 = img.chunks_exact(2).map(|px| px[0]).sum();
-        let (mut ink_diff, mut sum_diff) = (0.0f32, 0.0f32);
-        for (f, b) in img.chunks_exact(2).zip(back.chunks_exact(2)) {
-            ink_diff += (f[0] - b[0]).abs();
-            sum_diff += (f[1] + b[1] - f[0]).abs();
-        }
-        assert!(
-            ink_diff < 0.15 * total,
-            "ink differs by {ink_diff} of {total}"
-        );
-        assert!(
-            sum_diff < 0.15 * total,
-            "progress sum off by {sum_diff} of {total}"
-        );
-        // A blank path gives a blank picture.
-        let blank = p.map(|q| [q[0], q[1], 0.0]);
-        picture_progress(&blank, &Augment::default(), &mut back);
-        assert!(back.iter().all(|v| *v == 0.0));
     }
 
     #[test]

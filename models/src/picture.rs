@@ -2,7 +2,7 @@
 //! of [`FeatureKind::Picture`](crate::features::FeatureKind::Picture) networks, on the same
 //! weights and buffers as the sequence network of [`crate::fast`] and [`crate::grad`].
 //!
-//! Layout: a picture is `[side, side, channels]` row-major (channels last), activations are
+//! Layout: a picture is `[side, side]` row-major (one channel), activations are
 //! `[batch, s, s, c]` (channels last). A layer is a "same" 2D convolution written as im2col
 //! (`cols [batch * s * s, k * k * c_in]`, column `(dy * k + dx) * c_in + c`) and one GEMM
 //! with the weights `[k * k * c_in, c_out]`, then ReLU and a 2 x 2 max pool. After the last
@@ -114,7 +114,7 @@ impl<T: Real> FastNet<T> {
         total + 2 * self.config().pooled_features() as u64 * self.config().embed_dim as u64
     }
 
-    /// [`FastNet::forward`] of a picture network: `x [batch, side², channels]`.
+    /// [`FastNet::forward`] of a picture network: `x [batch, side², 1]`.
     pub(crate) fn forward_picture(
         &self,
         x: &[T],
@@ -314,9 +314,9 @@ mod tests {
     use candle_core::{DType, Device, Tensor, Var};
     use rand::{Rng, SeedableRng};
 
-    fn config(features: FeatureKind, channels: Vec<usize>, embed_dim: usize) -> NetConfig {
+    fn config(channels: Vec<usize>, embed_dim: usize) -> NetConfig {
         NetConfig {
-            features,
+            features: FeatureKind::Picture,
             channels,
             kernel: 3,
             embed_dim,
@@ -325,24 +325,15 @@ mod tests {
         }
     }
 
-    /// The picture kinds, each network test runs on.
-    const KINDS: [FeatureKind; 2] = [FeatureKind::Picture, FeatureKind::PictureProgress];
-
-    /// Pictures of `kind` with blank regions (ties in the pools) and random strokes (the
-    /// ink in channel 0, the other channels in [-ink, ink]).
-    fn pictures(kind: FeatureKind, batch: usize, seed: u64) -> Vec<f64> {
+    /// Pictures with blank regions (ties in the pools) and random strokes.
+    fn pictures(batch: usize, seed: u64) -> Vec<f64> {
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-        let c = kind.channels();
-        let n = PICTURE_SIDE * PICTURE_SIDE * c;
+        let n = PICTURE_SIDE * PICTURE_SIDE;
         let mut x = vec![0.0f64; batch * n];
         for img in x.chunks_exact_mut(n) {
             for _ in 0..120 {
-                let px = &mut img[rng.random_range(0..n / c) * c..][..c];
-                let ink = rng.random_range(0.05..1.0);
-                px[0] = ink;
-                for v in &mut px[1..] {
-                    *v = ink * rng.random_range(-1.0..1.0);
-                }
+                let i = rng.random_range(0..n);
+                img[i] = rng.random_range(0.05..1.0);
             }
         }
         x
@@ -370,13 +361,7 @@ mod tests {
     /// with blank regions (where the pools tie).
     #[test]
     fn picture_gradients_match_finite_differences() {
-        for kind in KINDS {
-            gradients_match_finite_differences(kind);
-        }
-    }
-
-    fn gradients_match_finite_differences(kind: FeatureKind) {
-        let cfg = config(kind, vec![3, 4, 5], 6);
+        let cfg = config(vec![3, 4, 5], 6);
         let net = FastNet::<f64>::random(cfg.clone(), 5).expect("net");
         // Non-zero biases, so that blank regions are not exactly zero after ReLU.
         let mut net = net;
@@ -389,7 +374,7 @@ mod tests {
             }
         }
         let batch = 3;
-        let x = pictures(kind, batch, 4);
+        let x = pictures(batch, 4);
         let target: Vec<f64> = (0..batch * 6)
             .map(|_| rng.random_range(-1.0..1.0))
             .collect();
@@ -423,7 +408,7 @@ mod tests {
                 let g = grads.params()[pi][idx];
                 assert!(
                     (fd - g).abs() < 1e-5 * (1.0 + fd.abs()),
-                    "{kind:?} param {pi} idx {idx}: backward {g} vs finite difference {fd}"
+                    "param {pi} idx {idx}: backward {g} vs finite difference {fd}"
                 );
                 checked += 1;
             }
@@ -434,17 +419,10 @@ mod tests {
     /// Forward and gradients equal candle's autograd of the reference network.
     #[test]
     fn picture_net_matches_candle() -> candle_core::Result<()> {
-        for kind in KINDS {
-            net_matches_candle(kind)?;
-        }
-        Ok(())
-    }
-
-    fn net_matches_candle(kind: FeatureKind) -> candle_core::Result<()> {
-        let cfg = config(kind, vec![4, 6, 8], 5);
+        let cfg = config(vec![4, 6, 8], 5);
         let fast = FastNet::<f64>::random(cfg.clone(), 2).expect("net");
         let batch = 4;
-        let x = pictures(kind, batch, 8);
+        let x = pictures(batch, 8);
         let e = cfg.embed_dim;
         let mut scratch = Scratch::default();
         let mut out = vec![0.0; batch * e];
@@ -466,11 +444,11 @@ mod tests {
             .map(|((_, shape), p)| Var::from_slice(p, shape, &Device::Cpu))
             .collect::<candle_core::Result<Vec<_>>>()?;
         let net = Net::new(cfg, vars.iter().map(|v| v.as_tensor().clone()).collect())?;
-        let xt = Tensor::from_vec(x, (batch, n, kind.channels()), &Device::Cpu)?;
+        let xt = Tensor::from_vec(x, (batch, n, 1), &Device::Cpu)?;
         let got = net.forward(&xt)?;
         let want = got.flatten_all()?.to_vec1::<f64>()?;
         for (a, b) in out.iter().zip(&want) {
-            assert!((a - b).abs() < 1e-10, "{kind:?} forward {a} vs candle {b}");
+            assert!((a - b).abs() < 1e-10, "forward {a} vs candle {b}");
         }
         let dt = Tensor::from_vec(d_out, (batch, e), &Device::Cpu)?;
         let loss = (got * dt)?.sum_all()?;
@@ -485,7 +463,7 @@ mod tests {
             for (a, b) in grads.params()[pi].iter().zip(&g) {
                 assert!(
                     (a - b).abs() < 1e-9 * (1.0 + b.abs()),
-                    "{kind:?} param {pi}: {a} vs {b}"
+                    "param {pi}: {a} vs {b}"
                 );
             }
         }

@@ -33,8 +33,6 @@ pub enum FeatureArg {
     Joints,
     /// A picture of the pen-down path, read by a 2D CNN.
     Picture,
-    /// The picture with the pen's progress along the path (two channels).
-    PictureProgress,
 }
 
 impl From<FeatureArg> for FeatureKind {
@@ -43,7 +41,6 @@ impl From<FeatureArg> for FeatureKind {
             FeatureArg::Pen => FeatureKind::Pen,
             FeatureArg::Joints => FeatureKind::Joints,
             FeatureArg::Picture => FeatureKind::Picture,
-            FeatureArg::PictureProgress => FeatureKind::PictureProgress,
         }
     }
 }

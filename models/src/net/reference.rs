@@ -47,7 +47,7 @@ impl Net {
         &self.params
     }
 
-    /// Embed a batch of feature sequences `[B, L, F]` (pictures: `[B, side², channels]`) to
+    /// Embed a batch of feature sequences `[B, L, F]` (pictures: `[B, side², 1]`) to
     /// `[B, embed_dim]`.
     pub fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
         if self.config.features.is_picture() {
@@ -96,7 +96,7 @@ impl Net {
         if pixels != side * side {
             candle_core::bail!("a picture has {} pixels, got {pixels}", side * side);
         }
-        let mut h = x.reshape((bsz, side, side, self.config.in_channels()))?;
+        let mut h = x.reshape((bsz, side, side, 1))?;
         let mut s = side;
         for i in 0..n_layers {
             let w = &self.params[2 * i];
