@@ -163,7 +163,10 @@ fn remove_unsized_segments_in(dir: &Path, prefix: &str, timeout: Duration) -> Ve
     let candidates: Vec<(PathBuf, Duration)> = entries
         .flatten()
         .filter(|e| e.file_name().to_string_lossy().starts_with(prefix))
-        .filter_map(|e| unsized_age(&e.path()).map(|a| (e.path(), a)))
+        .filter_map(|e| {
+            let path = e.path();
+            unsized_age(&path).map(|a| (path, a))
+        })
         .collect();
     let wait = candidates
         .iter()
