@@ -17,12 +17,16 @@ pub struct DatasetArgs {
     pub dataset: PathBuf,
 }
 
-/// The Omniglot stroke root (faulty plans and demo drawings are made from the strokes).
+/// The recovered Omniglot alphabets of this workspace's shared data (same layout).
+pub const DEFAULT_RECOVERED: &str = "../shared/omniglot/recovered";
+
+/// The Omniglot stroke roots (faulty plans and demo drawings are made from the strokes).
 #[derive(Debug, Clone, clap::Args)]
 pub struct StrokesArgs {
-    /// Omniglot stroke root.
-    #[arg(long, default_value = DEFAULT_STROKES)]
-    pub strokes: PathBuf,
+    /// Omniglot stroke roots, comma-separated (each in the official layout; an alphabet
+    /// may appear under one root only).
+    #[arg(long, value_delimiter = ',', default_values = [DEFAULT_STROKES, DEFAULT_RECOVERED])]
+    pub strokes: Vec<PathBuf>,
 }
 
 /// The screen under test and its split: a model, the alphabets whose classes are enrolled,

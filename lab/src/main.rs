@@ -21,6 +21,9 @@ enum Command {
     Train(Box<guardian_lab::train::Args>),
     /// Few-shot evaluation of a model or a baseline.
     Eval(guardian_lab::eval::Args),
+    /// K-fold by alphabet: train both branches per fold on the other folds' alphabets,
+    /// measure episodes and cross-fitted go / no-go on the held-out ones, write the report.
+    Kfold(Box<guardian_lab::eval::kfold::Args>),
     /// Fuse trained networks into one model file (the branches of a fused model).
     Fuse(guardian_lab::tools::fuse::Args),
     /// Markdown + PNG report of a trained model.
@@ -48,6 +51,7 @@ fn main() -> anyhow::Result<()> {
         Command::Plot(args) => guardian_lab::tools::plot::run(args),
         Command::Train(args) => guardian_lab::train::run(args),
         Command::Eval(args) => guardian_lab::eval::run(args),
+        Command::Kfold(args) => guardian_lab::eval::kfold::run(args),
         Command::Fuse(args) => guardian_lab::tools::fuse::run(args),
         Command::Report(args) => guardian_lab::eval::report::run(args),
         Command::Bank(args) => guardian_lab::tools::bank::run(args),

@@ -370,7 +370,7 @@ fn fault_negatives_are_solved_corruptions_and_training_pushes_them_away() {
     let data = small_dataset();
     let mut set = Prepared::new(data, &["Latin".to_string()], FeatureKind::Pen).expect("prepare");
     let made = set
-        .make_faults(data, &shared_strokes(), &train::TRAIN_FAULTS, 3, 7)
+        .make_faults(data, &[shared_strokes()], &train::TRAIN_FAULTS, 3, 7)
         .expect("make faults");
     // Every corruption applies to most drawings (a missing stroke needs two strokes; the
     // generator then picks another fault), so nearly all 3 per drawing are made.
@@ -480,7 +480,7 @@ fn training_gradients_match_candle_autograd_on_real_batches() {
         let config = branch.config().clone();
         let mut set =
             Prepared::new(data, &["Latin".to_string()], config.features).expect("prepare");
-        set.make_faults(data, &shared_strokes(), &train::TRAIN_FAULTS, 2, 3)
+        set.make_faults(data, &[shared_strokes()], &train::TRAIN_FAULTS, 2, 3)
             .expect("faults");
         let cfg = TrainConfig {
             net: config.clone(),
@@ -560,7 +560,7 @@ fn class_augmentation_adds_transformed_classes_with_their_faults_and_drops_dupli
     use guardian_lab::train::classaug::{self, Dihedral, SymmetryRule};
     let data = small_dataset();
     let mut set = Prepared::new(data, &["Latin".to_string()], FeatureKind::Pen).expect("prepare");
-    set.make_faults(data, &shared_strokes(), &train::TRAIN_FAULTS, 2, 7)
+    set.make_faults(data, &[shared_strokes()], &train::TRAIN_FAULTS, 2, 7)
         .expect("make faults");
     let (n0, c0) = (set.len(), set.classes());
     let before = set.batch(&[0], None).expect("batch").flatten_all().unwrap();

@@ -17,7 +17,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::data::path::{DensePath, Geometry, PathPoint, PathSolver, SolvePathError};
-use crate::data::strokes::{self, ReadStrokesError, Stroke};
+use crate::data::strokes::{self, ReadStrokesError, Stroke, StrokePrep};
 
 /// Converting one drawing failed.
 #[derive(Debug, thiserror::Error)]
@@ -181,6 +181,16 @@ pub fn generate_files(
     geometry: &Geometry,
     progress: &(dyn Fn() + Sync),
 ) -> Result<(Dataset, GenerateReport), GenerateError> {
+    generate_files_with(files, geometry, StrokePrep::default(), progress)
+}
+
+/// [`generate_files`] with the strokes of every drawing passed through `prep` first.
+pub fn generate_files_with(
+    files: &[strokes::DrawingFile],
+    geometry: &Geometry,
+    prep: StrokePrep,
+    progress: &(dyn Fn() + Sync),
+) -> Result<(Dataset, GenerateReport), GenerateError> {
     let start = Instant::now();
     let solver = PathSolver::new(geometry)?;
     let alphabets: Vec<String> = files
@@ -200,7 +210,7 @@ pub fn generate_files(
         .map(|f| {
             let r = strokes::read_strokes(&f.path)
                 .map_err(ConvertError::from)
-                .and_then(|s| convert_strokes(&solver, &s));
+                .and_then(|s| convert_strokes(&solver, &prep.apply(s)));
             progress();
             r
         })
@@ -636,6 +646,14 @@ pub struct Args {
     /// its pen, home seed and canvas come from its description (default: panda).
     #[arg(long)]
     pub robot: Option<String>,
+    /// Simplify every stroke (Ramer-Douglas-Peucker, tolerance in motor units) before it is
+    /// converted, as the recovered alphabets were; 0.65 gives the official files the
+    /// recovered files' density (docs/report, 2026-12-05).
+    #[arg(long)]
+    pub simplify: Option<f64>,
+    /// Drop one-point strokes (dots) before conversion, as the recovered files lack them.
+    #[arg(long)]
+    pub drop_dots: bool,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -655,6 +673,14 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             None => Geometry::default(),
         },
     };
+    anyhow::ensure!(
+        args.simplify.is_none_or(|e| e.is_finite() && e >= 0.0),
+        "--simplify must be a finite tolerance >= 0"
+    );
+    let prep = StrokePrep {
+        simplify: args.simplify,
+        drop_dots: args.drop_dots,
+    };
     let files = strokes::scan(&args.strokes)?;
     let bar = if args.quiet {
         indicatif::ProgressBar::hidden()
@@ -668,7 +694,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
         .progress_chars("=> "),
     );
-    let (dataset, report) = generate_files(&files, &geometry, &|| bar.inc(1))?;
+    let (dataset, report) = generate_files_with(&files, &geometry, prep, &|| bar.inc(1))?;
     bar.finish_and_clear();
     dataset.save(&args.out)?;
     eprintln!(
@@ -683,6 +709,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
          dense waypoints:      {} ({:.0} per drawing)\n\
          elapsed:              {:.3} s\n\
          drawings/s:           {:.0}\n\
+         stroke preparation:   {}\n\
          classes / alphabets:  {} / {}\n\
          written:              {}",
         rayon::current_num_threads(),
@@ -698,6 +725,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         report.dense_waypoints as f64 / report.converted.max(1) as f64,
         report.elapsed.as_secs_f64(),
         report.drawings_per_second(),
+        serde_json::to_string(&prep)?,
         dataset.classes.len(),
         dataset.alphabets.len(),
         args.out.display(),

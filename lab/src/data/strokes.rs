@@ -195,6 +195,73 @@ pub fn parse_strokes(text: &str, path: &Path) -> Result<Vec<Stroke>, ReadStrokes
     Ok(strokes)
 }
 
+/// What is done to a drawing's strokes before it is converted: the two ways in which the
+/// recovered alphabets (`../shared/omniglot/recovered`, README there) differ from the
+/// official files, so that dense official drawings can be made to look like them and the
+/// gap measured (`guardian-lab dataset --simplify --drop-dots`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct StrokePrep {
+    /// Ramer-Douglas-Peucker tolerance in motor units (`None`: strokes as drawn).
+    pub simplify: Option<f64>,
+    /// Remove one-point strokes (dots), as the recovered files lack them. A drawing that is
+    /// only dots keeps them (it would be empty otherwise).
+    pub drop_dots: bool,
+}
+
+impl StrokePrep {
+    /// Apply to one drawing's strokes.
+    pub fn apply(&self, strokes: Vec<Stroke>) -> Vec<Stroke> {
+        let mut out = strokes;
+        if self.drop_dots && out.iter().any(|s| s.len() > 1) {
+            out.retain(|s| s.len() > 1);
+        }
+        if let Some(eps) = self.simplify {
+            out = out.iter().map(|s| simplify(s, eps)).collect();
+        }
+        out
+    }
+}
+
+/// Ramer-Douglas-Peucker simplification of one stroke (x, y only; each kept point keeps its
+/// time stamp): the fewest of its points such that no dropped point lies farther than `eps`
+/// from the chord that replaces it. The first and last points are always kept.
+pub fn simplify(stroke: &[Point], eps: f64) -> Stroke {
+    if stroke.len() < 3 {
+        return stroke.to_vec();
+    }
+    let mut keep = vec![false; stroke.len()];
+    keep[0] = true;
+    keep[stroke.len() - 1] = true;
+    let mut todo = vec![(0, stroke.len() - 1)];
+    while let Some((a, b)) = todo.pop() {
+        let (pa, pb) = (stroke[a], stroke[b]);
+        let (dx, dy) = (pb.x - pa.x, pb.y - pa.y);
+        let len = dx.hypot(dy);
+        let dist = |p: &Point| {
+            if len > 0.0 {
+                (dy * (p.x - pa.x) - dx * (p.y - pa.y)).abs() / len
+            } else {
+                (p.x - pa.x).hypot(p.y - pa.y)
+            }
+        };
+        let far = (a + 1..b)
+            .map(|i| (i, dist(&stroke[i])))
+            .max_by(|x, y| x.1.total_cmp(&y.1));
+        if let Some((i, d)) = far
+            && d > eps
+        {
+            keep[i] = true;
+            todo.push((a, i));
+            todo.push((i, b));
+        }
+    }
+    stroke
+        .iter()
+        .zip(keep)
+        .filter_map(|(p, k)| k.then_some(*p))
+        .collect()
+}
+
 /// Read and parse one stroke file.
 pub fn read_strokes(path: &Path) -> Result<Vec<Stroke>, ReadStrokesError> {
     let text = std::fs::read_to_string(path).map_err(|source| ReadStrokesError::Io {
@@ -325,6 +392,49 @@ mod tests {
             }
         );
         assert_eq!(s[1].len(), 1);
+    }
+
+    #[test]
+    fn simplification_keeps_corners_and_drops_straight_runs() {
+        let p = |x: f64, y: f64| Point { x, y, t: 0.0 };
+        // An L of 11 points: only its ends and its corner survive.
+        let mut l: Stroke = (0..=5).map(|i| p(f64::from(i), 0.0)).collect();
+        l.extend((1..=5).map(|i| p(5.0, f64::from(i))));
+        let s = simplify(&l, 0.1);
+        assert_eq!(s, vec![p(0.0, 0.0), p(5.0, 0.0), p(5.0, 5.0)]);
+        // A bump of 0.5 is kept at eps 0.4 and dropped at eps 0.6.
+        let bump = vec![
+            p(0.0, 0.0),
+            p(1.0, 0.0),
+            p(2.0, 0.5),
+            p(3.0, 0.0),
+            p(4.0, 0.0),
+        ];
+        assert!(simplify(&bump, 0.4).contains(&p(2.0, 0.5)));
+        assert_eq!(simplify(&bump, 0.6), vec![p(0.0, 0.0), p(4.0, 0.0)]);
+        // A closed loop (first = last point) keeps its farthest point.
+        let ring = vec![
+            p(0.0, 0.0),
+            p(2.0, 0.0),
+            p(2.0, 2.0),
+            p(0.0, 2.0),
+            p(0.0, 0.0),
+        ];
+        assert!(simplify(&ring, 0.5).len() >= 3);
+    }
+
+    #[test]
+    fn dots_are_dropped_unless_they_are_all_there_is() {
+        let p = |x: f64| Point { x, y: 0.0, t: 0.0 };
+        let prep = StrokePrep {
+            simplify: None,
+            drop_dots: true,
+        };
+        let drawing = vec![vec![p(0.0), p(1.0)], vec![p(5.0)], vec![p(2.0), p(3.0)]];
+        assert_eq!(prep.apply(drawing).len(), 2);
+        let only_dots = vec![vec![p(0.0)], vec![p(5.0)]];
+        assert_eq!(prep.apply(only_dots.clone()), only_dots);
+        assert_eq!(StrokePrep::default().apply(only_dots.clone()), only_dots);
     }
 
     #[test]

@@ -322,6 +322,17 @@ fn pool_data_indices(data: &Dataset, alphabets: &[String]) -> anyhow::Result<Vec
 
 /// Run `guardian-lab outliers`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
+    let report = measure(args)?;
+    if args.json {
+        println!("{}", serde_json::to_string(&report)?);
+    } else {
+        print!("{}", markdown(&report));
+    }
+    Ok(())
+}
+
+/// The figures of `guardian-lab outliers` (and the files of `--out`), not printed.
+pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
     let data = Dataset::load(&args.data.dataset)?;
     // Pen paths by the forward kinematics of the robot that drew the data set.
     let robot = data.robot()?;
@@ -333,7 +344,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     anyhow::ensure!(didx.len() == pool.xs.len(), "pool index mismatch");
 
     // Corruption sources.
-    let index = StrokeIndex::scan(std::slice::from_ref(&args.strokes.strokes))?;
+    let index = StrokeIndex::scan(&args.strokes.strokes)?;
     let mut rng = StdRng::seed_from_u64(args.screen.seed);
     let mut order: Vec<usize> = (0..pool.xs.len()).collect();
     order.shuffle(&mut rng);
@@ -689,12 +700,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 .map(|(m, sc)| (m.as_str(), sc.genuine.as_slice(), &sc.faulty)),
         )?;
     }
-    if args.json {
-        println!("{}", serde_json::to_string(&report)?);
-    } else {
-        print!("{}", markdown(&report));
-    }
-    Ok(())
+    Ok(report)
 }
 
 /// The report as markdown tables (one per method).

@@ -110,6 +110,13 @@ fn calibrate_on_alphabets(
 
 /// Run `guardian-lab bank`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
+    let summary = build(args)?;
+    println!("{}", serde_json::to_string_pretty(&summary)?);
+    Ok(())
+}
+
+/// Calibrate and write the bank of `guardian-lab bank`; what was done, not printed.
+pub fn build(args: &Args) -> anyhow::Result<BankSummary> {
     let data = Dataset::load(&args.data.dataset)?;
     let model = data.embedder(&args.screen.model)?;
     args.screen.check_geometry_share()?;
@@ -184,6 +191,5 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         geometry_calibration: gcal,
         out: args.out.clone(),
     };
-    println!("{}", serde_json::to_string_pretty(&summary)?);
-    Ok(())
+    Ok(summary)
 }

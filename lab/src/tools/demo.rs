@@ -17,7 +17,6 @@ use rand::SeedableRng;
 use rand::rngs::StdRng;
 use serde::Serialize;
 
-use crate::cli::StrokesArgs;
 use crate::data::dataset::{ConvertError, convert_strokes};
 use crate::data::faults::{Fault, corrupt_joints};
 use crate::data::path::{Geometry, PathSolver, SolvePathError};
@@ -594,9 +593,9 @@ pub fn verdict_text(v: &Verdict) -> String {
 /// `guardian-lab demo` arguments.
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Omniglot stroke root.
-    #[command(flatten)]
-    pub strokes: StrokesArgs,
+    /// Omniglot stroke root of the official files (the demo draws Latin).
+    #[arg(long, default_value = crate::cli::DEFAULT_STROKES)]
+    pub strokes: PathBuf,
     /// Request-response service name of the daemon.
     #[arg(long, default_value = guardian_shared::wire::DEFAULT_SERVICE_NAME)]
     pub service: String,
@@ -631,7 +630,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let report = run_cases(
         &client,
         &Options {
-            strokes: args.strokes.strokes.clone(),
+            strokes: args.strokes.clone(),
             keep: args.keep,
         },
     )?;

@@ -4,7 +4,7 @@
 //! with random augmentation.
 
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::PathBuf;
 
 use candle_core::{Device, Tensor};
 use guardian_models::features::{self, Augment, FeatureKind, PenPoint};
@@ -109,14 +109,14 @@ impl Prepared {
 
     /// Make `variants` corrupted plans of every sample for fault-negative training: a random
     /// fault of `kinds` at a random severity in [0.25, 1], made on the drawing's
-    /// Omniglot strokes (found under `strokes_root` by class and drawer) and re-solved
+    /// Omniglot strokes (found under `strokes_roots` by class and drawer) and re-solved
     /// through the dataset's IK, exactly as the evaluation's faulty plans are. Deterministic
     /// in `seed`. Returns how many were made (a drawing whose strokes are missing, or a
     /// corruption that cannot be solved, gets fewer).
     pub fn make_faults(
         &mut self,
         data: &Dataset,
-        strokes_root: &Path,
+        strokes_roots: &[PathBuf],
         kinds: &[Fault],
         variants: usize,
         seed: u64,
@@ -131,7 +131,7 @@ impl Prepared {
                 "fault negatives need pen features".into(),
             ));
         }
-        let index = StrokeIndex::scan(&[strokes_root.to_path_buf()])
+        let index = StrokeIndex::scan(strokes_roots)
             .map_err(|e| TrainError::Setup(format!("fault negatives: {e}")))?;
         let solver = PathSolver::new(&data.geometry)
             .map_err(|e| TrainError::Setup(format!("fault negatives: {e}")))?;

@@ -4,7 +4,7 @@
 //! the metrics, the models and the checkpoint; `guardian-lab train`.
 
 use std::io::Write as _;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use candle_core::{Device, Tensor};
@@ -75,12 +75,12 @@ pub fn embed(net: &FastNet, x: &Tensor) -> Result<Tensor, TrainError> {
 }
 
 /// Train as configured, writing into `out`. With `resume`, continue from the checkpoint
-/// there (the configuration must match). `strokes` is the Omniglot stroke root the fault
+/// there (the configuration must match). `strokes` are the Omniglot stroke roots the fault
 /// negatives are made from (needed only when `cfg.fault_share > 0`).
 pub fn train(
     data: &Dataset,
     cfg: &TrainConfig,
-    strokes: Option<&Path>,
+    strokes: Option<&[PathBuf]>,
     out: &Path,
     resume: bool,
     quiet: bool,
@@ -107,8 +107,7 @@ pub fn train(
         };
         if n_train == 0 {
             return Err(TrainError::Setup(format!(
-                "no fault negatives could be made from {}",
-                root.display()
+                "no fault negatives could be made from {root:?}"
             )));
         }
         if !quiet {
