@@ -387,6 +387,10 @@ pub struct DaemonStatus {
     /// A fleet member's position (`docs/fleet.md`): per record signer, the greatest Lamport
     /// counter of its records applied here; empty for a daemon outside a fleet.
     pub fleet: Vec<FleetPosition>,
+    /// A fleet member's bank digest (`docs/fleet.md`): the first 16 bytes, in hex, of the
+    /// SHA-256 over every class it serves. Members with equal digests serve the same
+    /// classes; `None` for a daemon outside a fleet.
+    pub bank_digest: Option<String>,
 }
 
 /// How far a fleet member has applied one signer's records.
@@ -488,6 +492,14 @@ pub enum CheckError {
     #[error("guardiand internal error: {message}")]
     Internal {
         /// The daemon's explanation.
+        message: String,
+    },
+    /// The daemon could not persist the change (its state directory is full or read-only,
+    /// or an I/O error) and did not apply it: the bank is as before. Retry once the cause
+    /// is fixed.
+    #[error("guardiand could not persist the change (nothing changed): {message}")]
+    Storage {
+        /// The daemon's explanation (the file and the system error).
         message: String,
     },
     /// An iceoryx2 operation failed.
@@ -900,6 +912,11 @@ pub(crate) fn daemon_status(
                 })
             })
             .collect(),
+        bank_digest: entries.iter().find_map(|e| {
+            wire::decode_text(&e.name)
+                .strip_prefix("bank:")
+                .map(str::to_owned)
+        }),
     })
 }
 
@@ -983,6 +1000,7 @@ pub(crate) fn status_ok(r: &ResponseHeader) -> Result<(), CheckError> {
         Failure::Internal { message } => CheckError::Internal { message },
         Failure::LimitExceeded { limit, message } => CheckError::LimitExceeded { limit, message },
         Failure::NotPermitted { message } => CheckError::NotPermitted { message },
+        Failure::Storage { message } => CheckError::Storage { message },
         // A status this client does not know yet.
         _ => CheckError::Protocol {
             detail: format!("unknown status {}", r.status),

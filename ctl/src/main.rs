@@ -241,6 +241,10 @@ fn main() -> anyhow::Result<()> {
                         p.signer, p.lamport
                     );
                 }
+                // Equal on members that serve the same classes, different otherwise.
+                if let Some(d) = &s.bank_digest {
+                    println!("fleet           bank digest {d}");
+                }
             }
         }
     }

@@ -14,12 +14,12 @@ use guardian_fleet::keys::{KeyError, hex, read_signing_key};
 use guardian_fleet::node::{Incoming, Node, NodeError, RemoteCall, frame_batch};
 use guardian_fleet::record::{Change, Record, Unsigned};
 use guardian_fleet::remote::{Gate, now_ms, seal_response};
-use guardian_fleet::store::{Offer, STORE_FILE, Store, StoreError};
+use guardian_fleet::store::{Offer, STORE_FILE, Store, StoreError, Undo};
 use guardian_fleet::{SigningKey, VerifyingKey};
 use guardian_models::bank::Class;
-use guardian_shared::wire::{ClassEntry, Op, RequestHeader, admin, decode_code, encode_text};
+use guardian_shared::wire::{ClassEntry, admin, encode_text};
 
-use crate::screen::Screen;
+use crate::screen::{ChangeLog, Screen};
 
 /// Starting fleet membership failed.
 #[derive(Debug, thiserror::Error)]
@@ -58,6 +58,10 @@ pub struct Member {
     robot: String,
     model: String,
     refused: Refusals,
+    /// The own record of the admin change in progress (recorded, not yet committed).
+    pending: Option<(Record, Undo)>,
+    /// The winners changed since the last [`Member::refresh`].
+    dirty: bool,
 }
 
 /// The robot identity records carry: `<name>/<joints>/<URDF sha256>`.
@@ -84,7 +88,7 @@ impl Member {
         if report.torn_bytes > 0 {
             tracing::warn!(
                 torn_bytes = report.torn_bytes,
-                "fleet record store: cut off an incomplete last record (a crash while appending); peers will send it again"
+                "fleet record store: cut off an incomplete last record (a crash while appending it, before its change reached the bank or any peer): a peer's record comes again with the next catch-up; an own change was never acknowledged and is lost everywhere alike (enroll it again)"
             );
         }
         if report.untrusted > 0 {
@@ -119,7 +123,10 @@ impl Member {
             robot: robot_id(screen),
             model: screen.embedder().version().to_owned(),
             refused: Refusals::default(),
+            pending: None,
+            dirty: false,
         };
+        screen.set_report_bank_digest(true);
         member.reconcile(screen);
         member.refresh(screen);
         tracing::info!(
@@ -271,7 +278,16 @@ impl Member {
                     true
                 }
             },
-            Ok(Offer::Duplicate) => false,
+            Ok(Offer::Duplicate) if !live => false,
+            Ok(Offer::Duplicate) => {
+                // Own publications do not come back (published to remote peers only), so
+                // a live duplicate is a replay, or a publication a catch-up delivered first.
+                let detail = format!(
+                    "class {name:?}: lamport {lamport} by {signer} is the record already held: replayed (or delivered by a catch-up first)"
+                );
+                self.refuse(live, "duplicate", &detail);
+                false
+            }
             Ok(Offer::Stale { winner_lamport }) => {
                 let detail = format!(
                     "class {name:?}: lamport {lamport} by {signer} is older than the current record (lamport {winner_lamport}): replayed or superseded"
@@ -286,48 +302,19 @@ impl Member {
         }
     }
 
-    /// An admin request was answered with `status`: replicate the change it made, if any
-    /// (signed, stored and published before the admin hears it is done).
-    pub fn after_admin(&mut self, screen: &mut Screen, h: &RequestHeader, status: u32) {
-        if let Some(class) = changed_class(h, status) {
-            self.local_change(screen, &class);
+    /// An admin request was answered: publish what changed to the catch-up queryable and
+    /// the status (the record itself was signed, stored and published by the
+    /// [`ChangeLog`] steps before the admin hears it is done).
+    pub fn after_admin(&mut self, screen: &mut Screen) {
+        if let Some((record, _)) = self.pending.take() {
+            // A change neither committed nor retracted cannot happen (the screen always
+            // does one or the other); keep the record, as the next start would.
+            tracing::error!(class = %record.class(), "fleet record of an unfinished admin change kept");
+            self.dirty = true;
         }
-    }
-
-    /// A change accepted on the admin path: sign it, store it, publish it.
-    pub fn local_change(&mut self, screen: &mut Screen, class: &str) {
-        let change = match screen.bank().class(class).map(serde_json::to_vec) {
-            Some(Ok(v)) => Change::Put(v),
-            Some(Err(e)) => {
-                tracing::error!(class, error = %e, "cannot encode the class for the fleet");
-                return;
-            }
-            None => Change::Forget,
-        };
-        let record = Record::sign(
-            Unsigned {
-                fleet: self.config.name.clone(),
-                robot: self.robot.clone(),
-                model: self.model.clone(),
-                class: class.to_owned(),
-                change,
-                lamport: self.store.next_lamport(),
-            },
-            &self.key,
-        );
-        match self.store.offer(record.clone()) {
-            Ok(Offer::Applied) => {}
-            Ok(other) => tracing::error!(class, ?other, "own fleet record did not win its class"),
-            Err(e) => {
-                tracing::error!(class, error = %e, "cannot persist the fleet record; change not replicated");
-                return;
-            }
+        if std::mem::take(&mut self.dirty) {
+            self.refresh(screen);
         }
-        if let Err(e) = self.node.publish(record.bytes()) {
-            tracing::warn!(class, error = %e, "cannot publish the fleet record; peers get it at their next catch-up");
-        }
-        tracing::info!(class, lamport = record.lamport(), "fleet change published");
-        self.refresh(screen);
     }
 
     /// Answer one remote request.
@@ -361,6 +348,78 @@ impl Member {
             &frame[4..],
         );
         call.reply(envelope);
+    }
+}
+
+/// The admin path's changes, made durable as signed records before the bank journals them
+/// (`docs/fleet.md`, "Persistence and crashes"): record (append + fsync), journal, publish.
+impl ChangeLog for Member {
+    fn record(&mut self, class: &str, state: Option<&Class>) -> Result<(), String> {
+        let change = match state {
+            Some(c) => Change::Put(
+                serde_json::to_vec(c).map_err(|e| format!("cannot encode class {class:?}: {e}"))?,
+            ),
+            None => Change::Forget,
+        };
+        let record = Record::sign(
+            Unsigned {
+                fleet: self.config.name.clone(),
+                robot: self.robot.clone(),
+                model: self.model.clone(),
+                class: class.to_owned(),
+                change,
+                lamport: self.store.next_lamport(),
+            },
+            &self.key,
+        );
+        let (offer, undo) = self
+            .store
+            .offer_own(record.clone())
+            .map_err(|e| e.to_string())?;
+        if offer != Offer::Applied {
+            // Cannot happen: an own record takes the clock + 1, past every record held.
+            let _ = self.store.retract(undo);
+            return Err(format!(
+                "own fleet record did not win its class ({offer:?})"
+            ));
+        }
+        self.pending = Some((record, undo));
+        crate::faults::hit(crate::faults::FLEET_AFTER_RECORD);
+        Ok(())
+    }
+
+    fn retract(&mut self, class: &str) {
+        let Some((record, undo)) = self.pending.take() else {
+            return;
+        };
+        match self.store.retract(undo) {
+            Ok(()) => tracing::warn!(
+                class,
+                lamport = record.lamport(),
+                "fleet record taken back: the bank could not persist its change"
+            ),
+            Err(e) => {
+                tracing::error!(
+                    class,
+                    lamport = record.lamport(),
+                    error = %e,
+                    "cannot take back the fleet record of a change the bank could not persist: the record stays, peers receive it at their next catch-up and this member applies it at its next start"
+                );
+                self.dirty = true;
+            }
+        }
+    }
+
+    fn committed(&mut self, class: &str) {
+        let Some((record, _)) = self.pending.take() else {
+            return;
+        };
+        self.dirty = true;
+        if let Err(e) = self.node.publish(record.bytes()) {
+            tracing::warn!(class, error = %e, "cannot publish the fleet record; peers get it at their next catch-up");
+        }
+        crate::faults::hit(crate::faults::FLEET_AFTER_PUBLISH);
+        tracing::info!(class, lamport = record.lamport(), "fleet change published");
     }
 }
 
@@ -402,17 +461,6 @@ fn wake_loop(config: &iceoryx2::config::Config, event: &str, signals: &mpsc::Rec
 /// with a wake-up, but replicated records were measured waiting for the loop's tick
 /// (`tick-ms`) after idle periods, so the tick is bounded by this while a member.
 pub const FLEET_TICK: std::time::Duration = std::time::Duration::from_millis(10);
-
-/// Whether an admin answer (`status` 0) to `h` changed the bank: an accepted enroll or
-/// forget. Returns the class.
-fn changed_class(h: &RequestHeader, status: u32) -> Option<String> {
-    if status != 0 || !matches!(decode_code::<Op>(h.op), Some(Op::Enroll | Op::Forget)) {
-        return None;
-    }
-    guardian_shared::wire::decode_class_name(&h.class_name)
-        .ok()
-        .map(str::to_owned)
-}
 
 /// The fleet position as status entries: per signer, name `fleet:<first 16 hex digits of
 /// its key>`, the Lamport counter in `examples` (low 32 bits) and `calibrated` (high 32

@@ -5,6 +5,7 @@
 
 pub mod admin;
 pub mod config;
+pub mod faults;
 #[cfg(feature = "fleet")]
 pub mod fleet;
 pub mod locator;

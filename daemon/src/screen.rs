@@ -46,7 +46,16 @@ pub struct Screen {
     /// Entries a status answer carries: the fleet position of a fleet member (one entry
     /// per signer, `docs/wire-protocol.md` §10), empty otherwise.
     status_entries: Vec<ClassEntry>,
+    /// Status answers end with the bank digest entry ([`BANK_DIGEST_PREFIX`]).
+    report_bank_digest: bool,
+    /// SHA-256 of each class's name and state, computed when first needed and dropped when
+    /// the class changes ([`Screen::bank_digest`]).
+    class_digests: std::collections::HashMap<String, [u8; 32]>,
 }
+
+/// Name prefix of the status entry carrying the bank digest (`docs/wire-protocol.md` §10):
+/// `bank:` and the first 16 bytes of [`Screen::bank_digest`] in hex.
+pub const BANK_DIGEST_PREFIX: &str = "bank:";
 
 /// The journal is compacted into the snapshot once it is larger than the bank's class data
 /// and at least this large (so amortised persistence stays O(the change)).
@@ -61,6 +70,23 @@ pub const DEFAULT_LIMITS: BankLimits = BankLimits {
 
 /// A prepared check plan handed from a batch to its answer.
 type PreparedPlan = Result<Prepared, EmbedError>;
+
+/// Where a change accepted on the admin path is made durable *before* the bank journals
+/// it: a fleet member's record store (`docs/fleet.md`, "Persistence and crashes"). The bank
+/// change is made in memory first (nothing is served meanwhile: the serving loop is busy
+/// with this request), then [`ChangeLog::record`], then the bank's journal, then
+/// [`ChangeLog::committed`]; so every change the bank holds on disk has its record, and a
+/// crash between the steps leaves a record the next start applies (never a bank change
+/// without a record, which no peer would ever receive).
+pub trait ChangeLog {
+    /// Make the change durable: class `class` is now `state` (`None`: forgotten). An error
+    /// refuses the change (the bank is left as it was).
+    fn record(&mut self, class: &str, state: Option<&Class>) -> Result<(), String>;
+    /// The bank could not persist the change just recorded: take the record back.
+    fn retract(&mut self, class: &str);
+    /// The bank persisted the change: publish it.
+    fn committed(&mut self, class: &str);
+}
 
 impl Screen {
     /// A screen serving `bank` with `embedder` for `station`'s robot and workcell,
@@ -86,6 +112,8 @@ impl Screen {
             journal_ok: true,
             compact_pending: false,
             status_entries: Vec::new(),
+            report_bank_digest: false,
+            class_digests: std::collections::HashMap::new(),
         };
         s.journal_bytes = s.journal_len();
         s
@@ -133,6 +161,7 @@ impl Screen {
         self.k = k;
         self.journal_bytes = self.journal_len();
         self.journal_ok = true;
+        self.class_digests.clear();
     }
 
     /// Record the service time of one answered request.
@@ -192,8 +221,19 @@ impl Screen {
         h: &RequestHeader,
         payload: &[f32],
     ) -> (ResponseHeader, Vec<ClassEntry>) {
+        self.handle_admin_logged(h, payload, None)
+    }
+
+    /// [`Screen::handle_admin`], with an enroll's or forget's change made durable in `log`
+    /// before the bank journals it ([`ChangeLog`]).
+    pub fn handle_admin_logged(
+        &mut self,
+        h: &RequestHeader,
+        payload: &[f32],
+        log: Option<&mut dyn ChangeLog>,
+    ) -> (ResponseHeader, Vec<ClassEntry>) {
         let request = self.decode(h, payload, true);
-        self.answer(h, request, None)
+        self.answer_logged(h, request, None, log)
     }
 
     /// Answer one request from a remote caller (authenticated by the fleet transport): check,
@@ -220,6 +260,58 @@ impl Screen {
     /// Set the entries a status answer carries (a fleet member's position).
     pub fn set_status_entries(&mut self, entries: Vec<ClassEntry>) {
         self.status_entries = entries;
+    }
+
+    /// End every status answer with the bank digest entry (a fleet member's, so that two
+    /// members whose banks differ never report the same position).
+    pub fn set_report_bank_digest(&mut self, on: bool) {
+        self.report_bank_digest = on;
+    }
+
+    /// SHA-256 over what decides a check besides the model: the bank's global default
+    /// threshold (`f32` bits, little-endian), its calibration and geometry calibration (as
+    /// JSON, `null` if none), then every class in name order, each as the SHA-256 of its
+    /// name's length (`u64` little-endian), its name and its state as JSON (as a fleet
+    /// record carries it). Equal banks, equal digests; after a change only the changed
+    /// class is encoded again.
+    pub fn bank_digest(&mut self) -> [u8; 32] {
+        use sha2::{Digest, Sha256};
+        let mut all = Sha256::new();
+        all.update(self.bank.default_threshold().to_bits().to_le_bytes());
+        all.update(serde_json::to_vec(&self.bank.calibration()).unwrap_or_default());
+        all.update(serde_json::to_vec(&self.bank.geometry_calibration()).unwrap_or_default());
+        for (name, class) in self.bank.classes() {
+            let d = self
+                .class_digests
+                .entry(name.to_owned())
+                .or_insert_with(|| {
+                    let mut h = Sha256::new();
+                    h.update((name.len() as u64).to_le_bytes());
+                    h.update(name.as_bytes());
+                    // Serialising plain numbers and strings cannot fail; an error would
+                    // leave the class's part empty, which still differs from a served state.
+                    h.update(serde_json::to_vec(class).unwrap_or_default());
+                    h.finalize().into()
+                });
+            all.update(*d);
+        }
+        all.finalize().into()
+    }
+
+    fn status_answer(&mut self) -> Vec<ClassEntry> {
+        let mut entries = self.status_entries.clone();
+        if self.report_bank_digest {
+            let d = self.bank_digest();
+            let hex: String = d[..16].iter().map(|b| format!("{b:02x}")).collect();
+            entries.push(ClassEntry {
+                name: encode_text(&format!("{BANK_DIGEST_PREFIX}{hex}")),
+                distance: f32::NAN,
+                threshold: f32::NAN,
+                examples: u32::try_from(self.bank.len()).unwrap_or(u32::MAX),
+                calibrated: 0,
+            });
+        }
+        entries
     }
 
     /// Apply a change replicated from another member: class `name` becomes `class`
@@ -250,7 +342,7 @@ impl Screen {
             self.bank.undo_change(name, previous, generation);
             return Err(limit_exceeded(limit));
         }
-        self.persist(name, previous, generation, after)?;
+        self.persist(name, previous, generation, after, None)?;
         tracing::info!(class = %name, bank = self.bank.generation(), "applied a replicated change");
         Ok(())
     }
@@ -281,6 +373,17 @@ impl Screen {
         request: Result<Request<'_>, Failure>,
         prepared: Option<PreparedPlan>,
     ) -> (ResponseHeader, Vec<ClassEntry>) {
+        self.answer_logged(h, request, prepared, None)
+    }
+
+    /// [`Screen::answer`], with changes made durable in `log` first.
+    fn answer_logged(
+        &mut self,
+        h: &RequestHeader,
+        request: Result<Request<'_>, Failure>,
+        prepared: Option<PreparedPlan>,
+        log: Option<&mut dyn ChangeLog>,
+    ) -> (ResponseHeader, Vec<ClassEntry>) {
         let mut r = ResponseHeader::answering(h);
         let result = match request {
             Err(f) => Err(f),
@@ -294,10 +397,10 @@ impl Screen {
                     entries
                 }),
             Ok(Request::Identify { trajectory }) => self.identify(&trajectory),
-            Ok(Request::Enroll { class, examples }) => self.enroll(class, &examples),
-            Ok(Request::Forget { class }) => self.forget(class),
+            Ok(Request::Enroll { class, examples }) => self.enroll(class, &examples, log),
+            Ok(Request::Forget { class }) => self.forget(class, log),
             Ok(Request::Classes) => Ok(self.class_list()),
-            Ok(Request::Status) => Ok(self.status_entries.clone()),
+            Ok(Request::Status) => Ok(self.status_answer()),
         };
         let entries = match result {
             Ok(e) => e,
@@ -387,7 +490,12 @@ impl Screen {
             .collect())
     }
 
-    fn enroll(&mut self, name: &str, ts: &[Vec<Waypoint>]) -> Result<Vec<ClassEntry>, Failure> {
+    fn enroll(
+        &mut self,
+        name: &str,
+        ts: &[Vec<Waypoint>],
+        log: Option<&mut dyn ChangeLog>,
+    ) -> Result<Vec<ClassEntry>, Failure> {
         // Counts first: a refused enroll costs no embedding and changes nothing.
         self.limits
             .check_counts(&self.bank, name, ts.len())
@@ -425,12 +533,16 @@ impl Screen {
             self.bank.undo_change(name, previous, generation);
             return Err(limit_exceeded(limit));
         }
-        self.persist(name, previous, generation, after)?;
+        self.persist(name, previous, generation, after, log)?;
         tracing::info!(class = %name, examples = enrollment.embeddings.len(), bank = self.bank.generation(), "enrolled");
         Ok(vec![self.entry(name, f32::NAN)])
     }
 
-    fn forget(&mut self, name: &str) -> Result<Vec<ClassEntry>, Failure> {
+    fn forget(
+        &mut self,
+        name: &str,
+        log: Option<&mut dyn ChangeLog>,
+    ) -> Result<Vec<ClassEntry>, Failure> {
         let generation = self.bank.generation();
         let before = self.bank.class_bytes(name);
         let Some(previous) = self.bank.forget(name) else {
@@ -439,21 +551,33 @@ impl Screen {
             });
         };
         let after = self.bank_bytes.saturating_sub(before);
-        self.persist(name, Some(previous), generation, after)?;
+        self.persist(name, Some(previous), generation, after, log)?;
         tracing::info!(class = %name, bank = self.bank.generation(), "forgot class");
         Ok(Vec::new())
     }
 
     /// Persist the change just made to class `name` (append it to the journal; write a
     /// snapshot if there is none yet or the journal may be damaged), before it is
-    /// acknowledged. On failure the change is undone: the old bank stays served.
+    /// acknowledged; with a `log`, the change is recorded there first and committed after
+    /// ([`ChangeLog`]). On failure the change is undone (and its record retracted): the old
+    /// bank stays served.
     fn persist(
         &mut self,
         name: &str,
         previous: Option<Class>,
         generation: u64,
         bank_bytes: u64,
+        mut log: Option<&mut dyn ChangeLog>,
     ) -> Result<(), Failure> {
+        if let Some(log) = log.as_deref_mut()
+            && let Err(e) = log.record(name, self.bank.class(name))
+        {
+            tracing::error!(class = %name, error = %e, "cannot record the change for the fleet; change rejected, bank unchanged");
+            self.bank.undo_change(name, previous, generation);
+            return Err(Failure::Storage {
+                message: format!("cannot persist the fleet record: {e}"),
+            });
+        }
         let result = if self.journal_ok && self.bank_path.exists() {
             self.bank
                 .append_change(&self.bank_path, name)
@@ -462,16 +586,24 @@ impl Screen {
             self.snapshot()
         };
         if let Err(e) = result {
-            tracing::error!(error = %e, "cannot persist class bank; change rejected");
+            tracing::error!(class = %name, error = %e, "cannot persist class bank; change rejected, bank unchanged");
             self.journal_ok = false;
             self.bank.undo_change(name, previous, generation);
-            return Err(Failure::Internal {
+            if let Some(log) = log.as_deref_mut() {
+                log.retract(name);
+            }
+            return Err(Failure::Storage {
                 message: format!("cannot persist class bank: {e}"),
             });
         }
+        crate::faults::hit(crate::faults::AFTER_JOURNAL);
+        self.class_digests.remove(name);
         self.bank_bytes = bank_bytes;
         if self.journal_bytes > MIN_JOURNAL_COMPACT_BYTES.max(self.bank_bytes) {
             self.compact_pending = true;
+        }
+        if let Some(log) = log {
+            log.committed(name);
         }
         Ok(())
     }

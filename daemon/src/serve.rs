@@ -81,7 +81,22 @@ impl Member {
         match *self {}
     }
 
-    fn after_admin(&mut self, _: &mut Screen, _: &RequestHeader, _: u32) {
+    fn after_admin(&mut self, _: &mut Screen) {
+        match *self {}
+    }
+}
+
+#[cfg(not(feature = "fleet"))]
+impl crate::screen::ChangeLog for Member {
+    fn record(&mut self, _: &str, _: Option<&guardian_models::bank::Class>) -> Result<(), String> {
+        match *self {}
+    }
+
+    fn retract(&mut self, _: &str) {
+        match *self {}
+    }
+
+    fn committed(&mut self, _: &str) {
         match *self {}
     }
 }
@@ -469,10 +484,14 @@ fn serve_admin(admin: &AdminEndpoint, screen: &mut Screen, fleet: &mut Fleet) ->
         if !job.take() {
             continue;
         }
-        let answer = screen.handle_admin(&job.header, &job.payload);
-        // Replicated (signed, stored, published) before the admin hears it is done.
+        // A fleet member's change is recorded (signed, appended, fsynced) before the bank
+        // journals it and published after, all before the admin hears it is done.
+        let log = fleet
+            .as_mut()
+            .map(|m| m as &mut dyn crate::screen::ChangeLog);
+        let answer = screen.handle_admin_logged(&job.header, &job.payload, log);
         if let Some(m) = fleet.as_mut() {
-            m.after_admin(screen, &job.header, answer.0.status);
+            m.after_admin(screen);
         }
         job.answer(answer);
         n += 1;

@@ -259,10 +259,12 @@ impl Node {
         })
     }
 
-    /// Publish a record to the fleet.
+    /// Publish a record to the fleet (to the peers only: a member's own subscriber does
+    /// not receive it back, so a record arriving live twice is a replay).
     pub fn publish(&self, record: &[u8]) -> Result<(), NodeError> {
         self.session
             .put(&self.records_key, record.to_vec())
+            .allowed_destination(Locality::Remote)
             .wait()
             .map_err(zerr("publish record"))
     }

@@ -93,6 +93,15 @@ pub enum Offer {
     },
 }
 
+/// What [`Store::retract`] needs to take an own record back: the state before it.
+#[derive(Debug, Clone)]
+pub struct Undo {
+    class: String,
+    previous: Option<Record>,
+    clock: u64,
+    file_len: u64,
+}
+
 /// The winners per class, the Lamport clock and the per-signer position.
 #[derive(Debug)]
 pub struct Store {
@@ -209,6 +218,43 @@ impl Store {
             self.append(&record)?;
         }
         Ok(self.merge(record))
+    }
+
+    /// Offer this member's own new record (signed with [`Store::next_lamport`], so it wins
+    /// its class): appended, fsynced and taken as the class's state, with what
+    /// [`Store::retract`] needs to take it back if the change cannot be completed.
+    pub fn offer_own(&mut self, record: Record) -> Result<(Offer, Undo), StoreError> {
+        let undo = Undo {
+            class: record.class().to_owned(),
+            previous: self.winners.get(record.class()).cloned(),
+            clock: self.clock,
+            file_len: fs::metadata(&self.path).map_or(0, |m| m.len()),
+        };
+        Ok((self.offer(record)?, undo))
+    }
+
+    /// Take back the record of [`Store::offer_own`] (the bank could not persist its
+    /// change): the file is cut back to its length before the append (fsynced) and the
+    /// class's previous winner and the clock are restored. Must come before any other
+    /// change of the store. On an error the record stays in memory and on disk.
+    pub fn retract(&mut self, undo: Undo) -> Result<(), StoreError> {
+        let io = |source| StoreError::Io {
+            path: self.path.clone(),
+            source,
+        };
+        let f = fs::OpenOptions::new()
+            .write(true)
+            .open(&self.path)
+            .map_err(io)?;
+        f.set_len(undo.file_len)
+            .and_then(|()| f.sync_data())
+            .map_err(io)?;
+        match undo.previous {
+            Some(p) => self.winners.insert(undo.class, p),
+            None => self.winners.remove(&undo.class),
+        };
+        self.clock = undo.clock;
+        Ok(())
     }
 
     fn append(&self, record: &Record) -> Result<(), StoreError> {
@@ -403,6 +449,32 @@ mod tests {
             !s.position()
                 .contains_key(&key(1).verifying_key().to_bytes())
         );
+    }
+
+    /// An own record taken back leaves the file and the state as before it.
+    #[test]
+    fn an_own_record_is_retracted_exactly() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(STORE_FILE);
+        let (mut s, _) = Store::open(&path, &trusted()).unwrap();
+        // On an empty store (the file is created by the append) and on a written one.
+        for round in 0..2u64 {
+            let before = (fs::read(&path).unwrap_or_default(), s.digest(), s.clock());
+            let r = rec("a", s.next_lamport(), 1, b"new");
+            let (offer, undo) = s.offer_own(r).unwrap();
+            assert_eq!(offer, Offer::Applied);
+            assert_ne!(s.digest(), before.1);
+            s.retract(undo).unwrap();
+            assert_eq!(
+                fs::read(&path).unwrap_or_default(),
+                before.0,
+                "round {round}"
+            );
+            assert_eq!((s.digest(), s.clock()), (before.1, before.2));
+            let (s2, report) = Store::open(&path, &trusted()).unwrap();
+            assert_eq!((s2.digest(), report.torn_bytes), (before.1, 0));
+            s.offer(rec("a", s.next_lamport(), 2, b"kept")).unwrap();
+        }
     }
 
     #[test]

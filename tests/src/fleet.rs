@@ -108,10 +108,34 @@ impl Fleet {
     }
 
     pub fn start(&mut self, i: usize) {
+        self.start_with_env(i, &[]);
+    }
+
+    /// Start member `i` with extra environment variables (a fault point, a log filter).
+    pub fn start_with_env(&mut self, i: usize, env: &[(&str, String)]) {
         let m = &mut self.members[i];
-        let d = Daemon::start(&m.setup);
+        let d = Daemon::start_with_env(&m.setup, env);
         d.wait_log("fleet member ready");
         m.daemon = Some(d);
+    }
+
+    /// Stop member `i` gracefully (SIGTERM, as its drop does).
+    pub fn stop(&mut self, i: usize) {
+        self.members[i].daemon = None;
+    }
+
+    /// Every running member's fleet position and bank digest, in member order.
+    pub fn positions(
+        &self,
+        running: &[usize],
+    ) -> Vec<(Vec<guardian_client::FleetPosition>, Option<String>)> {
+        running
+            .iter()
+            .map(|&i| {
+                let s = self.client(i).status().expect("status");
+                (s.fleet, s.bank_digest)
+            })
+            .collect()
     }
 
     pub fn admin(&self, i: usize) -> AdminClient {

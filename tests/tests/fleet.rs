@@ -348,6 +348,24 @@ fn remote_checks_and_bad_records() {
     wait_refusal(&f, 0, "stale", before[0]);
     wait_refusal(&f, 1, "stale", before[1]);
 
+    // A replay of the record each member holds for task0 (the store's last frame).
+    let last = {
+        let mut at = b"guardian-fleet-records 1\n".len();
+        let mut last = Vec::new();
+        while at < store.len() {
+            let len = u32::from_le_bytes([store[at], store[at + 1], store[at + 2], store[at + 3]])
+                as usize;
+            last = store[at + 36..at + 36 + len].to_vec();
+            at += 36 + len;
+        }
+        last
+    };
+    assert_eq!(Record::decode(&last).expect("record").class(), "task0");
+    let before = [refusals(&f, 0, "duplicate"), refusals(&f, 1, "duplicate")];
+    inject(&f, last);
+    wait_refusal(&f, 0, "duplicate", before[0]);
+    wait_refusal(&f, 1, "duplicate", before[1]);
+
     // A truncated record.
     let good = record(&a_key, "task2", &robot, 10_000);
     let before = [refusals(&f, 0, "malformed"), refusals(&f, 1, "malformed")];
@@ -368,4 +386,135 @@ fn remote_checks_and_bad_records() {
     // Nothing changed anywhere.
     assert_eq!(f.banks(&both), vec![bank.clone(), bank]);
     assert_eq!([version(0), version(1)], versions);
+}
+
+/// Member `i` was killed by its armed fault point: wait for its exit (SIGKILL) and drop it.
+fn wait_killed(f: &mut Fleet, i: usize, point: &str) {
+    let d = f.members[i].daemon.as_mut().expect("running");
+    let status = d.wait_exit();
+    let log = d.log();
+    assert!(
+        log.contains("fault point reached") && log.contains(point),
+        "member {i} did not stop at {point} ({status}):\n{log}"
+    );
+    use std::os::unix::process::ExitStatusExt;
+    assert_eq!(status.signal(), Some(9), "killed by SIGKILL:\n{log}");
+    f.members[i].daemon = None;
+}
+
+/// Wait until every member in `running` reports the same fleet position and bank digest.
+fn equal_positions(f: &Fleet, running: &[usize]) {
+    let start = Instant::now();
+    loop {
+        let p = f.positions(running);
+        if p.windows(2).all(|w| w[0] == w[1]) && p[0].1.is_some() {
+            return;
+        }
+        assert!(start.elapsed() < CONVERGE, "positions differ: {p:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// The enrolling member killed (SIGKILL, at a fault point) at every step of the admin path
+/// — after its fleet record is appended, after the bank journalled the change, after the
+/// record was published — never splits the fleet: after its restart both members serve
+/// the change, with the same position and bank digest. The same for a forget. Before the
+/// record was made durable ahead of the bank's journal, the kill after the journal left
+/// the class on A alone, for good (issue 39).
+#[test]
+fn a_kill_at_every_step_of_the_admin_path_converges() {
+    use guardian_daemon::faults::{AFTER_JOURNAL, ENV, FLEET_AFTER_PUBLISH, FLEET_AFTER_RECORD};
+    let mut f = Fleet::new(2);
+    f.start(0);
+    f.start(1);
+    let both = [0, 1];
+    f.admin(0)
+        .enroll("warmup", &examples(0, 0..2))
+        .expect("enroll");
+    f.converge(&both, |c| has(c, "warmup", 2));
+    for (n, point) in [FLEET_AFTER_RECORD, AFTER_JOURNAL, FLEET_AFTER_PUBLISH]
+        .into_iter()
+        .enumerate()
+    {
+        f.stop(0);
+        f.start_with_env(0, &[(ENV, point.to_owned())]);
+        let class = format!("crash{n}");
+        let answer = f.admin(0).enroll(&class, &examples(n as u32 % 3, 0..3));
+        assert!(
+            answer.is_err(),
+            "{point}: a killed member answered {answer:?}"
+        );
+        wait_killed(&mut f, 0, point);
+        f.start(0);
+        let bank = f.converge(&both, |c| has(c, &class, 3));
+        equal_positions(&f, &both);
+        eprintln!(
+            "{point}: converged with {} classes; A's start: {}",
+            bank.len(),
+            f.log(0)
+                .lines()
+                .filter(|l| l.contains("applied fleet records") || l.contains("incomplete"))
+                .collect::<Vec<_>>()
+                .join(" | ")
+        );
+    }
+    // A forget, killed after its record: forgotten on both after the restart.
+    f.stop(0);
+    f.start_with_env(0, &[(ENV, FLEET_AFTER_RECORD.to_owned())]);
+    assert!(f.admin(0).forget("warmup").is_err());
+    wait_killed(&mut f, 0, FLEET_AFTER_RECORD);
+    f.start(0);
+    f.converge(&both, |c| {
+        !c.iter().any(|x| x.name == "warmup") && c.len() == 3
+    });
+    equal_positions(&f, &both);
+}
+
+/// Two members that hold the same records but serve different banks (B started with a
+/// default bank A does not have: a class no record covers, another global threshold) report
+/// the same per-signer position but different bank digests; forgetting the extra class
+/// leaves the thresholds apart, and the digests stay different.
+#[test]
+fn members_with_different_banks_report_different_positions() {
+    let mut f = Fleet::new(2);
+    let extra = f.members[1].setup.dir.path().join("extra-default.gcb");
+    harness::random_bank(&f.members[1].setup.model, 1, 2, 5)
+        .save(&extra)
+        .expect("save bank");
+    f.members[1].setup.default_bank = Some(extra);
+    f.start(0);
+    f.start(1);
+    f.admin(0)
+        .enroll("shared", &examples(1, 0..3))
+        .expect("enroll");
+    let start = Instant::now();
+    while !has(&f.client(1).classes().expect("classes"), "shared", 3) {
+        assert!(start.elapsed() < CONVERGE, "B never served the class");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let p = f.positions(&[0, 1]);
+    assert_eq!(p[0].0, p[1].0, "same records, same per-signer position");
+    assert!(p[0].1.is_some() && p[1].1.is_some(), "{p:?}");
+    assert_ne!(p[0].1, p[1].1, "different banks, different digests: {p:?}");
+    // B forgets the extra class through its admin path (a record): the same classes, but
+    // "shared" is decided with another global threshold on B — still different digests.
+    f.admin(1).forget("base0000").expect("forget");
+    let start = Instant::now();
+    loop {
+        let p = f.positions(&[0, 1]);
+        let (a, b) = (
+            f.client(0).classes().unwrap(),
+            f.client(1).classes().unwrap(),
+        );
+        if p[0].0 == p[1].0 && a.len() == 1 && b.len() == 1 {
+            assert_ne!(a[0].threshold, b[0].threshold, "{a:?} {b:?}");
+            assert_ne!(
+                p[0].1, p[1].1,
+                "different thresholds, different digests: {p:?}"
+            );
+            break;
+        }
+        assert!(start.elapsed() < CONVERGE, "{p:?}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
 }

@@ -138,6 +138,11 @@ pub enum Status {
     /// service under admin separation, or a caller not in the admin list on the admin
     /// socket). Nothing changed.
     NotPermitted = 8,
+    /// A change (enroll, forget) could not be persisted — the state directory's file
+    /// system is full or read-only, or an I/O error — and was not applied: the bank, its
+    /// journal and a fleet member's records are as before, and the daemon keeps serving
+    /// the old bank. See `message`; retry once the cause is fixed.
+    Storage = 9,
 }
 
 /// Verdict codes ([`ResponseHeader::verdict`]).

@@ -90,6 +90,11 @@ pub enum Failure {
         /// The daemon's explanation.
         message: String,
     },
+    /// [`Status::Storage`]: the change could not be persisted and was not applied.
+    Storage {
+        /// The daemon's explanation (the file and the system error).
+        message: String,
+    },
 }
 
 /// A configured bank limit an enroll would have exceeded.
@@ -130,6 +135,7 @@ impl Failure {
             Self::Internal { .. } => Status::Internal,
             Self::LimitExceeded { .. } => Status::LimitExceeded,
             Self::NotPermitted { .. } => Status::NotPermitted,
+            Self::Storage { .. } => Status::Storage,
         }
     }
 
@@ -143,7 +149,8 @@ impl Failure {
             | Self::EmptyBank { message }
             | Self::Internal { message }
             | Self::LimitExceeded { message, .. }
-            | Self::NotPermitted { message } => message,
+            | Self::NotPermitted { message }
+            | Self::Storage { message } => message,
         }
     }
 }
@@ -197,6 +204,7 @@ pub fn decode_failure(r: &ResponseHeader) -> Result<Option<Failure>, ProtocolErr
             message,
         },
         Some(Status::NotPermitted) => Failure::NotPermitted { message },
+        Some(Status::Storage) => Failure::Storage { message },
         None => return Err(ProtocolError::UnknownStatus(r.status)),
     }))
 }
