@@ -271,7 +271,15 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         .max_servers(1)
         .max_nodes(max_nodes)
         .max_active_requests_per_client(4)
-        .max_response_buffer_size(4)
+        // One response per request, copied out by the client at once. iceoryx2 sizes the
+        // server's response pool as max-clients x 8 x (buffer + borrowed + loaned) chunks
+        // and, whenever a client connects or disconnects, walks one flag per chunk for
+        // each of the 255 segments a growable data segment may have — inside
+        // receive/loan, on the serving loop. At 4 + 2 + 2 that was 1M flags per client
+        // (50-350 ms on a loaded 2-core host, issue 39); with 1 + 1 + 1 and the pool
+        // below it is 8 x fewer (docs/performance.md, "A connecting client").
+        .max_response_buffer_size(1)
+        .max_borrowed_responses_per_pending_response(1)
         .open_or_create()
         .map_err(iox("open request-response service"))?;
     let event = |name: String, what: &'static str| {
@@ -301,8 +309,14 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         .notifier_builder()
         .create()
         .map_err(iox("create notifier"))?;
+    // Exactly one response per request: at most one response chunk per request the server
+    // may hold (max-clients x 2 x 4, iceoryx2's worst case of requests), not one per
+    // buffer + borrowed + loaned slot (its worst case when a request has several responses).
+    let per_request_slots = 3;
     let server = rpc
         .server_builder()
+        .max_loaned_responses_per_request(1)
+        .override_response_preallocation(move |worst| worst / per_request_slots)
         .initial_max_slice_len(256)
         .allocation_strategy(AllocationStrategy::PowerOfTwo)
         .create()
@@ -358,10 +372,9 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     let mut last_request = Instant::now();
     let mut last_sweep = Instant::now();
     let spin = Duration::from_micros(config.spin_us);
-    let mut wakers = ClientWakers::new(&config.service_name, max_clients);
+    let mut wakers = ClientWakers::new(&config.service_name, max_clients, &iox_config);
     let mut live_clients: Vec<u128> = Vec::with_capacity(max_clients);
     let mut out = Outbox {
-        node: &node,
         shared: &notifier,
         wakers: &mut wakers,
         batch: Vec::with_capacity(config.max_batch),
@@ -534,7 +547,6 @@ fn admin_waker(config: &iceoryx2::config::Config, event: String) -> WakerFactory
 
 /// Where wake-ups for answered clients go.
 struct Outbox<'a> {
-    node: &'a Node<ipc::Service>,
     /// The shared response event, for clients without an event service of their own.
     shared: &'a iceoryx2::port::notifier::Notifier<ipc::Service>,
     wakers: &'a mut ClientWakers,
@@ -647,7 +659,7 @@ fn drain(
         // without one share the common response event (one notification for all of them).
         let mut shared = false;
         for &client in &answered {
-            shared |= out.wakers.wake(out.node, client) == Woken::NeedsShared;
+            shared |= out.wakers.wake(client) == Woken::NeedsShared;
         }
         if shared && let Err(e) = out.shared.notify() {
             tracing::warn!(error = ?e, "cannot notify clients");
