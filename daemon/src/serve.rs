@@ -43,6 +43,17 @@ pub enum RunError {
         /// The cause.
         source: std::io::Error,
     },
+    /// The state directory exists but cannot be written (a read-only file system, its
+    /// permissions): no change could ever be persisted, so the daemon does not start.
+    #[error(
+        "state directory {path} is not writable ({source}): enrolled classes and fleet records could not be persisted; make it writable by the daemon's user (a read-only file system must be remounted read-write)"
+    )]
+    StateDirNotWritable {
+        /// The directory.
+        path: std::path::PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
     /// The iceoryx2 root path or prefix is unusable.
     #[error(transparent)]
     Iceoryx2Config(#[from] guardian_shared::ipc::Iceoryx2ConfigError),
@@ -179,6 +190,9 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
             source,
         })?;
 
+    // Refuse a state directory that cannot be written before anything is loaded or
+    // written: every enroll would fail later, far from the cause.
+    check_writable(&state_dir)?;
     // A daemon killed while persisting leaves its temporary file (never a damaged bank).
     match guardian_models::bank::remove_stale_temporaries(&config.bank_path()) {
         Ok(removed) if !removed.is_empty() => {
@@ -464,6 +478,25 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     screen.flush()?;
     tracing::info!("stopped");
     Ok(())
+}
+
+/// Name of the probe file [`check_writable`] creates and removes at once.
+const WRITE_PROBE: &str = ".guardiand-write-probe";
+
+/// Whether files can be created in `dir`: create (exclusively) and remove a probe file. A
+/// probe left by a daemon killed between the two is removed first.
+fn check_writable(dir: &std::path::Path) -> Result<(), RunError> {
+    let probe = dir.join(WRITE_PROBE);
+    let _ = std::fs::remove_file(&probe);
+    std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&probe)
+        .and_then(|_| std::fs::remove_file(&probe))
+        .map_err(|source| RunError::StateDirNotWritable {
+            path: dir.to_owned(),
+            source,
+        })
 }
 
 fn reload(config: &Config, screen: &mut Screen, sd: &SdNotify) {

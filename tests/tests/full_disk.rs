@@ -1,0 +1,227 @@
+//! A full or read-only state directory (issue 39): the state directory of a fleet member is
+//! a small tmpfs of its own (`mount -t tmpfs -o size=…`, needs root; without it the tests
+//! print that they did not run). An enroll on a full file system — full before the fleet
+//! record, and with room for the record but not for the bank's journal — is refused with a
+//! typed error; the bank, its journal and the fleet records are byte-for-byte as before;
+//! the daemon keeps serving. Once space returns the next enroll works and a restart loads
+//! everything. A state directory mounted read-only is refused at start with a clear error
+//! and nothing is written to it.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use guardian_client::{CheckError, EnrollError};
+use guardian_tests::fleet::{Fleet, examples, has};
+use guardian_tests::harness::{self, traj};
+
+/// A tmpfs mounted at a directory, unmounted (lazily) on drop.
+struct Tmpfs(PathBuf);
+
+impl Tmpfs {
+    fn mount(dir: &Path, size: &str) -> Option<Self> {
+        std::fs::create_dir_all(dir).expect("mkdir");
+        let ok = Command::new("mount")
+            .args([
+                "-t",
+                "tmpfs",
+                "-o",
+                &format!("size={size},mode=0700"),
+                "tmpfs",
+            ])
+            .arg(dir)
+            .status()
+            .is_ok_and(|s| s.success());
+        ok.then(|| Self(dir.to_owned()))
+    }
+
+    fn remount(&self, how: &str) {
+        let ok = Command::new("mount")
+            .args(["-o", &format!("remount,{how}")])
+            .arg(&self.0)
+            .status()
+            .is_ok_and(|s| s.success());
+        assert!(ok, "remount {how}");
+    }
+
+    /// Free bytes of the file system.
+    fn free(&self) -> u64 {
+        let out = Command::new("df")
+            .args(["--output=avail", "-B1"])
+            .arg(&self.0)
+            .output()
+            .expect("df");
+        String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .nth(1)
+            .and_then(|l| l.trim().parse().ok())
+            .expect("df output")
+    }
+
+    /// Fill the file system until `leave` bytes are free (a file `filler` outside the
+    /// daemon's names; its size is what matters, tmpfs allocates whole pages).
+    fn fill_leaving(&self, leave: u64) {
+        let filler = self.0.join("filler");
+        let _ = std::fs::remove_file(&filler);
+        let free = self.free();
+        let size = free.saturating_sub(leave);
+        std::fs::write(&filler, vec![0u8; size as usize]).expect("write filler");
+        assert!(
+            self.free() <= leave,
+            "free {} after filling to leave {leave}",
+            self.free()
+        );
+    }
+
+    fn empty_filler(&self) {
+        let _ = std::fs::remove_file(self.0.join("filler"));
+    }
+}
+
+impl Drop for Tmpfs {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg("-l").arg(&self.0).status();
+    }
+}
+
+/// Every file of the state directory but the filler and the admin socket, with its bytes.
+fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+    std::fs::read_dir(dir)
+        .expect("read state dir")
+        .filter_map(Result::ok)
+        .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n != "filler")
+        .map(|n| {
+            let bytes = std::fs::read(dir.join(&n)).expect("read");
+            (n, bytes)
+        })
+        .collect()
+}
+
+const PAGE: u64 = 4096;
+
+/// Pages a file of `len` bytes needs to grow by `add` bytes.
+fn pages(len: u64, add: u64) -> u64 {
+    (len + add).div_ceil(PAGE) - len.div_ceil(PAGE)
+}
+
+fn refused_for_space(r: Result<guardian_client::ClassInfo, EnrollError>) -> String {
+    match r {
+        Err(EnrollError::Request(CheckError::Storage { message })) => {
+            assert!(message.contains("No space left"), "{message}");
+            message
+        }
+        other => panic!("expected a storage error, got {other:?}"),
+    }
+}
+
+#[test]
+fn an_enroll_on_a_full_disk_is_refused_and_changes_nothing() {
+    let mut f = Fleet::new(1);
+    let state = f.members[0].setup.state_dir();
+    let Some(fs) = Tmpfs::mount(&state, "2m") else {
+        eprintln!("did not run: mounting a tmpfs needs root");
+        return;
+    };
+    f.start(0);
+    let admin = f.admin(0);
+    admin.enroll("a", &examples(0, 0..3)).expect("enroll a");
+    // A second enroll of the same size shows what one change appends to each file.
+    let before = files(&state);
+    admin.enroll("a2", &examples(1, 0..3)).expect("enroll a2");
+    let after = files(&state);
+    let grew = |name: &str| {
+        let (b, a) = (
+            before.get(name).map_or(0, Vec::len),
+            after.get(name).map_or(0, Vec::len),
+        );
+        (b as u64, a as u64 - b as u64)
+    };
+    let (records_len, record) = grew("fleet.records");
+    let journal = grew("bank.gcb.journal");
+    assert!(record > 0 && journal.1 > 0, "{before:?} {after:?}");
+    let _ = records_len;
+    let check = |f: &Fleet| {
+        let v = f.client(0).check(&traj(0, 9), "a").expect("check");
+        assert!(v.claimed_distance.is_some());
+    };
+
+    // 1. Full: the fleet record cannot be appended.
+    fs.fill_leaving(0);
+    let state_before = files(&state);
+    let m = refused_for_space(admin.enroll("b", &examples(2, 0..3)));
+    eprintln!("full: {m}");
+    assert_eq!(files(&state), state_before, "nothing changed on disk");
+    check(&f);
+    assert!(!f.client(0).classes().unwrap().iter().any(|c| c.name == "b"));
+
+    // 2. Room for the record, not for the bank's change: the record is taken back.
+    let records_now = state_before["fleet.records"].len() as u64;
+    fs.fill_leaving(pages(records_now, record) * PAGE);
+    let m = refused_for_space(admin.enroll("b", &examples(2, 0..3)));
+    eprintln!("room for the record only: {m}");
+    assert_eq!(files(&state), state_before, "nothing changed on disk");
+    assert!(f.log(0).contains("fleet record taken back"), "{}", f.log(0));
+    check(&f);
+    assert_eq!(f.client(0).classes().unwrap().len(), 2);
+
+    // 3. Space returns: the next enroll works; a restart loads everything.
+    fs.empty_filler();
+    admin.enroll("b", &examples(2, 0..3)).expect("enroll b");
+    let bank = f.client(0).classes().unwrap();
+    assert!(has(&bank, "b", 3) && bank.len() == 3, "{bank:?}");
+    let status = f.client(0).status().unwrap();
+    f.stop(0);
+    f.start(0);
+    assert_eq!(f.client(0).classes().unwrap(), bank);
+    let again = f.client(0).status().unwrap();
+    assert_eq!(
+        (again.fleet, again.bank_digest),
+        (status.fleet, status.bank_digest)
+    );
+    check(&f);
+    f.stop(0);
+}
+
+#[test]
+fn a_read_only_state_directory_is_refused_at_start() {
+    let mut s = harness::Setup::new(12);
+    let state = s.state_dir();
+    let Some(fs) = Tmpfs::mount(&state, "1m") else {
+        eprintln!("did not run: mounting a tmpfs needs root");
+        return;
+    };
+    // A bank from an earlier run, then the file system goes read-only.
+    s.extra = String::new();
+    {
+        let d = harness::Daemon::start(&s);
+        s.client()
+            .enroll("kept", &[traj(0, 1), traj(0, 2)])
+            .expect("enroll");
+        drop(d);
+    }
+    let before = files(&state);
+    let names: Vec<String> = std::fs::read_dir(&state)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    fs.remount("ro");
+    let out = harness::run_to_exit(&s);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("is not writable") && stderr.contains(&state.display().to_string()),
+        "{stderr}"
+    );
+    fs.remount("rw");
+    let now: Vec<String> = std::fs::read_dir(&state)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(now, names, "no file added or removed");
+    assert_eq!(files(&state), before, "no file changed");
+    // Writable again: it starts and serves what it had.
+    let _d = harness::Daemon::start(&s);
+    assert_eq!(s.client().classes().unwrap()[0].name, "kept");
+}
