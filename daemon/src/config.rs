@@ -144,6 +144,21 @@ pub struct Config {
     pub fleet: Option<FleetTable>,
 }
 
+/// The `[fleet]` table, commented out, as `--print-default-config` ends: every key with
+/// an example value (`docs/fleet.md`, The config). Uncommented, it is a valid table.
+pub const FLEET_TEMPLATE: &str = "\
+# [fleet]: fleet membership (docs/fleet.md); needs a daemon built with the cargo\n\
+# feature `fleet` (the Debian package's is). Off while the table is absent.\n\
+# [fleet]\n\
+# name = \"cell-1\"                          # the fleet (one key-expression chunk)\n\
+# member = \"robot-01\"                      # this member's name in it\n\
+# listen = [\"tcp/10.0.0.1:7447\"]           # Zenoh endpoints to listen on\n\
+# connect = [\"tcp/10.0.0.2:7447\"]          # every other member (a full mesh)\n\
+# signing-key = \"/etc/guardian/fleet.key\"  # guardiand --fleet-keygen\n\
+# admin-keys = []                            # the other members' public keys (64 hex)\n\
+# caller-keys = []                           # remote callers' public keys (64 hex)\n\
+# resync-ms = 10000                          # catch-up period\n";
+
 /// The `[fleet]` table: parsed and checked by `guardian-fleet` when the daemon is built with
 /// the `fleet` feature.
 #[cfg(feature = "fleet")]
@@ -285,7 +300,8 @@ impl Config {
         Ok((Self::default(), None))
     }
 
-    /// The default config as commented TOML (`--print-default-config`).
+    /// The default config as commented TOML (`--print-default-config`), ending with the
+    /// `[fleet]` table commented out ([`FLEET_TEMPLATE`]).
     pub fn default_toml() -> String {
         let body = toml::to_string(&Self::default()).unwrap_or_default();
         format!(
@@ -304,7 +320,7 @@ impl Config {
              # [workcell]: canvas geometry and tolerances of the workcell rules (m, rad);\n\
              #   defaults from the robot description, each key set here overrides one;\n\
              #   enabled = false turns them off (docs/guardiand.md).\n\
-             {body}",
+             {body}\n{FLEET_TEMPLATE}",
             guardian_models::bank::DEFAULT_THRESHOLD
         )
     }
@@ -446,6 +462,53 @@ fn shipped(rel: &str) -> PathBuf {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `--print-default-config` ends with every `[fleet]` key, commented out; the block
+    /// uncommented is a table the daemon accepts (with the feature) or refuses as not
+    /// built (without).
+    #[test]
+    fn default_config_shows_the_fleet_table_commented_out() {
+        let text = Config::default_toml();
+        let block: Vec<&str> = text.lines().skip_while(|l| *l != "# [fleet]").collect();
+        assert!(!block.is_empty(), "{text}");
+        for key in [
+            "name",
+            "member",
+            "listen",
+            "connect",
+            "signing-key",
+            "admin-keys",
+            "caller-keys",
+            "resync-ms",
+        ] {
+            assert!(
+                block.iter().any(|l| l.starts_with(&format!("# {key} = "))),
+                "{key} missing:\n{text}"
+            );
+        }
+        let uncommented: String = block
+            .iter()
+            .map(|l| format!("{}\n", l.trim_start_matches("# ")))
+            .collect();
+        let parsed = Config::from_toml(&uncommented, Path::new("t"));
+        #[cfg(feature = "fleet")]
+        {
+            let c = parsed.unwrap();
+            let f = c.fleet.expect("fleet table");
+            assert_eq!((f.name.as_str(), f.resync_ms), ("cell-1", 10_000));
+            // Every key of the table is in the template.
+            let all = toml::to_string(&f).unwrap();
+            for line in all.lines().filter(|l| l.contains(" = ")) {
+                let key = line.split(" = ").next().unwrap();
+                assert!(
+                    block.iter().any(|l| l.starts_with(&format!("# {key} = "))),
+                    "{key} missing from the template"
+                );
+            }
+        }
+        #[cfg(not(feature = "fleet"))]
+        assert!(parsed.is_err());
+    }
 
     #[test]
     fn default_config_round_trips_and_unknown_keys_fail() {
