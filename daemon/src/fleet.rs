@@ -54,7 +54,8 @@ pub struct Member {
     store: Store,
     gate: Gate,
     node: Node,
-    rx: mpsc::Receiver<Incoming>,
+    /// Items from the Zenoh threads, with when they were handed over.
+    rx: mpsc::Receiver<(std::time::Instant, Incoming)>,
     robot: String,
     model: String,
     refused: Refusals,
@@ -107,7 +108,7 @@ impl Member {
                 detail: e.to_string(),
             })?;
         let sink = Arc::new(move |i: Incoming| {
-            if tx.send(i).is_ok() {
+            if tx.send((std::time::Instant::now(), i)).is_ok() {
                 let _ = wake_tx.send(());
             }
         });
@@ -191,8 +192,14 @@ impl Member {
     pub fn poll(&mut self, screen: &mut Screen) -> usize {
         let mut n = 0;
         let mut changed = false;
-        while let Ok(item) = self.rx.try_recv() {
+        while let Ok((handed, item)) = self.rx.try_recv() {
             n += 1;
+            // From the Zenoh thread's hand-over to the serving loop taking the item: the
+            // wake-up's latency (figures: tests/benches/fleet.rs).
+            tracing::debug!(
+                waited_us = handed.elapsed().as_micros() as u64,
+                "fleet item taken by the serving loop"
+            );
             match item {
                 Incoming::Record(bytes) => changed |= self.receive(&bytes, screen, true),
                 Incoming::CaughtUp(bytes) => changed |= self.receive(&bytes, screen, false),
@@ -456,11 +463,6 @@ fn wake_loop(config: &iceoryx2::config::Config, event: &str, signals: &mpsc::Rec
         }
     }
 }
-
-/// The serving loop's longest sleep with fleet membership on: fleet items are handed over
-/// with a wake-up, but replicated records were measured waiting for the loop's tick
-/// (`tick-ms`) after idle periods, so the tick is bounded by this while a member.
-pub const FLEET_TICK: std::time::Duration = std::time::Duration::from_millis(10);
 
 /// The fleet position as status entries: per signer, name `fleet:<first 16 hex digits of
 /// its key>`, the Lamport counter in `examples` (low 32 bits) and `calibrated` (high 32

@@ -76,15 +76,12 @@ pub enum RunError {
 }
 
 #[cfg(feature = "fleet")]
-use crate::fleet::{FLEET_TICK, Member};
+use crate::fleet::Member;
 
 /// Without the `fleet` feature there is no fleet member: the type has no values, so a
 /// daemon built without it is never in a fleet and the calls below compile to nothing.
 #[cfg(not(feature = "fleet"))]
 enum Member {}
-
-#[cfg(not(feature = "fleet"))]
-const FLEET_TICK: Duration = Duration::MAX;
 
 #[cfg(not(feature = "fleet"))]
 impl Member {
@@ -375,12 +372,10 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         Some(w) => config.tick().min(w),
         None => config.tick(),
     };
-    // A fleet member bounds its sleep (`docs/fleet.md`, serving-loop wake-up).
-    let tick = if fleet.is_some() {
-        tick.min(FLEET_TICK)
-    } else {
-        tick
-    };
+    // A fleet member sleeps like any daemon: fleet items wake the loop through the request
+    // event. (A 10 ms cap on its sleep was once added for records seen waiting for the
+    // tick; the loop was in fact blocked inside iceoryx2's connection update for clients
+    // coming and going, fixed with the response pool's size — docs/performance.md.)
     let mut last_ping = Instant::now();
     let mut last_cleanup = Instant::now();
     let mut last_request = Instant::now();

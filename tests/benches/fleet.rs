@@ -141,4 +141,34 @@ fn main() {
         us(pct(&mut zen, 0.5)),
         us(pct(&mut zen, 0.99))
     );
+    // How long items from Zenoh waited for the serving loop (each member logs it at DEBUG):
+    // a missed wake-up would show as a wait of a whole tick (tick-ms, 50 here).
+    let mut waits: Vec<u64> = (0..3)
+        .flat_map(|i| {
+            f.log(i)
+                .lines()
+                .filter(|l| l.contains("fleet item taken by the serving loop"))
+                .filter_map(|l| {
+                    l.split("waited_us=")
+                        .nth(1)?
+                        .split_whitespace()
+                        .next()?
+                        .parse()
+                        .ok()
+                })
+                .collect::<Vec<u64>>()
+        })
+        .collect();
+    waits.sort_unstable();
+    if !waits.is_empty() {
+        let p = |q: f64| waits[((waits.len() - 1) as f64 * q).round() as usize];
+        println!(
+            "Zenoh -> serving loop hand-over: n {} p50 {:>8} us  p99 {:>8} us  max {:>8} us  over 40 ms {}",
+            waits.len(),
+            p(0.5),
+            p(0.99),
+            waits[waits.len() - 1],
+            waits.iter().filter(|&&w| w > 40_000).count()
+        );
+    }
 }
