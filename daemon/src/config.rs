@@ -155,9 +155,9 @@ pub const FLEET_TEMPLATE: &str = "\
 # listen = [\"tcp/10.0.0.1:7447\"]           # Zenoh endpoints to listen on\n\
 # connect = [\"tcp/10.0.0.2:7447\"]          # every other member (a full mesh)\n\
 # signing-key = \"/etc/guardian/fleet.key\"  # guardiand --fleet-keygen\n\
-# admin-keys = []                            # the other members' public keys (64 hex)\n\
-# caller-keys = []                           # remote callers' public keys (64 hex)\n\
-# resync-ms = 10000                          # catch-up period\n";
+# admin-keys = []                          # the other members' public keys (64 hex)\n\
+# caller-keys = []                         # remote callers' public keys (64 hex)\n\
+# resync-ms = 10000                        # catch-up period\n";
 
 /// The `[fleet]` table: parsed and checked by `guardian-fleet` when the daemon is built with
 /// the `fleet` feature.

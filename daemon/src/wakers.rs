@@ -3,15 +3,17 @@
 //! instead of every waiting client.
 //!
 //! **Opening a client's event service never runs on the serving loop.** Opening an iceoryx2
-//! service and creating a port on it can block for tens of milliseconds (iceoryx2 retries
-//! an open in 25 ms ticks while a service is in flux, and a client's service is created,
-//! and removed again when the client goes, by another process at any time); done on the
-//! serving loop, every new connection stalled every planner (issue 39: p99 3.3 ms -> 57 ms
-//! with one `guardianctl status` every 0.2 s). So a client's first answer asks an opener
+//! service and creating a port on it can block for milliseconds to tens of milliseconds
+//! (iceoryx2 retries an open in 25 ms ticks while a service is in flux, and a client's
+//! service is created, and removed again when the client goes, by another process at any
+//! time). So a client's first answer asks an opener
 //! thread for its notifier and returns at once; the opener (its own thread-safe iceoryx2
 //! node) opens the service, hands the notifier to the table *before* it notifies the client
-//! once for that first answer, so when the client's next request is answered the loop
-//! finds the notifier and notifies it itself (the hand-over happens-before the wake-up).
+//! once for that first answer (on the shared response event if the client has no own
+//! service), so when the client's next request is answered the loop finds the notifier and
+//! notifies it itself (the hand-over happens-before the wake-up). (Opening measured 1.8-2.3
+//! ms p50, up to 36 ms on a loaded host; the larger stall of a connecting client was
+//! iceoryx2's connection update, `docs/performance.md`, "A connecting client".)
 //!
 //! The table is bounded (the least recently used entry is dropped when it is full) and
 //! cleaned of clients that disconnected ([`ClientWakers::retain_connected`], called about
@@ -24,7 +26,7 @@ use std::sync::Arc;
 use std::sync::mpsc;
 use std::time::Instant;
 
-use guardian_shared::wire::client_response_event_name;
+use guardian_shared::wire::{client_response_event_name, response_event_name};
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::prelude::*;
 
@@ -88,9 +90,12 @@ enum Job {
 pub enum Woken {
     /// The client's own listener was notified.
     Own,
-    /// The client has no own listener, or its notifier is being opened (the opener wakes
-    /// it when ready): notify the shared response event (older clients listen there).
+    /// The client has no own listener: notify the shared response event (older clients
+    /// listen there).
     NeedsShared,
+    /// The client's notifier is being opened; the opener thread wakes the client when it is
+    /// ready (its own listener, or the shared event for a client without one).
+    Pending,
 }
 
 impl ClientWakers {
@@ -167,9 +172,12 @@ impl ClientWakers {
             {
                 if tx.send(Job::Open(client_id)).is_ok() {
                     self.pending.insert(client_id);
-                } else {
-                    self.to_opener = None;
+                    return Woken::Pending;
                 }
+                self.to_opener = None;
+            }
+            if self.pending.contains(&client_id) {
+                return Woken::Pending;
             }
             return Woken::NeedsShared;
         };
@@ -244,6 +252,11 @@ fn opener(
             return;
         }
     };
+    // The shared response event, for the first answer of a client without its own.
+    let shared = ServiceName::new(&response_event_name(service))
+        .ok()
+        .and_then(|name| node.service_builder(&name).event().open().ok())
+        .and_then(|s| s.notifier_builder().create().ok());
     while let Ok(job) = requests.recv() {
         let client_id = match job {
             Job::Open(id) => id,
@@ -268,9 +281,12 @@ fn opener(
         if results.send((client_id, notifier.clone())).is_err() {
             return;
         }
-        if let Some(n) = notifier
-            && let Err(e) = n.notify()
-        {
+        let first = match (&notifier, &shared) {
+            (Some(n), _) => n.notify().map(drop),
+            (None, Some(sh)) => sh.notify().map(drop),
+            (None, None) => Ok(()),
+        };
+        if let Err(e) = first {
             tracing::debug!(error = ?e, client = client_id, "first client notification failed");
         }
     }
@@ -324,23 +340,23 @@ mod tests {
         let mut w = ClientWakers::new(service, 2, &ic);
         let (l1, l2, l3) = (listen(1), listen(2), listen(3));
         // A new client: handed to the opener, which wakes it once.
-        assert_eq!(w.wake(1), Woken::NeedsShared);
+        assert_eq!(w.wake(1), Woken::Pending);
         settle(&mut w, 1);
         assert_eq!(count(&l1), 1);
         assert_eq!(w.wake(1), Woken::Own);
-        assert_eq!(w.wake(2), Woken::NeedsShared);
+        assert_eq!(w.wake(2), Woken::Pending);
         settle(&mut w, 2);
         assert_eq!((count(&l1), count(&l2), count(&l3)), (1, 1, 0));
         // Full: the least recently used client (1) makes room for 3.
         assert_eq!(w.wake(2), Woken::Own);
-        assert_eq!(w.wake(3), Woken::NeedsShared);
+        assert_eq!(w.wake(3), Woken::Pending);
         settle(&mut w, 3);
         assert_eq!(w.len(), 2);
         assert_eq!((count(&l1), count(&l2), count(&l3)), (0, 1, 1));
         assert_eq!(w.wake(3), Woken::Own);
         assert_eq!(count(&l3), 1);
         // A client without its own service: negative entry, shared event.
-        assert_eq!(w.wake(4), Woken::NeedsShared);
+        assert_eq!(w.wake(4), Woken::Pending);
         settle(&mut w, 4);
         assert_eq!(w.wake(4), Woken::NeedsShared);
         assert_eq!(w.len(), 2);
@@ -352,7 +368,7 @@ mod tests {
         // Disconnected clients are swept.
         w.retain_connected(|id| id == 1);
         assert!(w.is_empty());
-        assert_eq!(w.wake(1), Woken::NeedsShared);
+        assert_eq!(w.wake(1), Woken::Pending);
         settle(&mut w, 1);
         assert_eq!(w.wake(1), Woken::Own);
         assert_eq!(count(&l1), 2);
