@@ -613,10 +613,10 @@ mod tests {
             assert_eq!(decode_code::<Op>(v).map(|o| o as u32), Some(v));
         }
         assert_eq!(decode_code::<Op>(7), None);
-        for v in 0..=8 {
+        for v in 0..=9 {
             assert_eq!(decode_code::<Status>(v).map(|s| s as u32), Some(v));
         }
-        assert_eq!(decode_code::<Status>(9), None);
+        assert_eq!(decode_code::<Status>(10), None);
         for v in 1..=3 {
             assert_eq!(decode_code::<LimitKind>(v).map(|s| s as u32), Some(v));
         }
