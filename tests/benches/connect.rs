@@ -7,7 +7,8 @@
 //! below 5 ms).
 //!
 //! Run: `RAYON_NUM_THREADS=1 cargo bench -p guardian-tests --bench connect`. Options after
-//! `--`: `--rounds N` (3 of each kind), `--seconds S` (5 per round), `--period-ms P` (100).
+//! `--`: `--rounds N` (3 of each kind), `--seconds S` (5 per round), `--period-ms P` (100),
+//! `--max-clients N` (the daemon's `max-clients`, default its own 64).
 
 use std::time::{Duration, Instant};
 
@@ -39,12 +40,14 @@ fn main() -> Result<()> {
         return child();
     }
     let (mut rounds, mut seconds, mut period_ms) = (3usize, 5u64, 100u64);
+    let mut max_clients: Option<usize> = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
             "--rounds" => rounds = args.next().unwrap_or_default().parse()?,
             "--seconds" => seconds = args.next().unwrap_or_default().parse()?,
             "--period-ms" => period_ms = args.next().unwrap_or_default().parse()?,
+            "--max-clients" => max_clients = Some(args.next().unwrap_or_default().parse()?),
             "--bench" => {}
             other => bail!("unknown option {other}"),
         }
@@ -66,6 +69,9 @@ fn main() -> Result<()> {
     );
     let mut s = Setup::new(71);
     s.extra = "default-threshold = 1e9\n".into();
+    if let Some(n) = max_clients {
+        s.extra.push_str(&format!("max-clients = {n}\n"));
+    }
     let daemon = Daemon::start(&s);
     let planner = s.client();
     for c in 0..4 {
@@ -75,8 +81,9 @@ fn main() -> Result<()> {
     }
     let plan = traj(1, 9);
     println!(
-        "  planner: one check of a {}-waypoint plan every 1 ms, {rounds} rounds of {seconds} s per kind, alternating; churn: a new process connects, checks once and exits every {period_ms} ms",
-        plan.len()
+        "  planner: one check of a {}-waypoint plan every 1 ms, {rounds} rounds of {seconds} s per kind, alternating; churn: a new process connects, checks once and exits every {period_ms} ms; max-clients {}",
+        plan.len(),
+        max_clients.map_or_else(|| "default".to_owned(), |n| n.to_string())
     );
     println!();
     let exe = std::env::current_exe()?;
