@@ -20,7 +20,7 @@
 //! neither `Send` nor `Sync`. Give every planner thread (or process) its own `Client` — each
 //! `connect` creates its own iceoryx2 node and ports, and the daemon serves them all; see
 //! `tests/tests/e2e.rs` (`eight_concurrent_clients_get_their_own_answers`). The daemon admits
-//! `max-clients` (default 64) client ports at once.
+//! `max-clients` (default 32) client ports at once.
 //!
 //! # Errors and timeouts
 //! Every call waits at most [`ClientConfig::timeout`] and then returns

@@ -182,7 +182,7 @@ impl Default for Config {
             spin_us: 200,
             tick_ms: 100,
             watchdog: true,
-            max_clients: 64,
+            max_clients: 32,
             max_batch: 16,
             fair_batching: true,
             max_classes: 4096,

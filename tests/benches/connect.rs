@@ -8,7 +8,7 @@
 //!
 //! Run: `RAYON_NUM_THREADS=1 cargo bench -p guardian-tests --bench connect`. Options after
 //! `--`: `--rounds N` (3 of each kind), `--seconds S` (5 per round), `--period-ms P` (100),
-//! `--max-clients N` (the daemon's `max-clients`, default its own 64).
+//! `--max-clients N` (the daemon's `max-clients`, default its own 32).
 
 use std::time::{Duration, Instant};
 
