@@ -221,6 +221,7 @@ class LimitExceeded(GuardianError):
     requested: int
 
 class NotPermitted(GuardianError): ...
+class StorageError(GuardianError): ...
 
 class AdminSocketError(GuardianError):
     path: Optional[str]

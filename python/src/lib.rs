@@ -117,6 +117,12 @@ create_exception!(
 );
 create_exception!(
     guardian,
+    StorageError,
+    GuardianError,
+    "The daemon could not persist the change (state directory full or read-only); nothing changed."
+);
+create_exception!(
+    guardian,
     AdminSocketError,
     GuardianError,
     "The admin socket could not be reached or broke off: `path`."
@@ -188,6 +194,7 @@ fn check_err(py: Python<'_>, e: gc::CheckError) -> PyErr {
             ],
         ),
         E::NotPermitted { .. } => raise::<NotPermitted>(py, msg, &[]),
+        E::Storage { .. } => raise::<StorageError>(py, msg, &[]),
         E::AdminSocket { path, .. } => {
             raise::<AdminSocketError>(py, msg, &[("path", obj(py, path.display().to_string()))])
         }
@@ -967,6 +974,7 @@ fn guardian(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("ProtocolError", py.get_type::<ProtocolError>())?;
     m.add("LimitExceeded", py.get_type::<LimitExceeded>())?;
     m.add("NotPermitted", py.get_type::<NotPermitted>())?;
+    m.add("StorageError", py.get_type::<StorageError>())?;
     m.add("AdminSocketError", py.get_type::<AdminSocketError>())?;
     m.add("AdminSocketNotFound", py.get_type::<AdminSocketNotFound>())?;
     Ok(())

@@ -42,6 +42,13 @@ def test_dataset_reads_as_numpy(dataset):
     assert "Dataset(" in repr(dataset)
 
 
+def test_every_error_is_a_guardian_error():
+    # A daemon that cannot persist an enroll answers Storage: its own exception, still a
+    # GuardianError, so `except guardian.GuardianError` never lets it pass as a verdict.
+    for name in ["StorageError", "NotPermitted", "LimitExceeded", "InternalError"]:
+        assert issubclass(getattr(guardian, name), guardian.GuardianError), name
+
+
 def test_status_names_the_robot(daemon):
     s = daemon.client().status()
     assert (s.robot.name, s.robot.joints, s.robot.channels) == ("panda", 7, 8)
