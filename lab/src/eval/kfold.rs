@@ -660,8 +660,9 @@ fn mean(xs: &[f64]) -> f64 {
     xs.iter().sum::<f64>() / xs.len().max(1) as f64
 }
 
-/// Mean, the smallest and largest per-fold mean, and their standard deviation.
-fn spread(per_fold: &[f64]) -> String {
+/// The mean over alphabets, then the smallest and largest per-fold mean and the standard
+/// deviation of the per-fold means.
+fn spread(per_fold: &[f64], all: &[f64]) -> String {
     if per_fold.is_empty() {
         return "-".into();
     }
@@ -671,7 +672,7 @@ fn spread(per_fold: &[f64]) -> String {
         .sqrt();
     let lo = per_fold.iter().copied().fold(f64::INFINITY, f64::min);
     let hi = per_fold.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    format!("{m:.3} (folds {lo:.3}–{hi:.3}, sd {sd:.3})")
+    format!("{:.3} (folds {lo:.3}–{hi:.3}, sd {sd:.3})", mean(all))
 }
 
 /// The report: targets first, then every alphabet.
@@ -687,8 +688,9 @@ pub fn markdown(folds: &[Vec<String>], rows: &[Row], args: &Args) -> String {
          Each fold's model (both branches of the shipped recipe, {} x {} steps, fused) was \
          trained on the other folds' alphabets only; episodes are within one held-out \
          alphabet ({} episodes, seed {}); go / no-go figures are 5-shot with a cross-fitted \
-         calibration (the other folds' models on the alphabets they never saw). Per-fold \
-         means are over the fold's alphabets; the spread is across folds.\n",
+         calibration (the other folds' models on the alphabets they never saw). Each figure \
+         is the mean over alphabets, then (in brackets) the lowest and highest of the \
+         per-fold means and their standard deviation across folds.\n",
         folds.len(),
         folds.iter().map(Vec::len).sum::<usize>(),
         args.epochs,
@@ -729,8 +731,8 @@ pub fn markdown(folds: &[Vec<String>], rows: &[Row], args: &Args) -> String {
             "| {way}-way {shot}-shot accuracy, mean of {} / {} alphabets | {} | {} | {target} |",
             aa.len(),
             ad.len(),
-            spread(&fa),
-            spread(&fd)
+            spread(&fa, &aa),
+            spread(&fd, &ad)
         );
     }
     let worst = |dense_only: bool| {
@@ -745,11 +747,10 @@ pub fn markdown(folds: &[Vec<String>], rows: &[Row], args: &Args) -> String {
         worst(false),
         worst(true)
     );
+    // A go / no-go figure: its mean over alphabets and its per-fold spread.
     let out = |f: &dyn Fn(&Row) -> f64, dense: bool| {
-        let (fm, _) =
-            per_fold(&|r| r.kind == "outliers" && r.model == "fold" && (!dense || r.dense));
-        // per-fold means of the figure, not of `value`
         let mut per = Vec::new();
+        let mut all = Vec::new();
         for k in 0..folds.len() {
             let v: Vec<f64> = rows
                 .iter()
@@ -762,9 +763,9 @@ pub fn markdown(folds: &[Vec<String>], rows: &[Row], args: &Args) -> String {
             if !v.is_empty() {
                 per.push(mean(&v));
             }
+            all.extend(v);
         }
-        let _ = fm;
-        spread(&per)
+        spread(&per, &all)
     };
     let fig = |name: &'static str| move |r: &Row| r.figures.get(name).copied().unwrap_or(f64::NAN);
     let _ = writeln!(
@@ -820,12 +821,12 @@ pub fn markdown(folds: &[Vec<String>], rows: &[Row], args: &Args) -> String {
         let _ = writeln!(
             s,
             "\n## Paired: the fold models against other models and datasets\n\n\
-             `compare`: `{}` on the alphabets it was not trained on; a variant: the fold \
+             `compare`: the model `{}` (`--compare`) on the alphabets it was not trained on; a variant: the fold \
              model on another dataset of the same drawings. Same episodes (seed), same \
              alphabets in both columns.\n\n| rows | alphabets | spec | fold model | other | other − fold |\n|---|---|---|---|---|---|",
-            args.compare
-                .as_ref()
-                .map_or("-".into(), |p| p.display().to_string())
+            rows.iter()
+                .find(|r| r.model == "compare")
+                .map_or("-", |r| r.model_version.as_str())
         );
         for o in &others {
             for (way, shot) in SPECS {
