@@ -125,6 +125,11 @@ pub struct Args {
     /// Skip the go / no-go figures (episodes only).
     #[arg(long)]
     pub no_outliers: bool,
+    /// Also measure the go / no-go figures of the dense alphabets with a calibration
+    /// cross-fitted on the dense alphabets alone (rows `dense-calibration`): served plans
+    /// are dense.
+    #[arg(long)]
+    pub dense_calibration: bool,
     /// Faulty-plan sources per alphabet for the go / no-go figures.
     #[arg(long, default_value_t = 200)]
     pub sources: usize,
@@ -354,17 +359,24 @@ fn episode_rows(
     Ok(rows)
 }
 
-/// The go / no-go row of fold `k`'s model on `alphabet`, calibrated by cross-fitting.
+/// The go / no-go row of fold `k`'s model on `alphabet`, calibrated by cross-fitting: the
+/// other folds' models each score their held-out alphabets (only the dense ones with
+/// `dense_only`) and the genuine scores are pooled.
 fn outlier_row(
     args: &Args,
     folds: &[Vec<String>],
     k: usize,
     alphabet: &str,
     base: &Row,
+    dense_only: bool,
 ) -> anyhow::Result<Row> {
     let dir = fold_dir(&args.out, k);
     let model = dir.join("model.safetensors");
-    let bank = dir.join("crossfit-bank.gcb");
+    let bank = dir.join(if dense_only {
+        "crossfit-dense-bank.gcb"
+    } else {
+        "crossfit-bank.gcb"
+    });
     let data_arg = args.data.dataset.display().to_string();
     if !bank.exists() {
         let mut cmd: Vec<String> = vec![
@@ -389,9 +401,17 @@ fn outlier_row(
             bank.display().to_string(),
         ];
         for (j, f) in folds.iter().enumerate().filter(|(j, _)| *j != k) {
+            let alphabets: Vec<String> = f
+                .iter()
+                .filter(|a| !dense_only || args.dense.contains(a))
+                .cloned()
+                .collect();
+            if alphabets.is_empty() {
+                continue;
+            }
             let pair = CrossFitPair {
                 model: fold_dir(&args.out, j).join("model.safetensors"),
-                alphabets: f.clone(),
+                alphabets,
             };
             cmd.push("--cross-fit".into());
             cmd.push(format!(
@@ -408,7 +428,7 @@ fn outlier_row(
         let cli = BankCli::try_parse_from(&cmd)?;
         let summary = crate::tools::bank::build(&cli.args)?;
         std::fs::write(
-            dir.join("crossfit-bank.json"),
+            bank.with_extension("json"),
             serde_json::to_vec_pretty(&summary)?,
         )?;
     }
@@ -621,16 +641,24 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let all_models =
         (0..args.folds).all(|k| fold_dir(&args.out, k).join("model.safetensors").exists());
     if !args.no_outliers && all_models {
+        let kinds: &[(&str, bool)] = if args.dense_calibration {
+            &[("fold", false), ("dense-calibration", true)]
+        } else {
+            &[("fold", false)]
+        };
         for &k in &selected {
-            for a in &folds[k] {
-                if have(k, a, "fold", "outliers") {
+            for (a, &(label, dense_only)) in folds[k]
+                .iter()
+                .flat_map(|a| kinds.iter().map(move |kind| (a, kind)))
+            {
+                if have(k, a, label, "outliers") || (dense_only && !args.dense.contains(a)) {
                     continue;
                 }
                 let base = Row {
                     fold: k,
                     alphabet: a.clone(),
                     dense: args.dense.contains(a),
-                    model: "fold".into(),
+                    model: label.into(),
                     model_version: String::new(),
                     kind: "outliers".into(),
                     way: None,
@@ -639,7 +667,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     ci95: None,
                     figures: BTreeMap::new(),
                 };
-                match outlier_row(args, &folds, k, a, &base) {
+                match outlier_row(args, &folds, k, a, &base, dense_only) {
                     Ok(row) => append_rows(&results, &[row])?,
                     Err(e) => eprintln!("kfold: {a}: no go / no-go figures: {e:#}"),
                 }
@@ -748,14 +776,14 @@ pub fn markdown(folds: &[Vec<String>], rows: &[Row], args: &Args) -> String {
         worst(true)
     );
     // A go / no-go figure: its mean over alphabets and its per-fold spread.
-    let out = |f: &dyn Fn(&Row) -> f64, dense: bool| {
+    let out_of = |f: &dyn Fn(&Row) -> f64, dense: bool, model: &str| {
         let mut per = Vec::new();
         let mut all = Vec::new();
         for k in 0..folds.len() {
             let v: Vec<f64> = rows
                 .iter()
                 .filter(|r| {
-                    r.fold == k && r.kind == "outliers" && r.model == "fold" && (!dense || r.dense)
+                    r.fold == k && r.kind == "outliers" && r.model == model && (!dense || r.dense)
                 })
                 .map(f)
                 .filter(|x| x.is_finite())
@@ -767,6 +795,7 @@ pub fn markdown(folds: &[Vec<String>], rows: &[Row], args: &Args) -> String {
         }
         spread(&per, &all)
     };
+    let out = |f: &dyn Fn(&Row) -> f64, dense: bool| out_of(f, dense, "fold");
     let fig = |name: &'static str| move |r: &Row| r.figures.get(name).copied().unwrap_or(f64::NAN);
     let _ = writeln!(
         s,
@@ -786,6 +815,18 @@ pub fn markdown(folds: &[Vec<String>], rows: &[Row], args: &Args) -> String {
         out(&fig("genuine-false-reject"), false),
         out(&fig("genuine-false-reject"), true)
     );
+    if rows.iter().any(|r| r.model == "dense-calibration") {
+        let _ = writeln!(
+            s,
+            "| … calibrated on the dense alphabets only: wrong task detected | | {} | >= 0.98 |",
+            out_of(&|r: &Row| r.value, true, "dense-calibration")
+        );
+        let _ = writeln!(
+            s,
+            "| … calibrated on the dense alphabets only: genuine false rejects | | {} | <= 0.01 |",
+            out_of(&fig("genuine-false-reject"), true, "dense-calibration")
+        );
+    }
     let min_shape = |r: &Row| {
         SHAPE_FAULTS
             .iter()
@@ -931,6 +972,7 @@ mod tests {
             episodes: 10,
             seed: 0,
             no_outliers: true,
+            dense_calibration: false,
             sources: 1,
             calib_reps: 1,
             reps: 1,
