@@ -12,6 +12,9 @@ use guardian_lab::eval::kfold::{self, Row};
 use guardian_lab::path::Geometry;
 use guardian_lab::strokes::scan;
 
+mod common;
+use common::first_characters;
+
 fn shared(root: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../../shared/omniglot")
@@ -36,21 +39,10 @@ fn rows(out: &Path) -> Vec<Row> {
 fn kfold_trains_measures_and_reports_every_held_out_alphabet_once() {
     let roots = [shared("strokes"), shared("recovered")];
     let all = scan(&roots).expect("both shared roots");
-    let mut files = Vec::new();
-    for alphabet in ["Latin", "Greek", "Futurama", "Keble"] {
-        let mut classes: Vec<String> = all
-            .iter()
-            .filter(|f| f.alphabet == alphabet)
-            .map(|f| f.class_name())
-            .collect();
-        classes.dedup();
-        classes.truncate(6);
-        files.extend(
-            all.iter()
-                .filter(|f| classes.contains(&f.class_name()))
-                .cloned(),
-        );
-    }
+    let files = first_characters(
+        &all,
+        &[("Latin", 6), ("Greek", 6), ("Futurama", 6), ("Keble", 6)],
+    );
     let (data, report) = generate_files(&files, &Geometry::default(), &|| {}).expect("generate");
     assert_eq!(report.converted, files.len());
     let dir = tempfile::tempdir().expect("tempdir");

@@ -21,7 +21,7 @@ use rand::{Rng, SeedableRng};
 use candle_core::Var;
 
 mod common;
-use common::{tiny_config, tiny_net};
+use common::{first_characters, tiny_config, tiny_net};
 
 /// `<workspace root>/../shared/omniglot/strokes`.
 fn shared_strokes() -> PathBuf {
@@ -33,21 +33,7 @@ fn small_dataset() -> &'static Dataset {
     static DATA: OnceLock<Dataset> = OnceLock::new();
     DATA.get_or_init(|| {
         let all = scan(&[shared_strokes()]).expect("shared strokes");
-        let mut files = Vec::new();
-        for (alphabet, n) in [("Latin", 8), ("Greek", 5)] {
-            let mut classes: Vec<String> = all
-                .iter()
-                .filter(|f| f.alphabet == alphabet)
-                .map(|f| f.class_name())
-                .collect();
-            classes.dedup();
-            classes.truncate(n);
-            files.extend(
-                all.iter()
-                    .filter(|f| classes.contains(&f.class_name()))
-                    .cloned(),
-            );
-        }
+        let files = first_characters(&all, &[("Latin", 8), ("Greek", 5)]);
         let (ds, report) = generate_files(&files, &Geometry::default(), &|| {}).expect("generate");
         assert_eq!(report.converted, files.len());
         ds

@@ -223,6 +223,25 @@ pub struct Row {
     pub figures: BTreeMap<String, f64>,
 }
 
+impl Row {
+    /// A row of fold `k` on `alphabet` with no figure yet.
+    fn blank(k: usize, alphabet: &str, dense: bool, model: &str, kind: &str) -> Self {
+        Self {
+            fold: k,
+            alphabet: alphabet.to_owned(),
+            dense,
+            model: model.to_owned(),
+            model_version: String::new(),
+            kind: kind.to_owned(),
+            way: None,
+            shot: None,
+            value: f64::NAN,
+            ci95: None,
+            figures: BTreeMap::new(),
+        }
+    }
+}
+
 fn fold_dir(out: &Path, k: usize) -> PathBuf {
     out.join(format!("fold-{k}"))
 }
@@ -596,19 +615,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         train_branch(args, &train, RECIPE_PICTURE, &dir.join("pic"))?;
         let model = data.embedder(&fuse(&dir)?)?;
         for a in &folds[k] {
-            let base = Row {
-                fold: k,
-                alphabet: a.clone(),
-                dense: args.dense.contains(a),
-                model: "fold".into(),
-                model_version: String::new(),
-                kind: "episodes".into(),
-                way: None,
-                shot: None,
-                value: f64::NAN,
-                ci95: None,
-                figures: BTreeMap::new(),
-            };
+            let base = Row::blank(k, a, args.dense.contains(a), "fold", "episodes");
             let mut rows = Vec::new();
             if !have(k, a, "fold", "episodes") {
                 rows.extend(episode_rows(&data, &model, a, &base, args)?);
@@ -654,19 +661,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 if have(k, a, label, "outliers") || (dense_only && !args.dense.contains(a)) {
                     continue;
                 }
-                let base = Row {
-                    fold: k,
-                    alphabet: a.clone(),
-                    dense: args.dense.contains(a),
-                    model: label.into(),
-                    model_version: String::new(),
-                    kind: "outliers".into(),
-                    way: None,
-                    shot: None,
-                    value: f64::NAN,
-                    ci95: None,
-                    figures: BTreeMap::new(),
-                };
+                let base = Row::blank(k, a, args.dense.contains(a), label, "outliers");
                 match outlier_row(args, &folds, k, a, &base, dense_only) {
                     Ok(row) => append_rows(&results, &[row])?,
                     Err(e) => eprintln!("kfold: {a}: no go / no-go figures: {e:#}"),

@@ -1,6 +1,7 @@
-//! Helpers shared by the training tests of `model.rs`.
+//! Helpers shared by the lab's integration tests.
 #![allow(dead_code)] // each test crate uses its own subset
 
+use guardian_lab::strokes::DrawingFile;
 use guardian_lab::train::{LossKind, TrainConfig};
 use guardian_models::features::FeatureKind;
 use guardian_models::net::NetConfig;
@@ -48,4 +49,24 @@ pub fn tiny_config() -> TrainConfig {
         class_augment: false,
         symmetry_quantile: 0.0,
     }
+}
+
+/// Every drawing of the first `n` characters of each `(alphabet, n)` among `all` (a scan).
+pub fn first_characters(all: &[DrawingFile], alphabets: &[(&str, usize)]) -> Vec<DrawingFile> {
+    let mut files = Vec::new();
+    for &(alphabet, n) in alphabets {
+        let mut classes: Vec<String> = all
+            .iter()
+            .filter(|f| f.alphabet == alphabet)
+            .map(|f| f.class_name())
+            .collect();
+        classes.dedup();
+        classes.truncate(n);
+        files.extend(
+            all.iter()
+                .filter(|f| classes.contains(&f.class_name()))
+                .cloned(),
+        );
+    }
+    files
 }
