@@ -246,14 +246,17 @@ fn fold_dir(out: &Path, k: usize) -> PathBuf {
     out.join(format!("fold-{k}"))
 }
 
-/// `train` arguments parsed as the `train` subcommand would (a later option overrides an
-/// earlier one, so `--train-args` can change the recipe).
+/// A subcommand's arguments (`train`, `bank`, `outliers`) parsed from the command line
+/// `kfold` builds, as that subcommand would parse them (a later option overrides an earlier
+/// one, so `--train-args` can change the recipe).
 #[derive(Debug, Parser)]
 #[command(args_override_self = true)]
-struct TrainCli {
+struct Sub<A: clap::Args> {
     #[command(flatten)]
-    args: crate::train::Args,
+    args: A,
 }
+
+type TrainCli = Sub<crate::train::Args>;
 
 /// The `train` command line of one branch of fold `k`.
 pub fn branch_command(
@@ -439,12 +442,7 @@ fn outlier_row(
                 pair.alphabets.join("+")
             ));
         }
-        #[derive(Debug, Parser)]
-        struct BankCli {
-            #[command(flatten)]
-            args: crate::tools::bank::Args,
-        }
-        let cli = BankCli::try_parse_from(&cmd)?;
+        let cli = Sub::<crate::tools::bank::Args>::try_parse_from(&cmd)?;
         let summary = crate::tools::bank::build(&cli.args)?;
         std::fs::write(
             bank.with_extension("json"),
@@ -495,12 +493,7 @@ fn outlier_row(
     .iter()
     .map(|s| s.to_string())
     .collect();
-    #[derive(Debug, Parser)]
-    struct OutliersCli {
-        #[command(flatten)]
-        args: crate::eval::outliers::Args,
-    }
-    let cli = OutliersCli::try_parse_from(&cmd)?;
+    let cli = Sub::<crate::eval::outliers::Args>::try_parse_from(&cmd)?;
     let report = crate::eval::outliers::measure(&cli.args)?;
     let g = report
         .methods
