@@ -52,21 +52,8 @@ fn main() -> Result<()> {
             other => bail!("unknown option {other}"),
         }
     }
-    let load = || {
-        std::fs::read_to_string("/proc/loadavg")
-            .unwrap_or_default()
-            .split_whitespace()
-            .take(3)
-            .collect::<Vec<_>>()
-            .join(" ")
-    };
     println!("guardian connect-churn benchmark");
-    println!(
-        "  cpus {} | RAYON_NUM_THREADS={} | load average at start {}",
-        std::thread::available_parallelism().map_or(0, |n| n.get()),
-        std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "unset".into()),
-        load()
-    );
+    println!("{}", guardian_tests::harness::machine_line());
     let mut s = Setup::new(71);
     s.extra = "default-threshold = 1e9\n".into();
     if let Some(n) = max_clients {
@@ -225,6 +212,9 @@ fn main() -> Result<()> {
     for (msg, n) in &warnings {
         println!("daemon WARN x{n}: {msg}");
     }
-    println!("load average at end {}", load());
+    println!(
+        "load average at end {}",
+        guardian_tests::harness::load_average()
+    );
     Ok(())
 }

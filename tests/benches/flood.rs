@@ -125,17 +125,7 @@ fn main() -> Result<()> {
         }
     }
     println!("guardian flood benchmark");
-    println!(
-        "  cpus {} | RAYON_NUM_THREADS={} | load average at start {}",
-        std::thread::available_parallelism().map_or(0, |n| n.get()),
-        std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "unset".into()),
-        std::fs::read_to_string("/proc/loadavg")
-            .unwrap_or_default()
-            .split_whitespace()
-            .take(3)
-            .collect::<Vec<_>>()
-            .join(" ")
-    );
+    println!("{}", guardian_tests::harness::machine_line());
     println!(
         "  well-behaved client: {checks} sequential checks of a {}-waypoint plan per phase",
         traj(1, 9).len()

@@ -162,12 +162,6 @@ fn time_n(warm: usize, n: usize, mut f: impl FnMut() -> Result<()>) -> Result<Ve
     Ok(out)
 }
 
-fn loadavg() -> String {
-    std::fs::read_to_string("/proc/loadavg")
-        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
-        .unwrap_or_else(|_| "?".into())
-}
-
 // ---------------------------------------------------------------- data
 
 struct Drawings {
@@ -751,12 +745,7 @@ fn run(o: Opts) -> Result<()> {
         (3_000, 10_000, Duration::from_secs(3))
     };
     println!("guardian latency benchmark");
-    println!(
-        "  cpus {} | RAYON_NUM_THREADS={} | load average at start {}",
-        std::thread::available_parallelism().map_or(0, |n| n.get()),
-        std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "unset".into()),
-        loadavg()
-    );
+    println!("{}", guardian_tests::harness::machine_line());
     let tmp = tempfile::tempdir()?;
     let shipped = workspace_root().join("models/embedder.safetensors");
     let model_path = match &o.model {
@@ -1228,6 +1217,9 @@ fn run(o: Opts) -> Result<()> {
         );
     }
     println!();
-    println!("load average at end {}", loadavg());
+    println!(
+        "load average at end {}",
+        guardian_tests::harness::load_average()
+    );
     Ok(())
 }

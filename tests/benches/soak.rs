@@ -101,12 +101,6 @@ fn rss_kib(pid: u32) -> Result<[u64; 3]> {
     Ok([field("VmRSS:")?, field("RssAnon:")?, field("RssShmem:")?])
 }
 
-fn loadavg() -> String {
-    std::fs::read_to_string("/proc/loadavg")
-        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
-        .unwrap_or_else(|_| "?".into())
-}
-
 /// p50, p90, p99, p99.9, max of microsecond samples.
 fn percentiles(v: &mut [f32]) -> [f32; 5] {
     if v.is_empty() {
@@ -135,12 +129,7 @@ struct Outcome {
 fn main() -> Result<()> {
     let o = parse_opts()?;
     println!("guardian soak benchmark");
-    println!(
-        "  cpus {} | RAYON_NUM_THREADS={} | load average at start {}",
-        std::thread::available_parallelism().map_or(0, |n| n.get()),
-        std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "unset".into()),
-        loadavg()
-    );
+    println!("{}", guardian_tests::harness::machine_line());
 
     // Real Omniglot drawings converted to dense Panda joint paths by the dataset library.
     let solver = PathSolver::new(&Geometry::default())?;
@@ -292,7 +281,7 @@ fn main() -> Result<()> {
                         rss[0],
                         rss[1],
                         rss[2],
-                        loadavg()
+                        guardian_tests::harness::load_average()
                     );
                     marks
                         .lock()
@@ -426,7 +415,10 @@ fn main() -> Result<()> {
         status.latency_us.map_or(f32::NAN, |l| l[0]),
         status.latency_us.map_or(f32::NAN, |l| l[2]),
     );
-    println!("load average at end {}", loadavg());
+    println!(
+        "load average at end {}",
+        guardian_tests::harness::load_average()
+    );
     if mismatched > 0 || lost > 0 || answered != o.requests {
         bail!("{mismatched} mismatched and {lost} lost responses");
     }

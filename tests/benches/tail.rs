@@ -50,17 +50,7 @@ fn main() -> Result<()> {
         .map(|m| std::os::unix::fs::MetadataExt::uid(&m) == 0)
         .unwrap_or(false);
     println!("guardian tail-latency benchmark");
-    println!(
-        "  cpus {} | RAYON_NUM_THREADS={} | load average at start {}",
-        std::thread::available_parallelism().map_or(0, |n| n.get()),
-        std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "unset".into()),
-        std::fs::read_to_string("/proc/loadavg")
-            .unwrap_or_default()
-            .split_whitespace()
-            .take(3)
-            .collect::<Vec<_>>()
-            .join(" ")
-    );
+    println!("{}", guardian_tests::harness::machine_line());
     println!(
         "  planner: {checks} checks of a {}-waypoint plan, one every 10 ms; flood: {flooders} clients checking back to back",
         traj(1, 9).len()

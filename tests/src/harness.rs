@@ -580,3 +580,21 @@ impl Expected {
         close && self.decision == got.decision && self.nearest == got.nearest
     }
 }
+
+/// The load average (1, 5 and 15 minutes) from `/proc/loadavg`; `?` where unreadable.
+pub fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "?".into())
+}
+
+/// The line every benchmark prints under its title: cores, `RAYON_NUM_THREADS` and the
+/// load average at start, so that figures from different runs can be compared.
+pub fn machine_line() -> String {
+    format!(
+        "  cpus {} | RAYON_NUM_THREADS={} | load average at start {}",
+        std::thread::available_parallelism().map_or(0, |n| n.get()),
+        std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "unset".into()),
+        load_average()
+    )
+}
