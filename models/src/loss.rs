@@ -8,6 +8,9 @@
 //!   pushed farther from the class's anchors than its positives.
 //! * [`contrastive_loss`] — the Siamese baseline's pair loss:
 //!   `y * d + (1 - y) * max(0, margin - sqrt(d))^2` over all pairs of the batch.
+//! * [`supcon_loss`] — the supervised contrastive loss (Khosla et al., 2020) on
+//!   L2-normalised embeddings: every anchor's positives against all the other samples of
+//!   the batch, a softmax over cosine similarities at a temperature.
 
 use candle_core::{D, Device, Tensor};
 
@@ -176,6 +179,45 @@ pub fn contrastive_loss(e: &Tensor, labels: &[u32], margin: f64) -> candle_core:
     pull + push
 }
 
+/// Supervised contrastive loss (Khosla et al., 2020, `L_out`) on L2-normalised embeddings
+/// `e [B, E]`: with `s = e eᵀ / temperature`, each anchor `i` that has a positive scores
+/// `−mean over positives p of log(exp(s_ip) / Σ_{j≠i} exp(s_ij))`; the loss is the mean over
+/// those anchors (0 without any). Returns `(loss, anchors with a positive)`.
+pub fn supcon_loss(
+    e: &Tensor,
+    labels: &[u32],
+    temperature: f64,
+) -> candle_core::Result<(Tensor, usize)> {
+    let b = labels.len();
+    let s = (e.matmul(&e.t()?)? / temperature)?;
+    // Self-similarity is left out of the softmax: a large negative on the diagonal.
+    let mut diag = vec![0.0f32; b * b];
+    for i in 0..b {
+        diag[i * b + i] = -1e4;
+    }
+    let diag = Tensor::from_vec(diag, (b, b), e.device())?.to_dtype(e.dtype())?;
+    let logits = (s + diag)?;
+    // log-softmax per row, stabilised by the (constant) row maximum.
+    let max = logits.max_keepdim(1)?.detach();
+    let shifted = logits.broadcast_sub(&max)?;
+    let log_prob = shifted.broadcast_sub(&shifted.exp()?.sum_keepdim(1)?.log()?)?;
+    // Weights: 1 / (|P(i)| · anchors) on each positive pair.
+    let mut w = vec![0.0f32; b * b];
+    let counts: Vec<usize> = (0..b)
+        .map(|i| (0..b).filter(|&j| j != i && labels[j] == labels[i]).count())
+        .collect();
+    let anchors = counts.iter().filter(|&&c| c > 0).count();
+    for i in 0..b {
+        for j in 0..b {
+            if j != i && labels[j] == labels[i] {
+                w[i * b + j] = 1.0 / (counts[i] * anchors) as f32;
+            }
+        }
+    }
+    let w = Tensor::from_vec(w, (b, b), e.device())?.to_dtype(e.dtype())?;
+    Ok(((log_prob * w)?.sum_all()?.neg()?, anchors))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -284,6 +326,40 @@ mod tests {
         let (l, _, n) = fault_triplet_loss(&e, &labels, &[None; 5], 3.5)?;
         assert_eq!((l.to_scalar::<f32>()?, n), (0.0, 0));
         assert!(fault_triplet_loss(&e, &labels, &[None; 4], 3.5).is_err());
+        Ok(())
+    }
+
+    #[test]
+    fn supcon_matches_its_definition_on_a_known_case() -> candle_core::Result<()> {
+        // Unit vectors: classes 0, 0, 1 and a singleton class 2 (no positive: not an anchor).
+        let (c, d) = (0.6f32, 0.8f32);
+        let e = t(&[[1.0, 0.0], [c, d], [0.0, 1.0], [-1.0, 0.0]]);
+        let labels = [0u32, 0, 1, 1];
+        let tau = 0.5;
+        let (l, anchors) = supcon_loss(&e, &labels, tau)?;
+        assert_eq!(anchors, 4);
+        let rows = [[1.0f64, 0.0], [0.6, 0.8], [0.0, 1.0], [-1.0, 0.0]];
+        let dot = |i: usize, j: usize| rows[i][0] * rows[j][0] + rows[i][1] * rows[j][1];
+        let mut want = 0.0;
+        for i in 0..4 {
+            let den: f64 = (0..4)
+                .filter(|&j| j != i)
+                .map(|j| (dot(i, j) / tau).exp())
+                .sum();
+            let p = (0..4).find(|&j| j != i && labels[j] == labels[i]).unwrap();
+            want += -((dot(i, p) / tau).exp() / den).ln() / 4.0;
+        }
+        let got = f64::from(l.to_scalar::<f32>()?);
+        assert!((got - want).abs() < 1e-4, "{got} vs {want}");
+        // A singleton class is no anchor; a batch without positives has loss 0.
+        let (_, anchors) = supcon_loss(&e, &[0, 0, 1, 2], tau)?;
+        assert_eq!(anchors, 2);
+        let (l, anchors) = supcon_loss(&e, &[0, 1, 2, 3], tau)?;
+        assert_eq!((anchors, l.to_scalar::<f32>()?), (0, 0.0));
+        // Pulling a positive closer lowers the loss.
+        let closer = t(&[[1.0, 0.0], [0.8, c], [0.0, 1.0], [-1.0, 0.0]]);
+        let (l2, _) = supcon_loss(&closer, &labels, tau)?;
+        assert!(l2.to_scalar::<f32>()? < got as f32);
         Ok(())
     }
 }

@@ -22,6 +22,9 @@ pub enum LossKind {
     Triplet,
     /// Contrastive pair loss: the Siamese baseline.
     Contrastive,
+    /// Supervised contrastive loss (a softmax over the batch's cosine similarities; its
+    /// temperature is `--margin`).
+    Supcon,
 }
 
 /// Feature choice on the command line.
@@ -80,7 +83,7 @@ pub struct TrainConfig {
     pub net: NetConfig,
     /// Loss.
     pub loss: LossKind,
-    /// Triplet / contrastive margin.
+    /// Triplet / contrastive margin (the temperature of `supcon`).
     pub margin: f64,
     /// Training alphabets.
     pub train_alphabets: Vec<String>,
@@ -216,7 +219,7 @@ pub struct Args {
     /// Loss (`contrastive` trains the Siamese baseline).
     #[arg(long, value_enum, default_value = "batch-all")]
     pub loss: LossKind,
-    /// Margin of the loss.
+    /// Margin of the loss (for `supcon`, its temperature).
     #[arg(long, default_value_t = 0.2)]
     pub margin: f64,
     /// Convolution channels per layer, comma-separated.

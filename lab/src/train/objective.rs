@@ -1,6 +1,6 @@
 //! The training objective: the main loss of a batch of embeddings (batch-all triplets, the
-//! paper's random triplets, or the Siamese baseline's contrastive pairs) plus the weighted
-//! fault-negative term, and the validation-comparable loss.
+//! paper's random triplets, the Siamese baseline's contrastive pairs, or supervised
+//! contrastive) plus the weighted fault-negative term, and the validation-comparable loss.
 
 use candle_core::{Device, Tensor};
 use guardian_models::loss;
@@ -95,6 +95,10 @@ pub fn batch_loss(
             let l = loss::contrastive_loss(e, labels, margin)?;
             let n = labels.len();
             Ok((l, 1.0, n * (n - 1) / 2))
+        }
+        LossKind::Supcon => {
+            let (l, anchors) = loss::supcon_loss(e, labels, margin)?;
+            Ok((l, anchors as f32 / labels.len().max(1) as f32, anchors))
         }
     }
 }
