@@ -1,0 +1,214 @@
+//! The gate's TOML config (`/etc/guardian/guardian-gate.toml`), kebab-case, unknown keys
+//! rejected, every key optional (docs/ros2.md, "Config").
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use serde::Deserialize;
+
+use crate::plan::ToolSource;
+
+/// Where the installed config lives.
+pub const DEFAULT_CONFIG_PATH: &str = "/etc/guardian/guardian-gate.toml";
+
+/// The whole config.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields, default)]
+pub struct GateConfig {
+    /// The gate's namespace: it serves `<gate>/follow_joint_trajectory` and uses
+    /// `<gate>/task` and `<gate>/verdicts`. MoveIt's `action_ns` points here.
+    pub gate: String,
+    /// The real controller's namespace: go goals are sent to
+    /// `<controller>/follow_joint_trajectory`.
+    pub controller: String,
+    /// ROS node name.
+    pub node_name: String,
+    /// DDS domain; unset: `$ROS_DOMAIN_ID`, else 0.
+    pub domain_id: Option<u16>,
+    /// Limit DDS to the interfaces with these addresses (e.g. `["127.0.0.1"]` when
+    /// MoveIt, the controller and the gate share the host). Empty: every interface.
+    pub only_networks: Vec<std::net::IpAddr>,
+    /// The robot served: `panda`, `ur5e` or a robot description path; must be guardiand's.
+    pub robot: String,
+    /// Where the tool channel comes from.
+    pub tool: ToolSource,
+    /// How long to wait for the controller to accept or reject a forwarded goal (ms).
+    pub controller_timeout_ms: u64,
+    /// How to reach guardiand.
+    pub guardiand: GuardiandConfig,
+}
+
+/// How the gate reaches guardiand (the same keys as guardiand's own config).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields, default)]
+pub struct GuardiandConfig {
+    /// guardiand's request-response service name.
+    pub service_name: String,
+    /// Longest wait for one answer (ms); past it the goal is rejected.
+    pub timeout_ms: u64,
+    /// iceoryx2 root path (guardiand's `[iceoryx2] root-path`).
+    pub iceoryx2_root_path: Option<PathBuf>,
+    /// iceoryx2 prefix (guardiand's `[iceoryx2] prefix`).
+    pub iceoryx2_prefix: Option<String>,
+}
+
+impl Default for GateConfig {
+    fn default() -> Self {
+        Self {
+            gate: "/guardian_gate".into(),
+            controller: "/panda_arm_controller".into(),
+            node_name: "guardian_gate".into(),
+            domain_id: None,
+            only_networks: Vec::new(),
+            robot: "panda".into(),
+            tool: ToolSource::default(),
+            controller_timeout_ms: 2000,
+            guardiand: GuardiandConfig::default(),
+        }
+    }
+}
+
+impl Default for GuardiandConfig {
+    fn default() -> Self {
+        Self {
+            service_name: guardian_shared::wire::DEFAULT_SERVICE_NAME.into(),
+            timeout_ms: 500,
+            iceoryx2_root_path: None,
+            iceoryx2_prefix: None,
+        }
+    }
+}
+
+/// The config could not be read.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("{}: {source}", path.display())]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// Not TOML of the expected shape (names the key).
+    #[error("{}: {source}", path.display())]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: Box<toml::de::Error>,
+    },
+    /// A name is not a valid ROS 2 name.
+    #[error("{key} = {value:?} is not an absolute ROS 2 namespace (like \"/guardian_gate\")")]
+    Name {
+        /// The key.
+        key: &'static str,
+        /// Its value.
+        value: String,
+    },
+}
+
+impl GateConfig {
+    /// Parse `text` (errors name `path`).
+    pub fn parse(text: &str, path: &Path) -> Result<Self, ConfigError> {
+        let c: Self = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: path.to_path_buf(),
+            source: Box::new(e),
+        })?;
+        c.validate()?;
+        Ok(c)
+    }
+
+    /// Read and parse a file.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::parse(&text, path)
+    }
+
+    fn validate(&self) -> Result<(), ConfigError> {
+        for (key, value) in [("gate", &self.gate), ("controller", &self.controller)] {
+            let ok = value.starts_with('/')
+                && value.len() > 1
+                && !value.ends_with('/')
+                && value[1..].split('/').all(|p| {
+                    !p.is_empty() && p.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+                });
+            if !ok {
+                return Err(ConfigError::Name {
+                    key,
+                    value: value.clone(),
+                });
+            }
+        }
+        if self.gate == self.controller {
+            return Err(ConfigError::Name {
+                key: "controller",
+                value: format!(
+                    "{} (the same as gate: the gate would forward to itself)",
+                    self.controller
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    /// The domain id: the config's, else `$ROS_DOMAIN_ID`, else 0.
+    pub fn domain(&self) -> u16 {
+        self.domain_id
+            .or_else(|| std::env::var("ROS_DOMAIN_ID").ok()?.parse().ok())
+            .unwrap_or(0)
+    }
+
+    /// The controller answer timeout.
+    pub fn controller_timeout(&self) -> Duration {
+        Duration::from_millis(self.controller_timeout_ms)
+    }
+
+    /// The default config as commented TOML (`--print-default-config`).
+    pub fn default_toml() -> &'static str {
+        include_str!("../../systemd/guardian-gate.toml")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shipped_sample_is_the_default() {
+        let c = GateConfig::parse(GateConfig::default_toml(), Path::new("sample")).unwrap();
+        assert_eq!(c, GateConfig::default());
+    }
+
+    #[test]
+    fn tool_joint_and_errors() {
+        let c = GateConfig::parse(
+            "controller = \"/arm\"\n[tool]\nsource = \"joint\"\njoint = \"pen\"\n",
+            Path::new("x"),
+        )
+        .unwrap();
+        assert_eq!(
+            c.tool,
+            ToolSource::Joint {
+                joint: "pen".into(),
+                down_at: 0.5
+            }
+        );
+        let e = GateConfig::parse("bogus = 1\n", Path::new("x")).unwrap_err();
+        assert!(e.to_string().contains("bogus"), "{e}");
+        let e = GateConfig::parse("gate = \"no_slash\"\n", Path::new("x")).unwrap_err();
+        assert!(matches!(e, ConfigError::Name { key: "gate", .. }));
+        let e = GateConfig::parse("controller = \"/guardian_gate\"\n", Path::new("x")).unwrap_err();
+        assert!(matches!(
+            e,
+            ConfigError::Name {
+                key: "controller",
+                ..
+            }
+        ));
+    }
+}

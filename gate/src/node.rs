@@ -1,0 +1,597 @@
+//! The ROS 2 node: the gate's action server, the action client of the real controller,
+//! the task subscription, the verdict and diagnostics publishers, and the loop that ties
+//! them together (docs/ros2.md).
+//!
+//! One goal is screened and relayed at a time (as MoveIt sends them to one controller); a
+//! goal that arrives meanwhile waits in the DDS queue until the active one has ended.
+
+use std::cell::{Cell, RefCell};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context as _, anyhow};
+use futures::{FutureExt, StreamExt, pin_mut};
+use guardian_models::kinematics::RobotDescription;
+use ros2_client::action::{
+    ActionClient, ActionClientQosPolicies, ActionServerQosPolicies, AsyncActionServer,
+    GoalEndStatus, GoalId, GoalStatusEnum,
+};
+use ros2_client::{
+    ActionTypeName, Context, MessageTypeName, Name, NodeName, NodeOptions, Publisher, QosProfile,
+    ServiceMapping, Subscription,
+    qos::{Durability, History},
+};
+
+use crate::config::GateConfig;
+use crate::msgs::{
+    DiagnosticArray, DiagnosticStatus, FollowJointTrajectoryFeedback as Feedback,
+    FollowJointTrajectoryGoal as Goal, FollowJointTrajectoryResult as GoalResult, Header, KeyValue,
+    StringMsg, Time, Verdict, error_code,
+};
+use crate::plan::PlanMapper;
+use crate::screen::{Outcome, Screen};
+
+type Server = AsyncActionServer<Goal, GoalResult, Feedback>;
+type Controller = ActionClient<Goal, GoalResult, Feedback>;
+
+/// ROS 2's service default: reliable, volatile, keep last 10.
+fn service_qos() -> QosProfile {
+    QosProfile::publisher_default()
+        .durability(Durability::Volatile)
+        .history(History::KeepLast { depth: 10 })
+}
+
+/// Reliable, transient local, keep last 1: the claimed task, and action status.
+fn latched_qos() -> QosProfile {
+    QosProfile::publisher_default()
+        .durability(Durability::TransientLocal)
+        .history(History::KeepLast { depth: 1 })
+}
+
+/// QoS of an action server as ROS 2 sets it up.
+pub fn action_server_qos() -> ActionServerQosPolicies {
+    ActionServerQosPolicies {
+        goal_service: service_qos(),
+        result_service: service_qos(),
+        cancel_service: service_qos(),
+        feedback_publisher: service_qos(),
+        status_publisher: latched_qos(),
+    }
+}
+
+/// QoS of an action client as ROS 2 sets it up.
+pub fn action_client_qos() -> ActionClientQosPolicies {
+    ActionClientQosPolicies {
+        goal_service: service_qos(),
+        result_service: service_qos(),
+        cancel_service: service_qos(),
+        feedback_subscription: service_qos(),
+        status_subscription: latched_qos(),
+    }
+}
+
+/// The action type the gate serves and forwards.
+pub fn follow_joint_trajectory() -> ActionTypeName {
+    ActionTypeName::new("control_msgs", "FollowJointTrajectory")
+}
+
+/// `<namespace>/follow_joint_trajectory`.
+pub fn action_name(namespace: &str) -> anyhow::Result<Name> {
+    Name::new(namespace, "follow_joint_trajectory")
+        .map_err(|e| anyhow!("action name under {namespace:?}: {e:?}"))
+}
+
+/// A DDS participant on `domain`, limited to the interfaces with `only_networks` (all if
+/// empty), as a ros2-client context.
+pub fn context(domain: u16, only_networks: &[std::net::IpAddr]) -> anyhow::Result<Context> {
+    let mut b = ros2_client::dds::rustdds::DomainParticipantBuilder::new(domain);
+    if !only_networks.is_empty() {
+        b = b.with_only_networks(only_networks.iter().copied());
+    }
+    let dp = b
+        .build()
+        .map_err(|e| anyhow!("DDS participant on domain {domain}: {e:?}"))?;
+    Context::from_domain_participant(dp).map_err(|e| anyhow!("ROS 2 context: {e:?}"))
+}
+
+enum Event {
+    Goal(ros2_client::ReadResult<ros2_client::action::NewGoalHandle<Goal>>),
+    Done,
+    Cancel(ros2_client::ReadResult<ros2_client::action::CancelHandle>),
+    Tick,
+}
+
+/// Counters for /diagnostics.
+#[derive(Debug, Default)]
+struct Counts {
+    go: Cell<u64>,
+    no_go: Cell<u64>,
+    errors: Cell<u64>,
+}
+
+struct Gate<'a> {
+    config: &'a GateConfig,
+    mapper: PlanMapper,
+    screen: Screen,
+    server: Server,
+    controller: Controller,
+    task: Subscription<StringMsg>,
+    claim: RefCell<Option<String>>,
+    verdicts: Publisher<Verdict>,
+    counts: Counts,
+    /// The active goal: (ours, the controller's) once forwarded.
+    forwarded: Cell<Option<(GoalId, GoalId)>>,
+}
+
+/// Run the gate until `stop` is set.
+pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
+    let description = RobotDescription::resolve(&config.robot)
+        .with_context(|| format!("robot {:?}", config.robot))?;
+    let mapper = PlanMapper::new(&description, config.tool.clone());
+    let screen = Screen::start(&config.guardiand).context("starting the guardiand client")?;
+    let ctx = context(config.domain(), &config.only_networks)?;
+    let mut node = ctx
+        .new_node(
+            NodeName::new("/", &config.node_name)
+                .map_err(|e| anyhow!("node name {:?}: {e:?}", config.node_name))?,
+            NodeOptions::new().enable_rosout(false),
+        )
+        .map_err(|e| anyhow!("creating the node: {e:?}"))?;
+    let spinner = node.spinner().map_err(|e| anyhow!("node spinner: {e:?}"))?;
+    smol::spawn(spinner.spin()).detach();
+
+    let server = AsyncActionServer::new(
+        node.create_action_server::<Goal, GoalResult, Feedback>(
+            ServiceMapping::Enhanced,
+            &action_name(&config.gate)?,
+            &follow_joint_trajectory(),
+            action_server_qos(),
+        )
+        .map_err(|e| anyhow!("action server: {e:?}"))?,
+    );
+    let controller = node
+        .create_action_client::<Goal, GoalResult, Feedback>(
+            ServiceMapping::Enhanced,
+            &action_name(&config.controller)?,
+            &follow_joint_trajectory(),
+            action_client_qos(),
+        )
+        .map_err(|e| anyhow!("controller action client: {e:?}"))?;
+    let task_topic = node
+        .create_topic(
+            &Name::new(&config.gate, "task").map_err(|e| anyhow!("task topic: {e:?}"))?,
+            MessageTypeName::new("std_msgs", "String"),
+            &latched_qos(),
+        )
+        .map_err(|e| anyhow!("task topic: {e:?}"))?;
+    let task = node
+        .create_subscription::<StringMsg>(&task_topic, Some(latched_qos()))
+        .map_err(|e| anyhow!("task subscription: {e:?}"))?;
+    let verdict_topic = node
+        .create_topic(
+            &Name::new(&config.gate, "verdicts").map_err(|e| anyhow!("verdict topic: {e:?}"))?,
+            MessageTypeName::new("guardian_msgs", "Verdict"),
+            &service_qos(),
+        )
+        .map_err(|e| anyhow!("verdict topic: {e:?}"))?;
+    let verdicts = node
+        .create_publisher::<Verdict>(&verdict_topic, Some(service_qos()))
+        .map_err(|e| anyhow!("verdict publisher: {e:?}"))?;
+    let diag_topic = node
+        .create_topic(
+            &Name::new("/", "diagnostics").map_err(|e| anyhow!("diagnostics topic: {e:?}"))?,
+            MessageTypeName::new("diagnostic_msgs", "DiagnosticArray"),
+            &service_qos(),
+        )
+        .map_err(|e| anyhow!("diagnostics topic: {e:?}"))?;
+    let diagnostics = node
+        .create_publisher::<DiagnosticArray>(&diag_topic, Some(service_qos()))
+        .map_err(|e| anyhow!("diagnostics publisher: {e:?}"))?;
+
+    let gate = Gate {
+        config: &config,
+        mapper,
+        screen,
+        server,
+        controller,
+        task,
+        claim: RefCell::new(None),
+        verdicts,
+        counts: Counts::default(),
+        forwarded: Cell::new(None),
+    };
+    tracing::info!(
+        gate = %config.gate,
+        controller = %config.controller,
+        domain = config.domain(),
+        robot = %config.robot,
+        "guardian-gate serving {}/follow_joint_trajectory",
+        config.gate
+    );
+    smol::block_on(gate.serve(&stop, &diagnostics));
+    tracing::info!("guardian-gate stopped");
+    drop(node);
+    Ok(())
+}
+
+impl Gate<'_> {
+    async fn serve(&self, stop: &AtomicBool, diagnostics: &Publisher<DiagnosticArray>) {
+        let mut active: Option<futures::future::LocalBoxFuture<'_, ()>> = None;
+        let mut ticks = StreamExt::fuse(smol::Timer::interval(Duration::from_millis(100)));
+        let mut last_diag = Instant::now() - Duration::from_secs(2);
+        while !stop.load(Ordering::Relaxed) {
+            if last_diag.elapsed() >= Duration::from_secs(1) {
+                last_diag = Instant::now();
+                self.publish_diagnostics(diagnostics).await;
+            }
+            let has_active = active.is_some();
+            let event = {
+                let new_goal = async {
+                    if has_active {
+                        futures::future::pending().await
+                    } else {
+                        self.server.receive_new_goal().await
+                    }
+                }
+                .fuse();
+                let running = async {
+                    match active.as_mut() {
+                        Some(f) => f.await,
+                        None => futures::future::pending().await,
+                    }
+                }
+                .fuse();
+                let cancel = self.server.receive_cancel_request().fuse();
+                pin_mut!(new_goal, running, cancel);
+                futures::select! {
+                    g = new_goal => Event::Goal(g),
+                    () = running => Event::Done,
+                    c = cancel => Event::Cancel(c),
+                    _ = ticks.next() => Event::Tick,
+                }
+            };
+            match event {
+                Event::Goal(Ok(handle)) => active = Some(self.handle_goal(handle).boxed_local()),
+                Event::Goal(Err(e)) => tracing::warn!("receiving a goal: {e:?}"),
+                Event::Done => {
+                    active = None;
+                    self.forwarded.set(None);
+                }
+                Event::Cancel(Ok(handle)) => self.relay_cancel(handle).await,
+                Event::Cancel(Err(e)) => tracing::warn!("receiving a cancel request: {e:?}"),
+                Event::Tick => {}
+            }
+        }
+    }
+
+    /// The latest claim on `<gate>/task` (an empty string clears it: identify mode).
+    fn current_claim(&self) -> Option<String> {
+        while let Ok(Some((msg, _))) = self.task.take() {
+            let claim = msg.data.trim().to_string();
+            tracing::info!(claim = %claim, "claimed task");
+            *self.claim.borrow_mut() = (!claim.is_empty()).then_some(claim);
+        }
+        self.claim.borrow().clone()
+    }
+
+    async fn handle_goal(&self, handle: ros2_client::action::NewGoalHandle<Goal>) {
+        let goal_id = handle.goal_id();
+        let Some(goal) = self.server.get_new_goal(handle.clone()) else {
+            tracing::warn!("goal {goal_id:?} vanished before it was screened");
+            return;
+        };
+        let claim = self.current_claim();
+        let id_hex = uuid_hex(&goal_id);
+        let plan = match self.mapper.map(&goal.trajectory) {
+            Ok(p) => p,
+            Err(e) => {
+                let detail = format!("guardian: INVALID_JOINTS: {e}");
+                self.publish_verdict(
+                    &id_hex,
+                    &claim,
+                    &Outcome {
+                        verdict: "no-go",
+                        ..Outcome::failed("invalid-joints", detail.clone())
+                    },
+                    "",
+                    0,
+                );
+                self.counts.no_go.set(self.counts.no_go.get() + 1);
+                self.refuse(handle, error_code::INVALID_JOINTS, detail)
+                    .await;
+                return;
+            }
+        };
+        let sha = plan.sha256();
+        let waypoints = plan.waypoints() as u32;
+        let outcome = self.screen.screen(plan, claim.clone()).await;
+        self.publish_verdict(&id_hex, &claim, &outcome, &sha, waypoints);
+        tracing::info!(goal = %id_hex, verdict = outcome.verdict, reason = outcome.reason, "{}", outcome.detail);
+        if !outcome.go {
+            let c = if outcome.verdict == "error" {
+                &self.counts.errors
+            } else {
+                &self.counts.no_go
+            };
+            c.set(c.get() + 1);
+            self.refuse(handle, error_code::INVALID_GOAL, outcome.detail)
+                .await;
+            return;
+        }
+        self.counts.go.set(self.counts.go.get() + 1);
+        self.forward(handle, goal).await;
+    }
+
+    /// Accept, then abort with `code` and `detail`: the only way FollowJointTrajectory
+    /// carries an error code and string to MoveIt. Never forwarded.
+    async fn refuse(
+        &self,
+        handle: ros2_client::action::NewGoalHandle<Goal>,
+        code: i32,
+        detail: String,
+    ) {
+        let result = async {
+            let accepted = self
+                .server
+                .accept_goal(handle)
+                .await
+                .map_err(|e| format!("{e:?}"))?;
+            let executing = self
+                .server
+                .start_executing_goal(accepted)
+                .await
+                .map_err(|e| format!("{e:?}"))?;
+            self.server
+                .send_result_response(
+                    executing,
+                    GoalEndStatus::Aborted,
+                    GoalResult {
+                        error_code: code,
+                        error_string: detail,
+                    },
+                )
+                .await
+                .map_err(|e| format!("{e:?}"))
+        };
+        if let Err(e) = result.await {
+            tracing::warn!("refusing a goal: {e}");
+        }
+    }
+
+    /// Send the goal unchanged to the controller and relay its answers.
+    async fn forward(&self, handle: ros2_client::action::NewGoalHandle<Goal>, goal: Goal) {
+        let sent = futures::future::select(
+            self.controller.async_send_goal(goal).boxed_local(),
+            smol::Timer::after(self.config.controller_timeout()),
+        )
+        .await;
+        let (ctrl_id, response) = match sent {
+            futures::future::Either::Left((Ok(r), _)) => r,
+            futures::future::Either::Left((Err(e), _)) => {
+                self.counts.errors.set(self.counts.errors.get() + 1);
+                self.refuse(
+                    handle,
+                    error_code::INVALID_GOAL,
+                    format!(
+                        "guardian gate: sending the goal to {} failed: {e:?}",
+                        self.config.controller
+                    ),
+                )
+                .await;
+                return;
+            }
+            futures::future::Either::Right(_) => {
+                // The controller may still accept it later: the gate cannot cancel a goal
+                // whose id it never learned, so it says so.
+                self.counts.errors.set(self.counts.errors.get() + 1);
+                self.refuse(
+                    handle,
+                    error_code::INVALID_GOAL,
+                    format!(
+                        "guardian gate: controller {} did not answer within {:?}",
+                        self.config.controller,
+                        self.config.controller_timeout()
+                    ),
+                )
+                .await;
+                return;
+            }
+        };
+        if !response.accepted {
+            tracing::info!("controller rejected the goal");
+            if let Err(e) = self.server.reject_goal(handle).await {
+                tracing::warn!("rejecting a goal: {e:?}");
+            }
+            return;
+        }
+        let ours = handle.goal_id();
+        self.forwarded.set(Some((ours, ctrl_id)));
+        let executing = match self.server.accept_goal(handle).await {
+            Ok(a) => match self.server.start_executing_goal(a).await {
+                Ok(x) => x,
+                Err(e) => {
+                    tracing::warn!("starting a goal: {e:?}");
+                    return;
+                }
+            },
+            Err(e) => {
+                tracing::warn!("accepting a goal: {e:?}");
+                return;
+            }
+        };
+        let fb = executing.clone();
+        let feedback = async {
+            let stream = self.controller.feedback_stream(ctrl_id);
+            pin_mut!(stream);
+            while let Some(f) = stream.next().await {
+                match f {
+                    Ok(f) => {
+                        if let Err(e) = self.server.publish_feedback(fb.clone(), f).await {
+                            tracing::debug!("relaying feedback: {e:?}");
+                        }
+                    }
+                    Err(e) => tracing::debug!("controller feedback: {e:?}"),
+                }
+            }
+            futures::future::pending::<()>().await;
+        }
+        .fuse();
+        let result = self.controller.async_request_result(ctrl_id).fuse();
+        pin_mut!(feedback, result);
+        let (status, result) = futures::select! {
+            r = result => match r {
+                Ok((status, result)) => (status, result),
+                Err(e) => (GoalStatusEnum::Aborted, GoalResult {
+                    error_code: error_code::INVALID_GOAL,
+                    error_string: format!("guardian gate: the controller's result was lost: {e:?}"),
+                }),
+            },
+            () = feedback => unreachable!("the feedback relay never ends"),
+        };
+        let end = match status {
+            GoalStatusEnum::Succeeded => GoalEndStatus::Succeeded,
+            GoalStatusEnum::Canceled => GoalEndStatus::Canceled,
+            _ => GoalEndStatus::Aborted,
+        };
+        if let Err(e) = self
+            .server
+            .send_result_response(executing, end, result)
+            .await
+        {
+            tracing::warn!("relaying the result: {e:?}");
+        }
+    }
+
+    /// A cancel for the active, forwarded goal goes to the controller; the controller's
+    /// answer is ours.
+    async fn relay_cancel(&self, handle: ros2_client::action::CancelHandle) {
+        let to_cancel: Vec<GoalId> = match self.forwarded.get() {
+            Some((ours, ctrl)) if handle.contains_goal(&ours) => {
+                match self
+                    .controller
+                    .async_cancel_goal(ctrl, ros2_client::builtin_interfaces::Time::ZERO)
+                    .await
+                {
+                    Ok(r) if !r.goals_canceling.is_empty() => vec![ours],
+                    Ok(_) => Vec::new(),
+                    Err(e) => {
+                        tracing::warn!("relaying a cancel: {e:?}");
+                        Vec::new()
+                    }
+                }
+            }
+            _ => Vec::new(),
+        };
+        if let Err(e) = self
+            .server
+            .respond_to_cancel_requests(&handle, to_cancel.into_iter())
+            .await
+        {
+            tracing::warn!("answering a cancel: {e:?}");
+        }
+    }
+
+    fn publish_verdict(
+        &self,
+        goal_id: &str,
+        claim: &Option<String>,
+        o: &Outcome,
+        sha: &str,
+        waypoints: u32,
+    ) {
+        let v = Verdict {
+            header: Header {
+                stamp: Time::now(),
+                frame_id: String::new(),
+            },
+            goal_id: goal_id.to_string(),
+            claimed_task: claim.clone().unwrap_or_default(),
+            verdict: o.verdict.to_string(),
+            reason: o.reason.to_string(),
+            detail: o.detail.clone(),
+            nearest_class: o.nearest.clone(),
+            distance: o.distance,
+            threshold: o.threshold,
+            model_version: o.model_version.clone(),
+            bank_version: o.bank_version,
+            trajectory_sha256: sha.to_string(),
+            waypoints,
+        };
+        if let Err(e) = self.verdicts.publish(v) {
+            tracing::warn!("publishing a verdict: {e:?}");
+        }
+    }
+
+    async fn publish_diagnostics(&self, diagnostics: &Publisher<DiagnosticArray>) {
+        let status = self.screen.status().await;
+        let mut values = vec![
+            KeyValue {
+                key: "guardiand reachable".into(),
+                value: status.is_ok().to_string(),
+            },
+            KeyValue {
+                key: "claimed task".into(),
+                value: self.current_claim().unwrap_or_default(),
+            },
+            KeyValue {
+                key: "go".into(),
+                value: self.counts.go.get().to_string(),
+            },
+            KeyValue {
+                key: "no-go".into(),
+                value: self.counts.no_go.get().to_string(),
+            },
+            KeyValue {
+                key: "errors".into(),
+                value: self.counts.errors.get().to_string(),
+            },
+        ];
+        let (level, message) = match &status {
+            Ok(s) => {
+                values.push(KeyValue {
+                    key: "model version".into(),
+                    value: s.model_version.clone(),
+                });
+                values.push(KeyValue {
+                    key: "bank size".into(),
+                    value: s.classes.to_string(),
+                });
+                values.push(KeyValue {
+                    key: "bank version".into(),
+                    value: s.bank_version.to_string(),
+                });
+                values.push(KeyValue {
+                    key: "robot".into(),
+                    value: s.robot.name.clone(),
+                });
+                (0u8, "guardiand reachable".to_string())
+            }
+            Err(e) => (
+                2u8,
+                format!("guardiand unreachable (every goal is refused): {e}"),
+            ),
+        };
+        let msg = DiagnosticArray {
+            header: Header {
+                stamp: Time::now(),
+                frame_id: String::new(),
+            },
+            status: vec![DiagnosticStatus {
+                level,
+                name: format!("{}: guardian gate", self.config.node_name),
+                message,
+                hardware_id: self.mapper.robot_name().to_string(),
+                values,
+            }],
+        };
+        if let Err(e) = diagnostics.publish(msg) {
+            tracing::debug!("publishing diagnostics: {e:?}");
+        }
+    }
+}
+
+/// A goal id as 32 hex digits.
+pub fn uuid_hex(id: &GoalId) -> String {
+    id.uuid.simple().to_string()
+}

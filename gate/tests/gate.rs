@@ -1,0 +1,563 @@
+//! The gate end to end over real DDS on loopback, in three processes: this test (a MoveIt
+//! stand-in action client and a controller stand-in action server, each its own DDS
+//! participant), the `guardian-gate` binary, and a real `guardiand` with enrolled classes.
+//! The DDS domain is the test's own and discovery is limited to 127.0.0.1.
+
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use futures::{FutureExt, StreamExt, pin_mut};
+use guardian_client::samples;
+use guardian_client::{Decision, Trajectory};
+use guardian_gate::msgs::{
+    DiagnosticArray, FollowJointTrajectoryFeedback as Feedback, FollowJointTrajectoryGoal as Goal,
+    FollowJointTrajectoryResult as GoalResult, JointTrajectory, JointTrajectoryPoint, StringMsg,
+    Verdict, error_code,
+};
+use guardian_gate::node::{
+    action_client_qos, action_name, action_server_qos, context, follow_joint_trajectory,
+};
+use guardian_tests::harness::{Daemon, Setup, workspace_root};
+use ros2_client::action::{ActionClient, AsyncActionServer, GoalEndStatus, GoalStatusEnum};
+use ros2_client::qos::{Durability, History};
+use ros2_client::{MessageTypeName, Name, Node, NodeName, NodeOptions, QosProfile, ServiceMapping};
+
+/// Functional bound for one exchange (not a performance claim).
+const PATIENCE: Duration = Duration::from_secs(30);
+/// A goal whose `goal_time_tolerance.sec` is this runs until canceled (or 20 s).
+const LONG: i32 = 99;
+
+fn loopback() -> Vec<std::net::IpAddr> {
+    vec!["127.0.0.1".parse().unwrap()]
+}
+
+fn node(domain: u16, name: &str) -> Node {
+    let ctx = context(domain, &loopback()).expect("DDS participant");
+    let mut node = ctx
+        .new_node(
+            NodeName::new("/", name).unwrap(),
+            NodeOptions::new().enable_rosout(false),
+        )
+        .expect("node");
+    smol::spawn(node.spinner().unwrap().spin()).detach();
+    node
+}
+
+/// The joint names of the Panda's URDF and a pen joint carrying the tool channel.
+fn joint_names() -> Vec<String> {
+    let mut n: Vec<String> = (1..=7).map(|i| format!("panda_joint{i}")).collect();
+    n.push("pen".into());
+    n
+}
+
+/// A synthetic task plan as a FollowJointTrajectory goal, joints in `order`.
+fn goal(class: u32, drawer: u32, order: &[usize]) -> Goal {
+    let names = joint_names();
+    let rows = samples::task(class, drawer);
+    let points = rows
+        .iter()
+        .enumerate()
+        .map(|(i, w)| {
+            let row: Vec<f64> = (0..8)
+                .map(|j| {
+                    if j < 7 {
+                        w[j] as f64
+                    } else {
+                        w[guardian_shared::trajectory::TOOL] as f64
+                    }
+                })
+                .collect();
+            JointTrajectoryPoint {
+                positions: order.iter().map(|&j| row[j]).collect(),
+                time_from_start: guardian_gate::msgs::Duration {
+                    sec: i as i32 / 10,
+                    nanosec: (i as u32 % 10) * 100_000_000,
+                },
+                ..Default::default()
+            }
+        })
+        .collect();
+    Goal {
+        trajectory: JointTrajectory {
+            joint_names: order.iter().map(|&j| names[j].clone()).collect(),
+            points,
+            ..Default::default()
+        },
+        ..Default::default()
+    }
+}
+
+fn in_order() -> Vec<usize> {
+    (0..8).collect()
+}
+
+/// What the controller stand-in saw.
+#[derive(Default)]
+struct Seen {
+    goals: Mutex<Vec<Goal>>,
+    cancels: AtomicUsize,
+}
+
+/// The controller stand-in: accepts every goal, sends feedback every 20 ms, succeeds after
+/// 5 of them (a `LONG` goal runs until canceled).
+fn controller(
+    domain: u16,
+    ns: &str,
+    seen: Arc<Seen>,
+    stop: Arc<AtomicBool>,
+) -> std::thread::JoinHandle<()> {
+    let ns = ns.to_string();
+    std::thread::spawn(move || {
+        smol::block_on(async move {
+            let mut node = node(domain, "controller_standin");
+            let server = AsyncActionServer::new(
+                node.create_action_server::<Goal, GoalResult, Feedback>(
+                    ServiceMapping::Enhanced,
+                    &action_name(&ns).unwrap(),
+                    &follow_joint_trajectory(),
+                    action_server_qos(),
+                )
+                .unwrap(),
+            );
+            while !stop.load(Ordering::Relaxed) {
+                let next = server.receive_new_goal().fuse();
+                let tick = FutureExt::fuse(smol::Timer::after(Duration::from_millis(100)));
+                pin_mut!(next, tick);
+                let handle = futures::select! {
+                    h = next => h.unwrap(),
+                    _ = tick => continue,
+                };
+                let g = server.get_new_goal(handle.clone()).unwrap();
+                let long = g.goal_time_tolerance.sec == LONG;
+                seen.goals.lock().unwrap().push(g);
+                let accepted = server.accept_goal(handle).await.unwrap();
+                let executing = server.start_executing_goal(accepted).await.unwrap();
+                let mut sent = 0;
+                let deadline = Instant::now() + Duration::from_secs(20);
+                let end = loop {
+                    let cancel = server.receive_cancel_request().fuse();
+                    let tick = FutureExt::fuse(smol::Timer::after(Duration::from_millis(20)));
+                    pin_mut!(cancel, tick);
+                    futures::select! {
+                        c = cancel => {
+                            let c = c.unwrap();
+                            let mine = executing.goal_id();
+                            if c.contains_goal(&mine) {
+                                seen.cancels.fetch_add(1, Ordering::SeqCst);
+                                server.respond_to_cancel_requests(&c, std::iter::once(mine)).await.unwrap();
+                                break GoalEndStatus::Canceled;
+                            }
+                            server.respond_to_cancel_requests(&c, std::iter::empty()).await.unwrap();
+                        }
+                        _ = tick => {
+                            server.publish_feedback(executing.clone(), Feedback {
+                                joint_names: vec![format!("step {sent}")],
+                                ..Default::default()
+                            }).await.unwrap();
+                            sent += 1;
+                            if (!long && sent >= 5) || Instant::now() > deadline {
+                                break GoalEndStatus::Succeeded;
+                            }
+                        }
+                    }
+                };
+                let result = GoalResult {
+                    error_code: error_code::SUCCESSFUL,
+                    error_string: if end == GoalEndStatus::Canceled {
+                        "canceled".into()
+                    } else {
+                        "done".into()
+                    },
+                };
+                server
+                    .send_result_response(executing, end, result)
+                    .await
+                    .unwrap();
+            }
+            drop(node);
+        })
+    })
+}
+
+/// The MoveIt stand-in's view of one goal.
+#[derive(Debug)]
+struct Sent {
+    accepted: bool,
+    status: Option<GoalStatusEnum>,
+    result: Option<GoalResult>,
+    feedback: usize,
+}
+
+async fn send(
+    client: &ActionClient<Goal, GoalResult, Feedback>,
+    g: Goal,
+    cancel_after_feedback: bool,
+) -> Sent {
+    let sending = client.async_send_goal(g).fuse();
+    let timeout = FutureExt::fuse(smol::Timer::after(PATIENCE));
+    pin_mut!(sending, timeout);
+    let (id, resp) = futures::select! {
+        r = sending => r.expect("send goal"),
+        _ = timeout => panic!("no answer to a goal within {PATIENCE:?}"),
+    };
+    if !resp.accepted {
+        return Sent {
+            accepted: false,
+            status: None,
+            result: None,
+            feedback: 0,
+        };
+    }
+    let count = std::cell::Cell::new(0usize);
+    let feedback = async {
+        let s = client.feedback_stream(id);
+        pin_mut!(s);
+        while let Some(f) = s.next().await {
+            f.expect("feedback");
+            count.set(count.get() + 1);
+            if cancel_after_feedback && count.get() == 2 {
+                let r = client
+                    .async_cancel_goal(id, ros2_client::builtin_interfaces::Time::ZERO)
+                    .await
+                    .expect("cancel");
+                assert_eq!(r.goals_canceling.len(), 1, "the gate accepted the cancel");
+            }
+        }
+        futures::future::pending::<()>().await
+    }
+    .fuse();
+    let result = client.async_request_result(id).fuse();
+    let timeout = FutureExt::fuse(smol::Timer::after(PATIENCE));
+    pin_mut!(feedback, result, timeout);
+    let (status, r) = futures::select! {
+        r = result => r.expect("result"),
+        () = feedback => unreachable!(),
+        _ = timeout => panic!("no result within {PATIENCE:?}"),
+    };
+    Sent {
+        accepted: true,
+        status: Some(status),
+        result: Some(r),
+        feedback: count.get(),
+    }
+}
+
+fn latched() -> QosProfile {
+    QosProfile::publisher_default()
+        .durability(Durability::TransientLocal)
+        .history(History::KeepLast { depth: 1 })
+}
+
+fn reliable(depth: usize) -> QosProfile {
+    QosProfile::publisher_default().history(History::KeepLast { depth })
+}
+
+#[test]
+fn gate_screens_forwards_relays_and_fails_closed() {
+    // guardiand on the shipped model, two enrolled tasks.
+    let mut s = Setup::new(40);
+    s.model = workspace_root().join("models/embedder.safetensors");
+    let mut daemon = Daemon::start(&s);
+    let direct = s.client();
+    for (name, class) in [("task-a", 0u32), ("task-b", 1)] {
+        let examples: Vec<Trajectory> = (0..5)
+            .map(|d| Trajectory::from_waypoints(&samples::task(class, d), 7))
+            .collect();
+        direct.enroll(name, &examples).expect("enroll");
+    }
+    let plan = |c: u32, d: u32| Trajectory::from_waypoints(&samples::task(c, d), 7);
+    // Preconditions on guardiand itself, so a failure below is the gate's.
+    assert_eq!(
+        direct.check(&plan(0, 7), "task-a").unwrap().decision,
+        Decision::Go
+    );
+    assert!(!direct.check(&plan(1, 7), "task-a").unwrap().is_go());
+    let outlier_class = (4..12)
+        .find(|&c| {
+            let r = direct.identify(&plan(c, 7)).unwrap();
+            r.nearest[0].distance > r.nearest[0].threshold
+        })
+        .expect("some never-enrolled task is an outlier for guardiand");
+
+    // The gate.
+    let domain = 100 + (std::process::id() % 100) as u16;
+    let gate_ns = format!("/gate_t{}", std::process::id());
+    let ctrl_ns = format!("/ctrl_t{}", std::process::id());
+    let config = s.dir.path().join("gate.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "gate = {gate_ns:?}\ncontroller = {ctrl_ns:?}\ndomain-id = {domain}\nonly-networks = [\"127.0.0.1\"]\ncontroller-timeout-ms = 5000\n\
+             [tool]\nsource = \"joint\"\njoint = \"pen\"\n\
+             [guardiand]\nservice-name = {:?}\ntimeout-ms = 1000\niceoryx2-root-path = {:?}\niceoryx2-prefix = {:?}\n",
+            s.service,
+            s.dir.path().join("iox"),
+            s.prefix
+        ),
+    )
+    .unwrap();
+    struct Kill(std::process::Child);
+    impl Drop for Kill {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+    let _gate = Kill(
+        std::process::Command::new(env!("CARGO_BIN_EXE_guardian-gate"))
+            .arg("--config")
+            .arg(&config)
+            .env("RUST_LOG", "warn")
+            .spawn()
+            .expect("start guardian-gate"),
+    );
+
+    let seen = Arc::new(Seen::default());
+    let stop = Arc::new(AtomicBool::new(false));
+    let ctrl = controller(domain, &ctrl_ns, seen.clone(), stop.clone());
+
+    smol::block_on(async {
+        let mut moveit = node(domain, "moveit_standin");
+        let client = moveit
+            .create_action_client::<Goal, GoalResult, Feedback>(
+                ServiceMapping::Enhanced,
+                &action_name(&gate_ns).unwrap(),
+                &follow_joint_trajectory(),
+                action_client_qos(),
+            )
+            .unwrap();
+        let task_topic = moveit
+            .create_topic(
+                &Name::new(&gate_ns, "task").unwrap(),
+                MessageTypeName::new("std_msgs", "String"),
+                &latched(),
+            )
+            .unwrap();
+        let task = moveit
+            .create_publisher::<StringMsg>(&task_topic, Some(latched()))
+            .unwrap();
+        let verdict_topic = moveit
+            .create_topic(
+                &Name::new(&gate_ns, "verdicts").unwrap(),
+                MessageTypeName::new("guardian_msgs", "Verdict"),
+                &reliable(10),
+            )
+            .unwrap();
+        let verdicts = moveit
+            .create_subscription::<Verdict>(&verdict_topic, Some(reliable(100)))
+            .unwrap();
+        let diag_topic = moveit
+            .create_topic(
+                &Name::new("/", "diagnostics").unwrap(),
+                MessageTypeName::new("diagnostic_msgs", "DiagnosticArray"),
+                &reliable(10),
+            )
+            .unwrap();
+        let diagnostics = moveit
+            .create_subscription::<DiagnosticArray>(&diag_topic, Some(reliable(10)))
+            .unwrap();
+
+        // Discovery, bounded.
+        let ready = async {
+            client.goal_client().wait_for_service(&moveit).await;
+            verdicts.wait_for_publisher(&moveit).await;
+        };
+        let t = smol::Timer::after(PATIENCE);
+        assert!(
+            smol::future::or(
+                async {
+                    ready.await;
+                    true
+                },
+                async {
+                    t.await;
+                    false
+                }
+            )
+            .await,
+            "the gate was not discovered within {PATIENCE:?}"
+        );
+
+        // The claim reaches the gate: /diagnostics (1 Hz) reports it.
+        let claim = |c: &str| {
+            task.publish(StringMsg { data: c.into() }).unwrap();
+        };
+        let wait_claim = |want: &'static str| {
+            let diagnostics = &diagnostics;
+            async move {
+                let deadline = Instant::now() + PATIENCE;
+                loop {
+                    assert!(
+                        Instant::now() < deadline,
+                        "/diagnostics never reported the claim {want:?}"
+                    );
+                    let (d, _) = diagnostics.async_take().await.expect("diagnostics");
+                    let st = &d.status[0];
+                    let get = |k: &str| {
+                        st.values
+                            .iter()
+                            .find(|v| v.key == k)
+                            .map(|v| v.value.clone())
+                    };
+                    assert_eq!(
+                        get("guardiand reachable").as_deref(),
+                        Some("true"),
+                        "{st:?}"
+                    );
+                    assert_eq!(get("bank size").as_deref(), Some("2"), "{st:?}");
+                    if get("claimed task").as_deref() == Some(want) {
+                        return;
+                    }
+                }
+            }
+        };
+        let next_verdict = || async {
+            let t = smol::Timer::after(PATIENCE);
+            let v = async { verdicts.async_take().await.expect("verdict").0 };
+            smol::future::or(async { Some(v.await) }, async {
+                t.await;
+                None
+            })
+            .await
+            .expect("a verdict within PATIENCE")
+        };
+
+        claim("task-a");
+        wait_claim("task-a").await;
+
+        // 1. A genuine plan is forwarded; feedback and result are relayed.
+        let r = send(&client, goal(0, 7, &in_order()), false).await;
+        assert!(r.accepted, "{r:?}");
+        assert_eq!(r.status, Some(GoalStatusEnum::Succeeded), "{r:?}");
+        assert_eq!(r.result.as_ref().unwrap().error_string, "done");
+        assert!(r.feedback >= 1, "feedback relayed: {r:?}");
+        assert_eq!(seen.goals.lock().unwrap().len(), 1);
+        assert_eq!(
+            seen.goals.lock().unwrap()[0],
+            goal(0, 7, &in_order()),
+            "forwarded unchanged"
+        );
+        let v = next_verdict().await;
+        assert_eq!(
+            (
+                v.verdict.as_str(),
+                v.reason.as_str(),
+                v.claimed_task.as_str()
+            ),
+            ("go", "genuine", "task-a"),
+            "{v:?}"
+        );
+        assert!(v.distance <= v.threshold, "{v:?}");
+        assert_eq!(v.waypoints as usize, samples::task(0, 7).len());
+        let genuine_sha = v.trajectory_sha256.clone();
+
+        // 2. Shuffled joint order: the same plan, the same verdict.
+        let shuffled = [5, 2, 7, 0, 6, 3, 1, 4];
+        let r = send(&client, goal(0, 7, &shuffled), false).await;
+        assert_eq!(r.status, Some(GoalStatusEnum::Succeeded), "{r:?}");
+        let v = next_verdict().await;
+        assert_eq!(v.verdict, "go", "{v:?}");
+        assert_eq!(v.trajectory_sha256, genuine_sha);
+        assert_eq!(seen.goals.lock().unwrap().len(), 2);
+
+        // 3. A wrong-task plan is refused with its reason; the controller never sees it.
+        let r = send(&client, goal(1, 7, &in_order()), false).await;
+        assert_eq!(r.status, Some(GoalStatusEnum::Aborted), "{r:?}");
+        let res = r.result.unwrap();
+        assert_eq!(res.error_code, error_code::INVALID_GOAL);
+        for part in ["wrong task", "task-b", "task-a", "distance", "threshold"] {
+            assert!(
+                res.error_string.contains(part),
+                "{part:?} in {:?}",
+                res.error_string
+            );
+        }
+        assert_eq!(
+            seen.goals.lock().unwrap().len(),
+            2,
+            "the controller saw the wrong-task plan"
+        );
+        let v = next_verdict().await;
+        assert_eq!(
+            (
+                v.verdict.as_str(),
+                v.reason.as_str(),
+                v.nearest_class.as_str()
+            ),
+            ("no-go", "wrong-task", "task-b"),
+            "{v:?}"
+        );
+        assert!(v.distance > v.threshold, "{v:?}");
+
+        // 4. An unknown joint: INVALID_JOINTS, not forwarded.
+        let mut g = goal(0, 7, &in_order());
+        g.trajectory.joint_names[2] = "elbow_joint".into();
+        let r = send(&client, g, false).await;
+        assert_eq!(r.status, Some(GoalStatusEnum::Aborted), "{r:?}");
+        let res = r.result.unwrap();
+        assert_eq!(res.error_code, error_code::INVALID_JOINTS, "{res:?}");
+        assert!(res.error_string.contains("elbow_joint"), "{res:?}");
+        assert_eq!(next_verdict().await.reason, "invalid-joints");
+        assert_eq!(seen.goals.lock().unwrap().len(), 2);
+
+        // 5. A cancel during execution is relayed to the controller and back.
+        let mut g = goal(0, 7, &in_order());
+        g.goal_time_tolerance.sec = LONG;
+        let r = send(&client, g, true).await;
+        assert_eq!(r.status, Some(GoalStatusEnum::Canceled), "{r:?}");
+        assert_eq!(r.result.unwrap().error_string, "canceled");
+        assert_eq!(seen.cancels.load(Ordering::SeqCst), 1);
+        assert_eq!(seen.goals.lock().unwrap().len(), 3);
+        assert_eq!(next_verdict().await.verdict, "go");
+
+        // 6. Identify mode (no claim): an outlier is refused, a genuine plan goes.
+        claim("");
+        wait_claim("").await;
+        let r = send(&client, goal(outlier_class, 7, &in_order()), false).await;
+        assert_eq!(r.status, Some(GoalStatusEnum::Aborted), "{r:?}");
+        let res = r.result.unwrap();
+        assert_eq!(res.error_code, error_code::INVALID_GOAL);
+        assert!(res.error_string.contains("outlier"), "{res:?}");
+        let v = next_verdict().await;
+        assert_eq!(
+            (
+                v.verdict.as_str(),
+                v.reason.as_str(),
+                v.claimed_task.as_str()
+            ),
+            ("no-go", "outlier", ""),
+            "{v:?}"
+        );
+        assert_eq!(seen.goals.lock().unwrap().len(), 3);
+        let r = send(&client, goal(1, 8, &in_order()), false).await;
+        assert_eq!(r.status, Some(GoalStatusEnum::Succeeded), "{r:?}");
+        let v = next_verdict().await;
+        assert_eq!(
+            (v.verdict.as_str(), v.nearest_class.as_str()),
+            ("go", "task-b"),
+            "{v:?}"
+        );
+        assert_eq!(seen.goals.lock().unwrap().len(), 4);
+
+        // 7. guardiand killed: the goal is refused, never forwarded.
+        daemon.child.kill().unwrap();
+        daemon.child.wait().unwrap();
+        claim("task-a");
+        let r = send(&client, goal(0, 7, &in_order()), false).await;
+        assert_eq!(r.status, Some(GoalStatusEnum::Aborted), "{r:?}");
+        let res = r.result.unwrap();
+        assert_eq!(res.error_code, error_code::INVALID_GOAL);
+        assert!(res.error_string.contains("fail closed"), "{res:?}");
+        assert_eq!(
+            seen.goals.lock().unwrap().len(),
+            4,
+            "a goal was forwarded without a verdict"
+        );
+        let v = next_verdict().await;
+        assert_eq!(v.verdict, "error", "{v:?}");
+        drop(moveit);
+    });
+    stop.store(true, Ordering::Relaxed);
+    ctrl.join().unwrap();
+}
