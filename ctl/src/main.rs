@@ -2,6 +2,8 @@
 //! planner-facing client library stays free of CLI dependencies).
 #![forbid(unsafe_code)]
 
+mod bag;
+
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -53,14 +55,17 @@ enum Cmd {
     /// Is the trajectory in FILE the task NAME?
     Check {
         /// CSV (one waypoint per line: q1..qn,tool for the served robot's n joints) or
-        /// dataset safetensors.
-        file: PathBuf,
+        /// dataset safetensors (not with --bag).
+        #[arg(required_unless_present = "bag")]
+        file: Option<PathBuf>,
         /// The claimed class.
         #[arg(long)]
         class: String,
         /// Row of a dataset safetensors file.
         #[arg(long)]
         index: Option<usize>,
+        #[command(flatten)]
+        bag: bag::BagArgs,
     },
     /// The nearest enrolled classes to the trajectory in FILE.
     Identify {
@@ -74,12 +79,14 @@ enum Cmd {
     Enroll {
         /// Class name.
         name: String,
-        /// CSV or dataset safetensors files.
-        #[arg(required = true)]
+        /// CSV or dataset safetensors files (and/or --bag: each plan one example).
+        #[arg(required_unless_present = "bag")]
         files: Vec<PathBuf>,
         /// Rows of a dataset safetensors file (repeatable; one example each).
         #[arg(long)]
         index: Vec<usize>,
+        #[command(flatten)]
+        bag: bag::BagArgs,
     },
     /// Remove class NAME.
     Forget {
@@ -115,7 +122,18 @@ fn main() -> anyhow::Result<()> {
     let connect = || Client::connect(config.clone()).context("cannot connect to guardiand");
     let json = args.json;
     match args.cmd {
-        Cmd::Check { file, class, index } => {
+        Cmd::Check {
+            file,
+            class,
+            index,
+            bag,
+        } => {
+            if let Some(plans) = bag.plans()? {
+                return check_bag(&connect()?, &plans, &class, json);
+            }
+            let Some(file) = file else {
+                bail!("check needs FILE or --bag");
+            };
             let t = read_trajectory(&file, index)?;
             let v = connect()?.check(&t, &class)?;
             if json {
@@ -148,8 +166,13 @@ fn main() -> anyhow::Result<()> {
                 }
             }
         }
-        Cmd::Enroll { name, files, index } => {
-            let mut examples = Vec::new();
+        Cmd::Enroll {
+            name,
+            files,
+            index,
+            bag,
+        } => {
+            let mut examples = bag.plans()?.unwrap_or_default();
             for f in &files {
                 if is_safetensors(f) && !index.is_empty() {
                     for &i in &index {
@@ -323,6 +346,39 @@ fn print_verdict(v: &Verdict) {
         println!("  #{} {:<32} {:.4}", i + 1, n.class, n.distance);
     }
     println!("model {}  bank v{}", v.model_version, v.bank_version);
+}
+
+/// `check --bag`: every plan of the recording against `class`; exit status 1 if any is
+/// no-go.
+fn check_bag(client: &Client, plans: &[Trajectory], class: &str, json: bool) -> anyhow::Result<()> {
+    let mut verdicts = Vec::with_capacity(plans.len());
+    for t in plans {
+        verdicts.push(client.check(t, class)?);
+    }
+    if json {
+        println!("{}", serde_json::to_string_pretty(&verdicts)?);
+    } else {
+        let opt = |x: Option<f32>| x.map_or("-".to_string(), |v| format!("{v:.4}"));
+        println!(
+            "{:<6} {:<56} {:>10} {:>10}",
+            "msg", "verdict", "distance", "threshold"
+        );
+        for (i, v) in verdicts.iter().enumerate() {
+            println!(
+                "{:<6} {:<56} {:>10} {:>10}",
+                i,
+                v.decision.to_string(),
+                opt(v.claimed_distance),
+                opt(v.threshold)
+            );
+        }
+        let go = verdicts.iter().filter(|v| v.is_go()).count();
+        println!("{go}/{} go", verdicts.len());
+    }
+    if verdicts.iter().any(|v| !v.is_go()) {
+        std::process::exit(1);
+    }
+    Ok(())
 }
 
 fn is_safetensors(p: &Path) -> bool {
