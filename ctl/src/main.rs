@@ -9,6 +9,8 @@ use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
+mod verdicts;
+
 use guardian_client::{
     AdminClient, CheckError, ClassInfo, Client, ClientConfig, Trajectory, Verdict,
 };
@@ -102,6 +104,25 @@ enum Cmd {
     },
     /// Versions, counters and latency percentiles.
     Status,
+    /// The daemon's verdict record: recent checks, oldest first (read from its file).
+    Verdicts {
+        /// No-go verdicts only.
+        #[arg(long)]
+        no_go: bool,
+        /// Checks that claimed class C only.
+        #[arg(long, value_name = "C")]
+        class: Option<String>,
+        /// Since a time (2026-12-05T10:00:00Z) or for a duration back from now (2h).
+        #[arg(long, value_name = "T")]
+        since: Option<String>,
+        /// At most the newest N.
+        #[arg(long, default_value_t = 100)]
+        limit: usize,
+        /// The record file (config `[record] path`). Unset: /var/lib/guardian/verdicts.sqlite
+        /// if present, else ./guardiand-state/verdicts.sqlite.
+        #[arg(long)]
+        record: Option<PathBuf>,
+    },
 }
 
 fn main() -> anyhow::Result<()> {
@@ -230,6 +251,25 @@ fn main() -> anyhow::Result<()> {
                     );
                 }
             }
+        }
+        Cmd::Verdicts {
+            no_go,
+            class,
+            since,
+            limit,
+            record,
+        } => {
+            let filter = verdicts::Filter {
+                no_go,
+                class,
+                since_ms: since.as_deref().map(verdicts::parse_since).transpose()?,
+                limit,
+            };
+            verdicts::list(
+                &record.unwrap_or_else(verdicts::default_path),
+                &filter,
+                json,
+            )?;
         }
         Cmd::Status => {
             let s = connect()?.status()?;

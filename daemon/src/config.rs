@@ -85,6 +85,68 @@ impl Default for AdminConfig {
     }
 }
 
+/// The verdict record (`[record]`; `docs/operating.md`, "What the screen stops").
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields, default)]
+pub struct RecordConfig {
+    /// Record every check's outcome.
+    pub enabled: bool,
+    /// The SQLite file. Unset: `verdicts.sqlite` in the state directory.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub path: Option<PathBuf>,
+    /// Most verdicts kept; the oldest are removed first.
+    pub max_verdicts: u64,
+    /// Most plans of no-go verdicts kept.
+    pub max_no_go_plans: u64,
+    /// Verdicts older than this many days are removed (0: no age bound).
+    pub max_age_days: u64,
+    /// Entries waiting for the writer; when full, a verdict is dropped (counted), never
+    /// waited for.
+    pub queue: usize,
+}
+
+impl Default for RecordConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            path: None,
+            max_verdicts: 1_000_000,
+            max_no_go_plans: 1_000,
+            max_age_days: 30,
+            queue: 4096,
+        }
+    }
+}
+
+/// `/metrics` (`[metrics]`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields, default)]
+pub struct MetricsConfig {
+    /// Address (`host:port`) serving `GET /metrics`; an empty string turns it off. Port 0
+    /// picks a free port (logged).
+    pub address: String,
+    /// Most claimed classes with a `class` label of their own; later ones share `_other`.
+    pub max_class_labels: usize,
+}
+
+impl Default for MetricsConfig {
+    fn default() -> Self {
+        Self {
+            address: "127.0.0.1:9720".to_owned(),
+            max_class_labels: 256,
+        }
+    }
+}
+
+/// The read-only page (`[web]`): off unless an address is set.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields, default)]
+pub struct WebConfig {
+    /// Address (`host:port`) serving the page, e.g. `127.0.0.1:9721`. Unset: no page.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub address: Option<String>,
+}
+
 /// The daemon's settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case", deny_unknown_fields, default)]
@@ -138,6 +200,12 @@ pub struct Config {
     pub workcell: Option<toml::Table>,
     /// The admin endpoint and admin separation.
     pub admin: AdminConfig,
+    /// The verdict record.
+    pub record: RecordConfig,
+    /// OpenMetrics on `/metrics`.
+    pub metrics: MetricsConfig,
+    /// The read-only page (opt-in).
+    pub web: WebConfig,
     /// Fleet membership (`docs/fleet.md`): bank replication and remote checks over Zenoh.
     /// Needs a daemon built with the `fleet` feature (the Debian package's is).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -191,6 +259,9 @@ impl Default for Config {
             iceoryx2: Iceoryx2Config::default(),
             workcell: None,
             admin: AdminConfig::default(),
+            record: RecordConfig::default(),
+            metrics: MetricsConfig::default(),
+            web: WebConfig::default(),
             fleet: None,
         }
     }
@@ -338,6 +409,8 @@ impl Config {
             ("max-classes", self.max_classes as u64),
             ("max-examples-per-class", self.max_examples_per_class as u64),
             ("max-bank-bytes", self.max_bank_bytes),
+            ("[record] max-verdicts", self.record.max_verdicts),
+            ("[record] queue", self.record.queue as u64),
         ];
         if let Some((key, _)) = counts.iter().find(|(_, v)| *v == 0) {
             return Err(ConfigError::Zero { key });
@@ -403,6 +476,27 @@ impl Config {
     /// The persisted bank file.
     pub fn bank_path(&self) -> PathBuf {
         self.state_dir().join(BANK_FILE)
+    }
+
+    /// The verdict record's file.
+    pub fn record_path(&self) -> PathBuf {
+        self.record
+            .path
+            .clone()
+            .unwrap_or_else(|| self.state_dir().join(crate::record::RECORD_FILE))
+    }
+
+    /// The verdict record's bounds and place.
+    pub fn record_settings(&self) -> crate::record::RecordSettings {
+        crate::record::RecordSettings {
+            path: self.record_path(),
+            service: self.service_name.clone(),
+            max_verdicts: self.record.max_verdicts,
+            max_plans: self.record.max_no_go_plans,
+            max_age: (self.record.max_age_days > 0)
+                .then(|| Duration::from_secs(self.record.max_age_days.saturating_mul(86_400))),
+            queue: self.record.queue,
+        }
     }
 
     /// The bank limits.

@@ -9,13 +9,16 @@ pub mod faults;
 #[cfg(feature = "fleet")]
 pub mod fleet;
 pub mod locator;
+pub mod metrics;
 pub mod notify;
+pub mod record;
 pub mod recovery;
 pub mod screen;
 pub mod serve;
 pub mod state;
 pub mod stats;
 pub mod wakers;
+pub mod web;
 
 pub use config::{Config, ServingMode};
 pub use serve::{Control, RunError, run};

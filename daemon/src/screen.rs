@@ -257,6 +257,11 @@ impl Screen {
         self.answer(h, request, None)
     }
 
+    /// The entries a status answer carries (a fleet member's position).
+    pub fn status_entries(&self) -> &[ClassEntry] {
+        &self.status_entries
+    }
+
     /// Set the entries a status answer carries (a fleet member's position).
     pub fn set_status_entries(&mut self, entries: Vec<ClassEntry>) {
         self.status_entries = entries;

@@ -9,12 +9,15 @@ use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::request_response::PortFactory as RpcFactory;
 
 use guardian_shared::wire::{
-    ClassEntry, RequestHeader, ResponseHeader, request_event_name, response_event_name,
+    ClassEntry, Op, RequestHeader, ResponseHeader, VerdictCode, request_event_name,
+    response_event_name,
 };
 
 use crate::admin::{AdminEndpoint, AdminPolicy, WakerFactory};
 use crate::config::{Config, ServingMode};
+use crate::metrics::{ClassLabels, Metrics};
 use crate::notify::SdNotify;
+use crate::record::{Entry, Record};
 use crate::screen::Screen;
 use crate::state::{LoadStateError, load_bank, load_model};
 use crate::wakers::{ClientWakers, Woken};
@@ -236,6 +239,34 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         );
     }
 
+    // Metrics and the verdict record: neither ever stops checks (a failure turns them off
+    // with an error line).
+    let metrics = Metrics::default();
+    metrics.set_state(
+        screen.bank().len(),
+        screen.bank().generation(),
+        screen.embedder().version(),
+    );
+    let record = if config.record.enabled {
+        Record::open(config.record_settings(), metrics.clone())
+    } else {
+        Record::off(metrics.clone())
+    };
+    let http_stop = Arc::new(AtomicBool::new(false));
+    let mut http_threads = Vec::new();
+    if let Some(t) = start_metrics(&config, &metrics, &http_stop) {
+        http_threads.push(t);
+    }
+    if let Some(t) = crate::web::start(&config, screen.station().robot().clone(), &http_stop) {
+        http_threads.push(t);
+    }
+    let mut obs = Observe {
+        record,
+        metrics,
+        labels: ClassLabels::new(config.metrics.max_class_labels),
+        published: screen.bank().generation(),
+    };
+
     let iox_config = iceoryx2_config(&config)?;
     // Before the node: creating it opens the prefix's segments (dead-node clean-up), and a
     // zero-byte one left by a kill would stall it (crate::recovery).
@@ -394,11 +425,16 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
 
     loop {
         // Answer everything queued first, so that a stop answers in-flight requests.
-        let served = drain(&server, &mut out, &mut screen, config.max_batch)?
-            + serve_admin(&admin, &mut screen, &mut fleet)
+        let served = drain(&server, &mut out, &mut screen, config.max_batch, &mut obs)?;
+        let changed = serve_admin(&admin, &mut screen, &mut fleet, &obs.metrics)
             + fleet.as_mut().map_or(0, |m| m.poll(&mut screen));
+        let served = served + changed;
         if served > 0 {
             last_request = Instant::now();
+        }
+        // Enrolls and forgets arrive on either path; the gauges follow the bank.
+        if changed > 0 || screen.bank().generation() != obs.published {
+            obs.publish_state(&screen);
         }
         screen.maintain();
         if control.shutdown.load(Ordering::SeqCst) {
@@ -406,6 +442,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         }
         if control.reload.swap(false, Ordering::SeqCst) {
             reload(&config, &mut screen, &sd);
+            obs.publish_state(&screen);
         }
         if let Some(w) = watchdog
             && last_ping.elapsed() >= w
@@ -467,9 +504,15 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
 
     sd.stopping();
     tracing::info!("stopping: answering queued requests and flushing state");
-    let _ = drain(&server, &mut out, &mut screen, config.max_batch)?;
-    let _ = serve_admin(&admin, &mut screen, &mut fleet);
+    let _ = drain(&server, &mut out, &mut screen, config.max_batch, &mut obs)?;
+    let _ = serve_admin(&admin, &mut screen, &mut fleet, &obs.metrics);
     drop(admin);
+    http_stop.store(true, Ordering::SeqCst);
+    for t in http_threads {
+        let _ = t.join();
+    }
+    // The record's writer commits what is queued.
+    drop(obs);
     screen.flush()?;
     tracing::info!("stopped");
     Ok(())
@@ -518,7 +561,12 @@ fn reload(config: &Config, screen: &mut Screen, sd: &SdNotify) {
 }
 
 /// Answer the admins' queued requests (their credentials were checked by the endpoint).
-fn serve_admin(admin: &AdminEndpoint, screen: &mut Screen, fleet: &mut Fleet) -> usize {
+fn serve_admin(
+    admin: &AdminEndpoint,
+    screen: &mut Screen,
+    fleet: &mut Fleet,
+    metrics: &Metrics,
+) -> usize {
     let mut n = 0;
     while let Ok(job) = admin.jobs.try_recv() {
         // A change whose requester has gone is not applied (the endpoint logs it).
@@ -534,6 +582,7 @@ fn serve_admin(admin: &AdminEndpoint, screen: &mut Screen, fleet: &mut Fleet) ->
         if let Some(m) = fleet.as_mut() {
             m.after_admin(screen);
         }
+        metrics.count_admin(job.header.op, answer.0.status);
         job.answer(answer);
         n += 1;
     }
@@ -573,6 +622,98 @@ fn admin_waker(config: &iceoryx2::config::Config, event: String) -> WakerFactory
     })
 }
 
+/// What watches the serving loop: the metrics and the verdict record.
+struct Observe {
+    record: Record,
+    metrics: Metrics,
+    labels: ClassLabels,
+    /// The bank generation the gauges show.
+    published: u64,
+}
+
+impl Observe {
+    /// Count and record one answered check (never waits: [`Record::submit`]).
+    fn checked(
+        &mut self,
+        request: RequestHeader,
+        response: ResponseHeader,
+        nearest: Vec<ClassEntry>,
+        plan: Option<Vec<f32>>,
+        client: u128,
+        took: Duration,
+    ) {
+        let claimed = guardian_shared::wire::decode_text(&request.class_name);
+        let label = self.labels.label(&claimed, response.reason);
+        self.metrics.count_check(&response, label, took);
+        self.record.submit(Entry {
+            time_ms: crate::record::now_ms(),
+            client,
+            request,
+            response,
+            nearest,
+            plan,
+        });
+    }
+
+    /// The bank's size and version, the model, a fleet member's position.
+    fn publish_state(&mut self, screen: &Screen) {
+        self.published = screen.bank().generation();
+        self.metrics.set_state(
+            screen.bank().len(),
+            screen.bank().generation(),
+            screen.embedder().version(),
+        );
+        let position: Vec<(String, u64)> = screen
+            .status_entries()
+            .iter()
+            .filter_map(|e| {
+                let name = guardian_shared::wire::decode_text(&e.name);
+                let signer = name.strip_prefix("fleet:")?.to_owned();
+                Some((
+                    signer,
+                    u64::from(e.examples) | (u64::from(e.calibrated) << 32),
+                ))
+            })
+            .collect();
+        if !position.is_empty() {
+            self.metrics.set_fleet(&position, None);
+        }
+    }
+}
+
+/// Serve `/metrics` on its own thread, if an address is configured. A bind failure is
+/// logged and the daemon serves without it.
+fn start_metrics(
+    config: &Config,
+    metrics: &Metrics,
+    stop: &Arc<AtomicBool>,
+) -> Option<std::thread::JoinHandle<()>> {
+    let address = config.metrics.address.trim();
+    if address.is_empty() {
+        tracing::info!("metrics off ([metrics] address is empty)");
+        return None;
+    }
+    let server = match tiny_http::Server::http(address) {
+        Ok(s) => s,
+        Err(e) => {
+            tracing::error!(address, error = %e, "cannot serve /metrics; serving checks without it");
+            return None;
+        }
+    };
+    let bound = server
+        .server_addr()
+        .to_ip()
+        .map_or_else(|| address.to_owned(), |a| a.to_string());
+    tracing::info!(address = %bound, "metrics served at http://{bound}/metrics");
+    let registry = metrics.registry();
+    let stop = stop.clone();
+    std::thread::Builder::new()
+        .name("metrics".into())
+        .spawn(move || crate::metrics::serve_metrics(server, registry, stop))
+        .map_err(|e| tracing::error!(error = %e, "cannot start the metrics thread"))
+        .ok()
+}
+
 /// Where wake-ups for answered clients go.
 struct Outbox<'a> {
     /// The shared response event, for clients without an event service of their own.
@@ -602,6 +743,7 @@ fn drain(
     out: &mut Outbox<'_>,
     screen: &mut Screen,
     max_batch: usize,
+    obs: &mut Observe,
 ) -> Result<usize, RunError> {
     let mut n = 0;
     let mut batch = std::mem::take(&mut out.batch);
@@ -652,6 +794,11 @@ fn drain(
         for (request, (response, entries)) in batch.drain(..).zip(answers) {
             let header = *request.user_header();
             let origin = request.origin().value();
+            let check = header.op == Op::Check as u32;
+            // A no-go's plan is kept (copied before the request's memory is released).
+            let plan =
+                (check && response.verdict == VerdictCode::NoGo as u32 && obs.record.is_on())
+                    .then(|| request.payload().to_vec());
             let span = tracing::debug_span!("request", id = header.request_id, op = header.op);
             let _enter = span.enter();
             let sent = request
@@ -673,6 +820,9 @@ fn drain(
             }
             let elapsed = start.elapsed();
             screen.record_latency(elapsed);
+            if check {
+                obs.checked(header, response, entries, plan, origin, elapsed);
+            }
             tracing::debug!(
                 status = response.status,
                 verdict = response.verdict,
