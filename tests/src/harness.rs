@@ -34,7 +34,13 @@ pub struct Setup {
     pub workcell_rules: bool,
     /// The config's `default-bank` (`None`: none, `default-bank = ""`).
     pub default_bank: Option<PathBuf>,
+    /// TOML tables appended to the config. By default `[metrics]` on a free loopback port
+    /// (`127.0.0.1:0`, so parallel tests never share one; [`Daemon::metrics_address`]).
+    pub tables: String,
 }
+
+/// The `[metrics]` table every test daemon gets unless a test replaces [`Setup::tables`].
+pub const METRICS_ANY_PORT: &str = "[metrics]\naddress = \"127.0.0.1:0\"\n";
 
 /// Remove what iceoryx2 left in `/dev/shm` under `prefix` (a name ending in `_`, so no
 /// other test's prefix starts with it): the daemon and the clients remove their services'
@@ -84,6 +90,7 @@ impl Setup {
             extra: String::new(),
             workcell_rules: false,
             default_bank: None,
+            tables: METRICS_ANY_PORT.to_owned(),
         }
     }
 
@@ -97,7 +104,7 @@ impl Setup {
 
     pub fn write_config(&self) -> PathBuf {
         let text = format!(
-            "model = {:?}\ndefault-bank = {:?}\nstate-dir = {:?}\nservice-name = {:?}\ntick-ms = 50\n{}\n[iceoryx2]\nroot-path = {:?}\nprefix = {:?}\n[workcell]\nenabled = {}\n",
+            "model = {:?}\ndefault-bank = {:?}\nstate-dir = {:?}\nservice-name = {:?}\ntick-ms = 50\n{}\n[iceoryx2]\nroot-path = {:?}\nprefix = {:?}\n[workcell]\nenabled = {}\n{}",
             self.model,
             self.default_bank.clone().unwrap_or_default(),
             self.state_dir(),
@@ -105,7 +112,8 @@ impl Setup {
             self.extra,
             self.dir.path().join("iox"),
             self.prefix,
-            self.workcell_rules
+            self.workcell_rules,
+            self.tables
         );
         let p = self.config_path();
         std::fs::write(&p, text).expect("write config");
@@ -297,6 +305,23 @@ impl Daemon {
         }
     }
 
+    /// The address the daemon serves `/metrics` on (from its log line).
+    pub fn metrics_address(&self) -> String {
+        self.served_address("metrics served at http://", "/metrics")
+    }
+
+    /// The address the daemon serves its page on (from its log line).
+    pub fn page_address(&self) -> String {
+        self.served_address("page served at http://", "/")
+    }
+
+    fn served_address(&self, prefix: &str, suffix: &str) -> String {
+        self.wait_log(prefix);
+        let log = self.log();
+        let rest = &log[log.find(prefix).expect("logged") + prefix.len()..];
+        rest[..rest.find(suffix).expect("address end")].to_owned()
+    }
+
     pub fn pid(&self) -> u32 {
         self.child.id()
     }
@@ -464,6 +489,35 @@ pub fn run_as_nobody(child: &str, env: &[(&str, &std::ffi::OsStr)]) -> std::proc
 
 pub fn traj(class: u32, drawer: u32) -> Trajectory {
     Trajectory::from_waypoints(&task(class, drawer), PANDA_JOINTS)
+}
+
+/// `GET path` from `address` (`host:port`) over plain HTTP/1.0 with a 10 s timeout:
+/// the status code and the body.
+pub fn http_get(address: &str, path: &str) -> std::io::Result<(u16, String)> {
+    http_get_accept(address, path, "*/*")
+}
+
+/// [`http_get`] with an `Accept` header.
+pub fn http_get_accept(address: &str, path: &str, accept: &str) -> std::io::Result<(u16, String)> {
+    use std::io::Write;
+    let mut s = std::net::TcpStream::connect(address)?;
+    s.set_read_timeout(Some(Duration::from_secs(10)))?;
+    s.set_write_timeout(Some(Duration::from_secs(10)))?;
+    write!(
+        s,
+        "GET {path} HTTP/1.0\r\nHost: {address}\r\nAccept: {accept}\r\n\r\n"
+    )?;
+    let mut text = String::new();
+    s.read_to_string(&mut text)?;
+    let code = text
+        .split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0);
+    let body = text
+        .split_once("\r\n\r\n")
+        .map_or(String::new(), |(_, b)| b.to_owned());
+    Ok((code, body))
 }
 
 pub fn workspace_root() -> PathBuf {

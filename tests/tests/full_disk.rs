@@ -6,6 +6,9 @@
 //! the daemon keeps serving. Once space returns the next enroll works and a restart loads
 //! everything. A state directory mounted read-only is refused at start with a clear error
 //! and nothing is written to it.
+//!
+//! The verdict record on a full disk (issue 43): checks go on, answered as before; the
+//! record turns itself off with an error line, and `/metrics` says so.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -84,14 +87,16 @@ impl Drop for Tmpfs {
     }
 }
 
-/// Every file of the state directory but the filler and the admin socket, with its bytes.
+/// Every file of the state directory but the filler, the admin socket and the verdict
+/// record (`verdicts.sqlite*`: best effort by design, off once the disk is full, tested
+/// below), with its bytes.
 fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
     std::fs::read_dir(dir)
         .expect("read state dir")
         .filter_map(Result::ok)
         .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
         .map(|e| e.file_name().to_string_lossy().into_owned())
-        .filter(|n| n != "filler")
+        .filter(|n| n != "filler" && !n.starts_with("verdicts.sqlite"))
         .map(|n| {
             let bytes = std::fs::read(dir.join(&n)).expect("read");
             (n, bytes)
@@ -256,4 +261,91 @@ fn a_read_only_state_directory_is_refused_at_start() {
     // Writable again: it starts and serves what it had.
     let _d = harness::Daemon::start(&s);
     assert_eq!(s.client().classes().unwrap()[0].name, "kept");
+}
+
+/// The value of the unlabelled metric `name` in an exposition.
+fn metric(text: &str, name: &str) -> Option<f64> {
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse().ok())
+}
+
+#[test]
+fn a_full_disk_turns_the_record_off_and_checks_go_on() {
+    // As in e2e.rs: with this model, drawer 11 of task1 is nearest task1 (go when claimed
+    // as task1, wrong task when claimed as task2).
+    let mut s = harness::Setup::new(7);
+    s.extra = "default-threshold = 1e9".into();
+    let state = s.state_dir();
+    let Some(fs) = Tmpfs::mount(&state, "2m") else {
+        // CI runs as root (.ci/run); a developer without root sees this line.
+        eprintln!("did not run: mounting a tmpfs needs root");
+        return;
+    };
+    let d = harness::Daemon::start(&s);
+    let client = s.client();
+    for c in 0..4 {
+        let examples: Vec<_> = (0..4).map(|d| traj(c, d)).collect();
+        client
+            .enroll(&format!("task{c}"), &examples)
+            .expect("enroll");
+    }
+    let metrics = d.metrics_address();
+    let scrape = || harness::http_get(&metrics, "/metrics").expect("scrape").1;
+    assert_eq!(metric(&scrape(), "guardian_record_enabled"), Some(1.0));
+    let genuine = traj(1, 11);
+    let first = client.check(&genuine, "task1").expect("check");
+    assert!(first.is_go(), "{first:?}");
+    let expected = harness::Expected::of(&first);
+    // The record has the check (the writer commits within moments).
+    let start = std::time::Instant::now();
+    while metric(&scrape(), "guardian_record_written_total") != Some(1.0) {
+        assert!(start.elapsed() < harness::PATIENCE, "{}", scrape());
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+
+    fs.fill_leaving(0);
+    // Checks on a full disk: every one answered exactly as before, until the record is off.
+    let mut checks = 0;
+    let start = std::time::Instant::now();
+    while metric(&scrape(), "guardian_record_enabled") != Some(0.0) {
+        assert!(
+            start.elapsed() < harness::PATIENCE,
+            "record still on:\n{}",
+            d.log()
+        );
+        for _ in 0..10 {
+            let v = client
+                .check(&genuine, "task1")
+                .expect("check on a full disk");
+            assert!(expected.matches(&v), "{v:?}");
+            // A no-go with its plan: more to write.
+            let w = client
+                .check(&genuine, "task2")
+                .expect("check on a full disk");
+            assert!(!w.is_go(), "{w:?}");
+            checks += 2;
+        }
+    }
+    eprintln!("record off after {checks} checks on the full disk");
+    assert!(
+        d.log().contains("cannot write the verdict record"),
+        "{}",
+        d.log()
+    );
+    // Off: later checks still answer, and count as dropped.
+    let v = client
+        .check(&genuine, "task1")
+        .expect("check after the record is off");
+    assert!(expected.matches(&v), "{v:?}");
+    let text = scrape();
+    assert!(
+        text.lines()
+            .any(|l| l.starts_with("guardian_record_dropped_total{cause=\"record-off\"}")),
+        "{text}"
+    );
+    assert!(
+        text.contains("guardian_checks_total{verdict=\"go\",reason=\"none\",class=\"task1\"}"),
+        "{text}"
+    );
+    fs.empty_filler();
 }
