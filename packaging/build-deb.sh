@@ -11,6 +11,7 @@ cd "$(dirname "$0")/.."
 # The cargo packages that build the two binaries.
 DAEMON_PACKAGE=guardian-daemon
 CTL_PACKAGE=guardian-ctl
+GATE_PACKAGE=guardian-gate
 CARGO_DEB_VERSION=3.8.0
 
 profile=release
@@ -38,8 +39,9 @@ if [ "$build" = 1 ]; then
   # test harness uses, so a tested dev build is reused as it is.
   cargo build --locked --profile "$profile" -p "$DAEMON_PACKAGE" -p "$CTL_PACKAGE" --bins \
     --features "$DAEMON_PACKAGE/fleet"
+  cargo build --locked --profile "$profile" -p "$GATE_PACKAGE" --bins
 fi
-for b in guardiand guardianctl; do
+for b in guardiand guardianctl guardian-gate; do
   test -x "$target/$dir/$b" || { echo "$target/$dir/$b is missing; build it first" >&2; exit 1; }
 done
 mkdir -p "$target/debian"

@@ -41,10 +41,12 @@ getent passwd guardian >/dev/null && user_existed=1
 prefix="gdebtest$$_"
 tmp=$(mktemp -d)
 daemon_pid=
+gate_pid=
 
 cleanup() {
   local rc=$?
   set +e
+  [ -z "$gate_pid" ] || kill -KILL "$gate_pid" 2>/dev/null
   if [ -n "$daemon_pid" ] && kill -0 "$daemon_pid" 2>/dev/null; then
     kill -TERM "$daemon_pid"; sleep 1; kill -KILL "$daemon_pid" 2>/dev/null; wait "$daemon_pid" 2>/dev/null
   fi
@@ -161,6 +163,30 @@ grep -q "not permitted" "$tmp/refused.err" || { cat "$tmp/refused.err"; fail "th
 echo "planner enroll refused: $(grep -m1 "not permitted" "$tmp/refused.err")"
 /usr/bin/guardianctl enroll deb-test-class "$tmp"/example{1,2,3}.csv || fail "root could not enroll through the admin socket"
 ctl classes | grep -q deb-test-class || fail "the enrolled class is not listed"
+
+step "the installed guardian-gate reaches the installed guardiand (DDS on loopback only)"
+gate_conf=/etc/guardian/guardian-gate.toml
+sed -e 's|^only-networks = \[\]|only-networks = ["127.0.0.1"]|' \
+  -e "s|^# domain-id = 0|domain-id = $((150 + $$ % 50))|" \
+  -e "s|^# iceoryx2-prefix = \"iox2_\"|iceoryx2-prefix = \"$prefix\"|" "$gate_conf" > "$tmp/gate.toml"
+for want in '^only-networks = \["127.0.0.1"\]' '^domain-id = ' "^iceoryx2-prefix = \"$prefix\""; do
+  grep -q "$want" "$tmp/gate.toml" || fail "could not set $want in the gate's config"
+done
+chmod 644 "$tmp/gate.toml"
+setpriv --reuid="$user" --regid="$user" --init-groups env HOME="$state" \
+  /usr/bin/guardian-gate --config "$tmp/gate.toml" > "$tmp/gate.log" 2>&1 &
+gate_pid=$!
+for _ in $(seq 1 60); do
+  kill -0 "$gate_pid" 2>/dev/null || { cat "$tmp/gate.log"; fail "guardian-gate exited"; }
+  grep -q "guardiand reachable" "$tmp/gate.log" && break
+  sleep 0.5
+done
+grep -q "guardiand reachable" "$tmp/gate.log" || { cat "$tmp/gate.log"; fail "guardian-gate did not reach guardiand"; }
+echo "gate: $(grep -m1 "guardiand reachable" "$tmp/gate.log")"
+kill -TERM "$gate_pid"
+rc=0; wait "$gate_pid" || rc=$?
+[ "$rc" = 0 ] || { cat "$tmp/gate.log"; fail "guardian-gate did not stop cleanly (exit status $rc)"; }
+gate_pid=
 kill -TERM "$daemon_pid"
 rc=0; wait "$daemon_pid" || rc=$?
 [ "$rc" = 0 ] || { cat "$tmp/daemon.log"; fail "guardiand did not stop cleanly (exit status $rc)"; }

@@ -4,6 +4,7 @@
 # requires the binary to exist), the exposure score of `systemd-analyze security` (fails above
 # 2.0), and the sysusers.d and tmpfiles.d snippets through systemd-sysusers and
 # systemd-tmpfiles into a scratch root (tmpfiles only as root, since it chowns).
+# The same for guardian-gate.service, with the guardian-gate built beside guardiand.
 # Usage: systemd/verify.sh [path/to/guardiand]   (default: target/debug/guardiand)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -16,6 +17,16 @@ echo "systemd-analyze verify: ok"
 score=$(systemd-analyze security --offline=yes "$tmp/guardiand.service" 2>&1 | sed -n 's/.*Overall exposure level for guardiand.service: \([0-9.]*\).*/\1/p')
 echo "systemd-analyze security exposure: $score"
 awk -v s="$score" 'BEGIN { exit !(s != "" && s <= 2.0) }' || { echo "exposure above 2.0" >&2; exit 1; }
+# guardian-gate.service the same way, with the guardian-gate built beside guardiand (it
+# needs UDP for DDS and still stays within 2.0).
+gate=$(dirname "$bin")/guardian-gate
+test -x "$gate" || { echo "verify.sh: $gate is not an executable; build guardian-gate first" >&2; exit 1; }
+sed "s#^ExecStart=/usr/bin/guardian-gate#ExecStart=$gate#" systemd/guardian-gate.service > "$tmp/guardian-gate.service"
+systemd-analyze verify "$tmp/guardian-gate.service"
+echo "systemd-analyze verify guardian-gate.service: ok"
+score=$(systemd-analyze security --offline=yes "$tmp/guardian-gate.service" 2>&1 | sed -n 's/.*Overall exposure level for guardian-gate.service: \([0-9.]*\).*/\1/p')
+echo "systemd-analyze security exposure (guardian-gate): $score"
+awk -v s="$score" 'BEGIN { exit !(s != "" && s <= 2.0) }' || { echo "guardian-gate exposure above 2.0" >&2; exit 1; }
 mkdir -p "$tmp/root/etc"
 systemd-sysusers --root="$tmp/root" - < systemd/sysusers.d/guardian.conf
 grep -q '^guardian:' "$tmp/root/etc/passwd" || { echo "sysusers did not create guardian" >&2; exit 1; }

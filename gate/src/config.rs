@@ -168,7 +168,8 @@ impl GateConfig {
         Duration::from_millis(self.controller_timeout_ms)
     }
 
-    /// The default config as commented TOML (`--print-default-config`).
+    /// The installed config as commented TOML (`--print-default-config`): the defaults
+    /// with the installed guardiand's iceoryx2 root path.
     pub fn default_toml() -> &'static str {
         include_str!("../../systemd/guardian-gate.toml")
     }
@@ -179,9 +180,11 @@ mod tests {
     use super::*;
 
     #[test]
-    fn shipped_sample_is_the_default() {
+    fn shipped_sample_is_the_default_for_the_installed_guardiand() {
         let c = GateConfig::parse(GateConfig::default_toml(), Path::new("sample")).unwrap();
-        assert_eq!(c, GateConfig::default());
+        let mut want = GateConfig::default();
+        want.guardiand.iceoryx2_root_path = Some("/run/guardian/iceoryx2/".into());
+        assert_eq!(c, want);
     }
 
     #[test]

@@ -122,6 +122,8 @@ struct Gate<'a> {
     counts: Counts,
     /// The active goal: (ours, the controller's) once forwarded.
     forwarded: Cell<Option<(GoalId, GoalId)>>,
+    /// guardiand's reachability at the last /diagnostics (logged when it changes).
+    reachable: Cell<Option<bool>>,
 }
 
 /// Run the gate until `stop` is set.
@@ -200,6 +202,7 @@ pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
         verdicts,
         counts: Counts::default(),
         forwarded: Cell::new(None),
+        reachable: Cell::new(None),
     };
     tracing::info!(
         gate = %config.gate,
@@ -547,6 +550,18 @@ impl Gate<'_> {
                 value: self.counts.errors.get().to_string(),
             },
         ];
+        let reachable = status.is_ok();
+        if self.reachable.replace(Some(reachable)) != Some(reachable) {
+            match &status {
+                Ok(s) => tracing::info!(
+                    model = %s.model_version,
+                    classes = s.classes,
+                    robot = %s.robot.name,
+                    "guardiand reachable"
+                ),
+                Err(e) => tracing::warn!("guardiand unreachable, every goal is refused: {e}"),
+            }
+        }
         let (level, message) = match &status {
             Ok(s) => {
                 values.push(KeyValue {
