@@ -171,7 +171,7 @@ impl GateConfig {
     /// The installed config as commented TOML (`--print-default-config`): the defaults
     /// with the installed guardiand's iceoryx2 root path.
     pub fn default_toml() -> &'static str {
-        include_str!("../../systemd/guardian-gate.toml")
+        include_str!("../guardian-gate.toml")
     }
 }
 
