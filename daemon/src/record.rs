@@ -207,7 +207,11 @@ pub fn open_read_only(path: &Path) -> rusqlite::Result<Connection> {
 }
 
 /// Commits at most this many entries per transaction.
-const BATCH: usize = 256;
+const BATCH: usize = 4096;
+/// At most one commit per this period: the writer wakes, sleeps the rest of the period and
+/// commits everything queued meanwhile in one transaction (fewer wake-ups and commits
+/// competing with the serving loop for the cores).
+const COMMIT_PERIOD: Duration = Duration::from_millis(100);
 /// Trim to the bounds after this many entries, or this long.
 const TRIM_EVERY: u64 = 512;
 const TRIM_PERIOD: Duration = Duration::from_secs(10);
@@ -245,9 +249,25 @@ impl Writer {
             return;
         }
         let mut batch = Vec::with_capacity(BATCH);
-        loop {
+        let mut last_commit = Instant::now();
+        let mut open = true;
+        while open {
             match rx.recv_timeout(TRIM_PERIOD) {
-                Ok(e) => batch.push(e),
+                Ok(e) => {
+                    batch.push(e);
+                    // Let the period fill (a shutdown ends the wait at once).
+                    let rest = COMMIT_PERIOD.saturating_sub(last_commit.elapsed());
+                    if !rest.is_zero() {
+                        match rx.recv_timeout(rest) {
+                            Ok(e) => batch.push(e),
+                            Err(RecvTimeoutError::Timeout) => {}
+                            Err(RecvTimeoutError::Disconnected) => open = false,
+                        }
+                        if open {
+                            std::thread::sleep(COMMIT_PERIOD.saturating_sub(last_commit.elapsed()));
+                        }
+                    }
+                }
                 Err(RecvTimeoutError::Timeout) => {}
                 Err(RecvTimeoutError::Disconnected) => break,
             }
@@ -266,6 +286,7 @@ impl Writer {
                 self.metrics.record_written.inc_by(n);
                 self.since_trim += n;
                 batch.clear();
+                last_commit = Instant::now();
             }
             if (self.since_trim >= TRIM_EVERY
                 || (self.since_trim > 0 && self.last_trim.elapsed() >= TRIM_PERIOD))
