@@ -34,8 +34,25 @@ pub struct GateConfig {
     pub tool: ToolSource,
     /// How long to wait for the controller to accept or reject a forwarded goal (ms).
     pub controller_timeout_ms: u64,
+    /// How the action's services map onto DDS: that of the RMW MoveIt and the controller
+    /// use (the same for both).
+    pub service_mapping: ServiceMappingName,
     /// How to reach guardiand.
     pub guardiand: GuardiandConfig,
+}
+
+/// The DDS mapping of ROS 2 services (and so of actions), which depends on the RMW.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ServiceMappingName {
+    /// rmw_fastrtps_cpp (ROS 2 Jazzy's default RMW) and rmw_connextdds: the request id in
+    /// the sample's related-sample identity.
+    #[default]
+    Enhanced,
+    /// rmw_cyclonedds_cpp: the request id at the head of the payload.
+    Cyclone,
+    /// The DDS-RPC basic mapping.
+    Basic,
 }
 
 /// How the gate reaches guardiand (the same keys as guardiand's own config).
@@ -63,6 +80,7 @@ impl Default for GateConfig {
             robot: "panda".into(),
             tool: ToolSource::default(),
             controller_timeout_ms: 2000,
+            service_mapping: ServiceMappingName::default(),
             guardiand: GuardiandConfig::default(),
         }
     }
@@ -201,6 +219,9 @@ mod tests {
                 down_at: 0.5
             }
         );
+        let c = GateConfig::parse("service-mapping = \"cyclone\"\n", Path::new("x")).unwrap();
+        assert_eq!(c.service_mapping, ServiceMappingName::Cyclone);
+        assert!(GateConfig::parse("service-mapping = \"zenoh\"\n", Path::new("x")).is_err());
         let e = GateConfig::parse("bogus = 1\n", Path::new("x")).unwrap_err();
         assert!(e.to_string().contains("bogus"), "{e}");
         let e = GateConfig::parse("gate = \"no_slash\"\n", Path::new("x")).unwrap_err();

@@ -23,7 +23,7 @@ use ros2_client::{
     qos::{Durability, History},
 };
 
-use crate::config::GateConfig;
+use crate::config::{GateConfig, ServiceMappingName};
 use crate::msgs::{
     DiagnosticArray, DiagnosticStatus, FollowJointTrajectoryFeedback as Feedback,
     FollowJointTrajectoryGoal as Goal, FollowJointTrajectoryResult as GoalResult, Header, KeyValue,
@@ -68,6 +68,15 @@ pub fn action_client_qos() -> ActionClientQosPolicies {
         cancel_service: service_qos(),
         feedback_subscription: service_qos(),
         status_subscription: latched_qos(),
+    }
+}
+
+/// The ros2-client mapping for a configured name.
+pub fn service_mapping(name: ServiceMappingName) -> ServiceMapping {
+    match name {
+        ServiceMappingName::Enhanced => ServiceMapping::Enhanced,
+        ServiceMappingName::Cyclone => ServiceMapping::Cyclone,
+        ServiceMappingName::Basic => ServiceMapping::Basic,
     }
 }
 
@@ -145,7 +154,7 @@ pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
 
     let server = AsyncActionServer::new(
         node.create_action_server::<Goal, GoalResult, Feedback>(
-            ServiceMapping::Enhanced,
+            service_mapping(config.service_mapping),
             &action_name(&config.gate)?,
             &follow_joint_trajectory(),
             action_server_qos(),
@@ -154,7 +163,7 @@ pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
     );
     let controller = node
         .create_action_client::<Goal, GoalResult, Feedback>(
-            ServiceMapping::Enhanced,
+            service_mapping(config.service_mapping),
             &action_name(&config.controller)?,
             &follow_joint_trajectory(),
             action_client_qos(),
