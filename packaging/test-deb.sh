@@ -9,8 +9,9 @@
 #  4. starts the installed guardiand, enrolls a class with the installed guardianctl, stops it,
 #     then installs the same package again: /var/lib/guardian/bank.gcb must stay untouched
 #     (same bytes, same inode and mtime) and a local edit of the conffile must survive;
-#  5. dpkg -r: only the state in /var/lib/guardian and the conffile may remain (Debian keeps
-#     conffiles until purge); dpkg -P: nothing may remain.
+#  5. dpkg -r: only the state in /var/lib/guardian and the conffiles (guardiand's and
+#     guardian-gate's) may remain (Debian keeps conffiles until purge); dpkg -P: nothing may
+#     remain.
 # It refuses to run over an existing installation, and an EXIT trap removes everything it
 # made (package, files, the user if it created it, shared memory), on failure too.
 # Usage: packaging/test-deb.sh [--profile PROFILE] [--no-build]   (default: --profile dev)
@@ -208,10 +209,10 @@ as_user "$exe" --config "$conf" --check 2>/dev/null | grep -q " with $classes_be
   || fail "the bank lost classes"
 echo "bank.gcb untouched ($classes_before classes, sha256 ${before:0:16}); conffile edit kept"
 
-step "dpkg -r: only the state and the conffile remain"
+step "dpkg -r: only the state and the conffiles remain"
 dpkg -r "$pkg" > "$tmp/dpkg.log" 2>&1 || { cat "$tmp/dpkg.log"; fail "dpkg -r"; }
 while read -r f; do
-  [ "$f" = "$conf" ] && continue
+  [ "$f" = "$conf" ] || [ "$f" = "$gate_conf" ] && continue
   [ ! -e "$f" ] && [ ! -L "$f" ] || fail "$f is still there after dpkg -r"
 done < "$tmp/files"
 for d in /usr/share/guardian /usr/share/doc/guardian /run/guardian; do [ ! -e "$d" ] || fail "$d remains"; done
