@@ -110,7 +110,7 @@ impl Default for RecordConfig {
         Self {
             enabled: true,
             path: None,
-            max_verdicts: 1_000_000,
+            max_verdicts: 100_000,
             max_no_go_plans: 1_000,
             max_age_days: 30,
             queue: 4096,
