@@ -151,7 +151,8 @@ fn worker(config: ClientConfig, jobs: mpsc::Receiver<Job>) {
             match Client::connect(config.clone()) {
                 Ok(c) => client = Some(c),
                 Err(e) => {
-                    let detail = format!("guardiand unreachable: {e}");
+                    let detail =
+                        format!("guardian error (fail closed): guardiand unreachable: {e}");
                     match job {
                         Job::Screen { reply, .. } => {
                             let _ = reply.send(Outcome::failed("guardiand-unreachable", detail));
