@@ -8,5 +8,5 @@ cd "$(dirname "$0")/../../.."
 venv=${CARGO_TARGET_DIR:-target}/rosbags-venv
 [ -x "$venv/bin/python" ] || python3 -m venv "$venv"
 "$venv/bin/pip" install -q rosbags==0.11.9
-GUARDIAN_ROSBAGS_PYTHON=$(realpath "$venv/bin/python") \
+GUARDIAN_ROSBAGS_PYTHON="$(cd "$venv/bin" && pwd)/python" \
   cargo test --workspace --test rosbags -- --ignored
