@@ -170,7 +170,7 @@ impl Metrics {
         );
         r.register(
             "guardian_fleet_peers",
-            "Fleet members only: other signers whose records were seen",
+            "Fleet members only: signers whose records were seen here (this member's own included)",
             self.fleet_peers.clone(),
         );
         r
