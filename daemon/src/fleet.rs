@@ -17,8 +17,9 @@ use guardian_fleet::remote::{Gate, now_ms, seal_response};
 use guardian_fleet::store::{Offer, STORE_FILE, Store, StoreError, Undo};
 use guardian_fleet::{SigningKey, VerifyingKey};
 use guardian_models::bank::Class;
-use guardian_shared::wire::{ClassEntry, admin, encode_text};
+use guardian_shared::wire::{ClassEntry, Op, VerdictCode, admin, encode_text};
 
+use crate::record::RemoteCheck;
 use crate::screen::{ChangeLog, Screen};
 
 /// Starting fleet membership failed.
@@ -188,8 +189,9 @@ impl Member {
         self.refused
     }
 
-    /// Handle everything received since the last call; returns how many items.
-    pub fn poll(&mut self, screen: &mut Screen) -> usize {
+    /// Handle everything received since the last call; returns how many items. Each
+    /// answered remote check is handed to `checked` (the verdict record and the metrics).
+    pub fn poll(&mut self, screen: &mut Screen, checked: &mut dyn FnMut(RemoteCheck)) -> usize {
         let mut n = 0;
         let mut changed = false;
         while let Ok((handed, item)) = self.rx.try_recv() {
@@ -203,7 +205,7 @@ impl Member {
             match item {
                 Incoming::Record(bytes) => changed |= self.receive(&bytes, screen, true),
                 Incoming::CaughtUp(bytes) => changed |= self.receive(&bytes, screen, false),
-                Incoming::Call(call) => self.answer(call, screen),
+                Incoming::Call(call) => self.answer(call, screen, checked),
             }
         }
         if changed {
@@ -325,7 +327,13 @@ impl Member {
     }
 
     /// Answer one remote request.
-    fn answer(&mut self, call: RemoteCall, screen: &mut Screen) {
+    fn answer(
+        &mut self,
+        call: RemoteCall,
+        screen: &mut Screen,
+        checked: &mut dyn FnMut(RemoteCheck),
+    ) {
+        let started = std::time::Instant::now();
         let opened = match self.gate.open(&call.payload(), now_ms()) {
             Ok(o) => o,
             Err(e) => {
@@ -355,6 +363,17 @@ impl Member {
             &frame[4..],
         );
         call.reply(envelope);
+        if h.op == Op::Check as u32 {
+            let no_go = r.verdict == VerdictCode::NoGo as u32;
+            checked(RemoteCheck {
+                request: h,
+                response: r,
+                entries,
+                plan: no_go.then_some(payload),
+                client: format!("remote:{}", hex(&opened.caller[..8])),
+                took: started.elapsed(),
+            });
+        }
     }
 }
 

@@ -80,8 +80,9 @@ pub struct RecordSettings {
 pub struct Entry {
     /// Unix time, milliseconds.
     pub time_ms: i64,
-    /// The iceoryx2 id of the client that asked.
-    pub client: u128,
+    /// Who asked: the iceoryx2 client id in hex, or `remote:` and the first 8 bytes of a
+    /// fleet caller's public key in hex.
+    pub client: String,
     /// The request's header (claimed class, plan shape).
     pub request: RequestHeader,
     /// The answer's header (verdict, reason, distances, versions).
@@ -348,7 +349,7 @@ impl Writer {
                 verdict.execute(params![
                     e.time_ms,
                     self.settings.service,
-                    format!("{:032x}", e.client),
+                    e.client,
                     decode_text(&e.request.class_name),
                     status_name(r.status),
                     verdict_name,
@@ -411,6 +412,22 @@ fn finite(v: f32) -> Option<f64> {
     v.is_finite().then_some(f64::from(v))
 }
 
+/// A remote check as answered, for the verdict record and the metrics.
+pub struct RemoteCheck {
+    /// The request's header.
+    pub request: guardian_shared::wire::RequestHeader,
+    /// The answer.
+    pub response: guardian_shared::wire::ResponseHeader,
+    /// The answer's entries (nearest classes).
+    pub entries: Vec<guardian_shared::wire::ClassEntry>,
+    /// The plan of a no-go.
+    pub plan: Option<Vec<f32>>,
+    /// `remote:` and the first 8 bytes of the caller's public key in hex.
+    pub client: String,
+    /// From the request taken to the answer sent.
+    pub took: std::time::Duration,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -444,7 +461,7 @@ mod tests {
         }];
         Entry {
             time_ms: now_ms(),
-            client: 42,
+            client: format!("{:032x}", 42u128),
             request,
             response,
             nearest,

@@ -17,7 +17,7 @@ use crate::admin::{AdminEndpoint, AdminPolicy, WakerFactory};
 use crate::config::{Config, ServingMode};
 use crate::metrics::{ClassLabels, Metrics};
 use crate::notify::SdNotify;
-use crate::record::{Entry, Record};
+use crate::record::{Entry, Record, RemoteCheck};
 use crate::screen::Screen;
 use crate::state::{LoadStateError, load_bank, load_model};
 use crate::wakers::{ClientWakers, Woken};
@@ -88,7 +88,7 @@ enum Member {}
 
 #[cfg(not(feature = "fleet"))]
 impl Member {
-    fn poll(&mut self, _: &mut Screen) -> usize {
+    fn poll(&mut self, _: &mut Screen, _: &mut dyn FnMut(RemoteCheck)) -> usize {
         match *self {}
     }
 
@@ -427,7 +427,11 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         // Answer everything queued first, so that a stop answers in-flight requests.
         let served = drain(&server, &mut out, &mut screen, config.max_batch, &mut obs)?;
         let changed = serve_admin(&admin, &mut screen, &mut fleet, &obs.metrics)
-            + fleet.as_mut().map_or(0, |m| m.poll(&mut screen));
+            + fleet.as_mut().map_or(0, |m| {
+                m.poll(&mut screen, &mut |a: RemoteCheck| {
+                    obs.checked(a.request, a.response, a.entries, a.plan, a.client, a.took)
+                })
+            });
         let served = served + changed;
         if served > 0 {
             last_request = Instant::now();
@@ -639,7 +643,7 @@ impl Observe {
         response: ResponseHeader,
         nearest: Vec<ClassEntry>,
         plan: Option<Vec<f32>>,
-        client: u128,
+        client: String,
         took: Duration,
     ) {
         let claimed = guardian_shared::wire::decode_text(&request.class_name);
@@ -821,7 +825,14 @@ fn drain(
             let elapsed = start.elapsed();
             screen.record_latency(elapsed);
             if check {
-                obs.checked(header, response, entries, plan, origin, elapsed);
+                obs.checked(
+                    header,
+                    response,
+                    entries,
+                    plan,
+                    format!("{origin:032x}"),
+                    elapsed,
+                );
             }
             tracing::debug!(
                 status = response.status,

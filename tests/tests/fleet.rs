@@ -248,6 +248,46 @@ fn remote_checks_and_bad_records() {
             (&l.decision, l.claimed_distance, &l.nearest)
         );
     }
+    // B's verdict record has the three remote checks, marked as remote (the same as its
+    // three local ones otherwise), the wrong-task one with its plan kept.
+    let record = f.members[1].setup.state_dir().join("verdicts.sqlite");
+    let started = Instant::now();
+    let remote_rows = loop {
+        let out = Command::new(harness::ctl_bin())
+            .args(["--json", "verdicts", "--record"])
+            .arg(&record)
+            .output()
+            .expect("run guardianctl verdicts");
+        let rows: Vec<serde_json::Value> = if out.status.success() {
+            serde_json::from_slice(&out.stdout).expect("JSON rows")
+        } else {
+            Vec::new()
+        };
+        let remote: Vec<serde_json::Value> = rows
+            .into_iter()
+            .filter(|r| {
+                r["client"]
+                    .as_str()
+                    .is_some_and(|c| c.starts_with("remote:"))
+            })
+            .collect();
+        if remote.len() >= 3 || started.elapsed() > Duration::from_secs(20) {
+            break remote;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let mut claimed: Vec<&str> = remote_rows
+        .iter()
+        .map(|r| r["claimed"].as_str().unwrap_or(""))
+        .collect();
+    claimed.sort_unstable();
+    assert_eq!(claimed, ["nope", "task0", "task1"], "{remote_rows:?}");
+    let wrong = remote_rows
+        .iter()
+        .find(|r| r["claimed"] == "task0")
+        .expect("the wrong-task check");
+    assert_eq!(wrong["verdict"], "no-go", "{wrong}");
+    assert_eq!(wrong["plan_kept"], true, "{wrong}");
     let ranking = remote.identify(&traj(2, 7)).expect("identify");
     assert_eq!(
         ranking.nearest,
