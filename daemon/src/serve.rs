@@ -182,13 +182,24 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     let sd = SdNotify::from_env();
     let state_dir = config.state_dir();
     // Owner-only, as the package's tmpfiles.d entry makes it: the bank holds the enrolled
-    // plans. An existing directory keeps the mode its owner gave it.
+    // plans. An existing directory keeps the mode its owner gave it. A new one is set to
+    // 0700 explicitly: the mode given to mkdir is cut by the inherited umask, and a parent
+    // that uses iceoryx2 may pass on a transient one (its Unix datagram socket bind sets
+    // the process umask to the socket's permissions, e.g. 0177, which leaves 0600: a
+    // directory its owner cannot enter).
+    let existed = state_dir.exists();
+    let state_dir_error = |source| RunError::StateDir {
+        path: state_dir.clone(),
+        source,
+    };
     std::os::unix::fs::DirBuilderExt::mode(std::fs::DirBuilder::new().recursive(true), 0o700)
         .create(&state_dir)
-        .map_err(|source| RunError::StateDir {
-            path: state_dir.clone(),
-            source,
-        })?;
+        .map_err(state_dir_error)?;
+    if !existed {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&state_dir, std::fs::Permissions::from_mode(0o700))
+            .map_err(state_dir_error)?;
+    }
 
     // Refuse a state directory that cannot be written before anything is loaded or
     // written: every enroll would fail later, far from the cause.
