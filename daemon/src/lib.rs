@@ -8,6 +8,7 @@ pub mod config;
 pub mod faults;
 #[cfg(feature = "fleet")]
 pub mod fleet;
+pub mod http;
 pub mod locator;
 pub mod metrics;
 pub mod notify;

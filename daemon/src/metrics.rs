@@ -4,7 +4,7 @@
 //! address (loopback by default) and answers nothing but `GET /metrics`.
 
 use std::collections::HashSet;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -378,17 +378,9 @@ pub fn serve_metrics(server: tiny_http::Server, registry: Registry, stop: Arc<At
         &b"text/plain; version=0.0.4; charset=utf-8"[..],
     )
     .ok();
-    while !stop.load(Ordering::Relaxed) {
-        let request = match server.recv_timeout(Duration::from_millis(200)) {
-            Ok(Some(r)) => r,
-            Ok(None) => continue,
-            Err(e) => {
-                tracing::warn!(error = %e, "metrics: accepting a request failed");
-                continue;
-            }
-        };
+    crate::http::serve(server, &stop, "metrics", |request| {
         let path = request.url().split('?').next().unwrap_or("");
-        let response = match (request.method(), path) {
+        match (request.method(), path) {
             (tiny_http::Method::Get, "/metrics") => {
                 let wants_openmetrics = request.headers().iter().any(|h| {
                     h.field.equiv("Accept")
@@ -417,11 +409,8 @@ pub fn serve_metrics(server: tiny_http::Server, registry: Registry, stop: Arc<At
                     .with_status_code(404)
             }
             _ => tiny_http::Response::from_string("method not allowed\n").with_status_code(405),
-        };
-        if let Err(e) = request.respond(response) {
-            tracing::debug!(error = %e, "metrics: cannot answer (scraper gone?)");
         }
-    }
+    });
 }
 
 #[cfg(test)]

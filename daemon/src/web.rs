@@ -12,8 +12,7 @@
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Duration;
+use std::sync::atomic::AtomicBool;
 
 use guardian_models::bank::{Class, ClassBank};
 use guardian_models::kinematics::Robot;
@@ -119,15 +118,7 @@ impl Page {
         let html =
             tiny_http::Header::from_bytes(&b"Content-Type"[..], &b"text/html; charset=utf-8"[..])
                 .ok();
-        while !stop.load(Ordering::Relaxed) {
-            let request = match server.recv_timeout(Duration::from_millis(200)) {
-                Ok(Some(r)) => r,
-                Ok(None) => continue,
-                Err(e) => {
-                    tracing::warn!(error = %e, "page: accepting a request failed");
-                    continue;
-                }
-            };
+        crate::http::serve(server, stop, "page", |request| {
             let get = matches!(
                 request.method(),
                 tiny_http::Method::Get | tiny_http::Method::Head
@@ -151,10 +142,8 @@ impl Page {
             {
                 response.add_header(h.clone());
             }
-            if let Err(e) = request.respond(response) {
-                tracing::debug!(error = %e, "page: cannot answer (browser gone?)");
-            }
-        }
+            response
+        });
     }
 
     fn bank(&self) -> Result<ClassBank, String> {
