@@ -8,7 +8,9 @@ use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use guardian_shared::wire::{ClassEntry, Op, RequestHeader, ResponseHeader, admin, decode_code};
+use guardian_shared::wire::{
+    self, ClassEntry, Op, RequestHeader, ResponseHeader, admin, decode_code,
+};
 
 use crate::{CheckError, ClassInfo, EnrollError, Trajectory};
 
@@ -58,9 +60,7 @@ impl AdminClient {
     /// The enrolled classes, as the daemon holds them after every admin request that was
     /// sent before this one (the serving loop answers admin requests in arrival order).
     pub fn classes(&self) -> Result<Vec<ClassInfo>, CheckError> {
-        let (r, entries) = self.call(RequestHeader::new(0, Op::Classes), &[], MAX_LISTED)?;
-        crate::status_ok(&r)?;
-        entries.iter().map(crate::class_info).collect()
+        crate::list_classes(|h| self.call(h, &[], wire::MAX_RESPONSE_ENTRIES))
     }
 
     fn io(&self, what: &str) -> impl FnOnce(std::io::Error) -> CheckError + '_ {
@@ -130,9 +130,6 @@ impl AdminClient {
         Ok((r, entries))
     }
 }
-
-/// Most class entries a `classes` answer may carry here.
-const MAX_LISTED: usize = 1 << 16;
 
 /// The error a connection-level answer (request id 0) carries.
 fn refused(r: &ResponseHeader) -> CheckError {

@@ -691,10 +691,16 @@ impl Client {
             .notifier_builder()
             .create()
             .map_err(connect_err("create notifier"))?;
+        // A static pool sized for the largest request (16 examples of 4096 waypoints of 17
+        // channels, 4.25 MiB a chunk, backed only where written) and one request at a time.
+        // A growable pool made iceoryx2 set up and tear down bookkeeping for the 255
+        // segments it may grow to whenever this client connected or left, on the daemon's
+        // serving loop too (issue 39, docs/performance.md "A connecting client").
         let client = rpc
             .client_builder()
-            .initial_max_slice_len(MAX_WAYPOINTS * MAX_CHANNELS)
-            .allocation_strategy(AllocationStrategy::PowerOfTwo)
+            .initial_max_slice_len(wire::MAX_EXAMPLES * MAX_WAYPOINTS * MAX_CHANNELS)
+            .max_active_requests(1)
+            .allocation_strategy(AllocationStrategy::Static)
             .create()
             .map_err(connect_err("create client port"))?;
         // This client's own response event service (named after its port id, which the
@@ -851,9 +857,7 @@ impl Client {
 
     /// Every enrolled class, by name.
     pub fn classes(&self) -> Result<Vec<ClassInfo>, CheckError> {
-        let (r, entries) = self.call(RequestHeader::new(0, Op::Classes), &[])?;
-        status_ok(&r)?;
-        entries.iter().map(class_info).collect()
+        list_classes(|h| self.call(h, &[]))
     }
 
     /// Versions, counters and latency percentiles.
@@ -1019,6 +1023,53 @@ fn neighbours(entries: &[ClassEntry]) -> Vec<Neighbour> {
         .collect()
 }
 
+/// The whole class list, read a page of at most [`wire::MAX_RESPONSE_ENTRIES`] at a time
+/// with `call`. A bank that changes between pages (its version moves) is read again from
+/// the start, at most [`LIST_ATTEMPTS`] times.
+pub(crate) fn list_classes(
+    mut call: impl FnMut(RequestHeader) -> Result<(ResponseHeader, Vec<ClassEntry>), CheckError>,
+) -> Result<Vec<ClassInfo>, CheckError> {
+    for _ in 0..LIST_ATTEMPTS {
+        let mut classes = Vec::new();
+        let mut version = None;
+        let consistent = loop {
+            let mut h = RequestHeader::new(0, Op::Classes);
+            h.first = u32::try_from(classes.len()).map_err(|_| CheckError::Protocol {
+                detail: "class list longer than 2^32".into(),
+            })?;
+            let (r, entries) = call(h)?;
+            status_ok(&r)?;
+            if *version.get_or_insert(r.bank_version) != r.bank_version {
+                break false;
+            }
+            for e in &entries {
+                classes.push(class_info(e)?);
+            }
+            let total = r.class_count as usize;
+            if classes.len() >= total {
+                break true;
+            }
+            if entries.is_empty() {
+                return Err(CheckError::Protocol {
+                    detail: format!(
+                        "classes: an empty page at {} of {total} classes",
+                        classes.len()
+                    ),
+                });
+            }
+        };
+        if consistent {
+            return Ok(classes);
+        }
+    }
+    Err(CheckError::Protocol {
+        detail: format!("classes: the bank changed while it was listed, {LIST_ATTEMPTS} times"),
+    })
+}
+
+/// How often [`list_classes`] starts again when the bank changes under it.
+const LIST_ATTEMPTS: usize = 8;
+
 pub(crate) fn class_info(e: &ClassEntry) -> Result<ClassInfo, CheckError> {
     Ok(ClassInfo {
         name: wire::decode_class_name(&e.name)?.to_owned(),
@@ -1050,5 +1101,64 @@ mod tests {
         assert_eq!(e.to_string(), format!("iceoryx2: send request: {source}"));
         assert_eq!(e.clone(), e);
         assert_ne!(transport("send request")(cause), e);
+    }
+
+    /// The class list is read a page at a time; a bank that changes between pages is read
+    /// again from the start; one that never holds still, or a short page, is an error.
+    #[test]
+    fn the_class_list_is_read_page_by_page_and_again_when_the_bank_moves() {
+        let bank: Vec<String> = (0..600).map(|i| format!("c{i:03}")).collect();
+        // Answer a classes request from `bank` at `version`.
+        let answer = |h: &RequestHeader, version: u64, bank: &[String], page: usize| {
+            let mut r = ResponseHeader::answering(h);
+            r.bank_version = version;
+            r.class_count = bank.len() as u32;
+            let entries = bank
+                .iter()
+                .skip(h.first as usize)
+                .take(page)
+                .map(|n| ClassEntry {
+                    name: wire::encode_text(n),
+                    distance: f32::NAN,
+                    threshold: 1.0,
+                    examples: 1,
+                    calibrated: 0,
+                })
+                .collect();
+            Ok((r, entries))
+        };
+        let names = |v: Vec<ClassInfo>| v.into_iter().map(|c| c.name).collect::<Vec<_>>();
+        let mut firsts = Vec::new();
+        let all = list_classes(|h| {
+            firsts.push(h.first);
+            answer(&h, 1, &bank, wire::MAX_RESPONSE_ENTRIES)
+        })
+        .expect("list");
+        assert_eq!(names(all), bank);
+        assert_eq!(firsts, [0, 256, 512]);
+
+        // The bank changes after the first page: the list starts over and is consistent.
+        let mut calls = 0;
+        let all = list_classes(|h| {
+            calls += 1;
+            let version = if calls == 1 { 1 } else { 2 };
+            answer(&h, version, &bank, wire::MAX_RESPONSE_ENTRIES)
+        })
+        .expect("list");
+        assert_eq!((names(all), calls), (bank.clone(), 5));
+
+        // A bank that changes on every page.
+        let mut version = 0;
+        let e = list_classes(|h| {
+            version += 1;
+            answer(&h, version, &bank, wire::MAX_RESPONSE_ENTRIES)
+        })
+        .expect_err("never consistent");
+        assert!(matches!(e, CheckError::Protocol { .. }), "{e:?}");
+
+        // A daemon that stops answering entries before the count is reached.
+        let e = list_classes(|h| answer(&h, 1, &bank, if h.first == 0 { 256 } else { 0 }))
+            .expect_err("short");
+        assert!(matches!(e, CheckError::Protocol { .. }), "{e:?}");
     }
 }

@@ -307,6 +307,9 @@ pub enum ConfigError {
         /// The key.
         key: &'static str,
     },
+    /// `k-nearest` asks for more classes than a response holds.
+    #[error("k-nearest must be at most {max}, got {0}", max = guardian_shared::wire::MAX_RESPONSE_ENTRIES)]
+    KNearest(usize),
     /// An admin uid or gid is the overflow id.
     #[error("[admin] uids and gids must not contain {OVERFLOW_ID}: unmapped callers appear as it")]
     OverflowId,
@@ -414,6 +417,9 @@ impl Config {
         ];
         if let Some((key, _)) = counts.iter().find(|(_, v)| *v == 0) {
             return Err(ConfigError::Zero { key });
+        }
+        if self.k_nearest > guardian_shared::wire::MAX_RESPONSE_ENTRIES {
+            return Err(ConfigError::KNearest(self.k_nearest));
         }
         apply_workcell_overrides(Workcell::DEFAULT, self.workcell.as_ref())?;
         // A caller whose uid or gid the daemon's user namespace does not map (systemd
@@ -619,6 +625,13 @@ mod tests {
         assert_eq!(c.serving_mode, ServingMode::SpinThenSleep);
         assert_eq!(c.iceoryx2.prefix.as_deref(), Some("t_"));
         assert!(Config::from_toml("k-nearest = 0\n", Path::new("t")).is_err());
+        assert!(matches!(
+            Config::from_toml("k-nearest = 257\n", Path::new("t")),
+            Err(LoadConfigError::Invalid {
+                source: ConfigError::KNearest(257),
+                ..
+            })
+        ));
         assert!(Config::from_toml("default-threshold = -1.0\n", Path::new("t")).is_err());
         assert!(Config::from_toml("max-classes = 0\n", Path::new("t")).is_err());
         assert!(Config::from_toml("[admin]\ngids = [65534]\n", Path::new("t")).is_err());

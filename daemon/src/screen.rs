@@ -12,9 +12,9 @@ use guardian_models::check::{self, EnrollmentError, PlanCheck, Prepared, Station
 use guardian_models::embedder::{EmbedError, Embedder};
 use guardian_shared::trajectory::{InvalidTrajectory, Waypoint};
 use guardian_shared::wire::{
-    CheckAnswer, ClassEntry, DaemonState, Failure, Limit, NoGo, Op, Request, RequestHeader,
-    ResponseHeader, RobotInfo, decode_code, encode_check, encode_failure, encode_state,
-    encode_text,
+    CheckAnswer, ClassEntry, DaemonState, Failure, Limit, MAX_RESPONSE_ENTRIES, NoGo, Op, Request,
+    RequestHeader, ResponseHeader, RobotInfo, decode_code, encode_check, encode_failure,
+    encode_state, encode_text,
 };
 
 use crate::stats::Stats;
@@ -404,9 +404,24 @@ impl Screen {
             Ok(Request::Identify { trajectory }) => self.identify(&trajectory),
             Ok(Request::Enroll { class, examples }) => self.enroll(class, &examples, log),
             Ok(Request::Forget { class }) => self.forget(class, log),
-            Ok(Request::Classes) => Ok(self.class_list()),
+            Ok(Request::Classes { first }) => Ok(self.class_list(first)),
             Ok(Request::Status) => Ok(self.status_answer()),
         };
+        // Every response chunk holds at most MAX_RESPONSE_ENTRIES entries (the class list is
+        // paged, k-nearest is bounded); a longer answer (a fleet of more signers) is refused
+        // whole rather than cut.
+        let result = result.and_then(|e| {
+            if e.len() > MAX_RESPONSE_ENTRIES {
+                Err(Failure::Internal {
+                    message: format!(
+                        "answer of {} entries, more than a response holds ({MAX_RESPONSE_ENTRIES})",
+                        e.len()
+                    ),
+                })
+            } else {
+                Ok(e)
+            }
+        });
         let entries = match result {
             Ok(e) => e,
             Err(failure) => {
@@ -665,9 +680,13 @@ impl Screen {
         Ok(())
     }
 
-    fn class_list(&self) -> Vec<ClassEntry> {
+    /// One page of the class list: at most [`MAX_RESPONSE_ENTRIES`] classes from the
+    /// `first`-th on (empty past the end).
+    fn class_list(&self, first: usize) -> Vec<ClassEntry> {
         self.bank
             .classes()
+            .skip(first)
+            .take(MAX_RESPONSE_ENTRIES)
             .map(|(n, _)| self.entry(n, f32::NAN))
             .collect()
     }

@@ -9,8 +9,8 @@ use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::request_response::PortFactory as RpcFactory;
 
 use guardian_shared::wire::{
-    ClassEntry, Op, RequestHeader, ResponseHeader, VerdictCode, request_event_name,
-    response_event_name,
+    ClassEntry, MAX_RESPONSE_ENTRIES, Op, RequestHeader, ResponseHeader, VerdictCode,
+    request_event_name, response_event_name,
 };
 
 use crate::admin::{AdminEndpoint, AdminPolicy, WakerFactory};
@@ -327,10 +327,10 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         // One response per request, copied out by the client at once. iceoryx2 sizes the
         // server's response pool as max-clients x 8 x (buffer + borrowed + loaned) chunks
         // and, whenever a client connects or disconnects, walks one flag per chunk for
-        // each of the 255 segments a growable data segment may have — inside
-        // receive/loan, on the serving loop. At 4 + 2 + 2 that was 1M flags per client
-        // (50-350 ms on a loaded 2-core host, issue 39); with 1 + 1 + 1 and the pool
-        // below it is 8 x fewer (docs/performance.md, "A connecting client").
+        // each segment the pool may have — inside receive/loan, on the serving loop. With
+        // 4 + 2 + 2 slots and a growable pool (255 segments) that was 1M flags per client
+        // (50-350 ms on a loaded 2-core host, issue 39); with 1 + 1 + 1, the pool below
+        // and one static segment it is 256 (docs/performance.md, "A connecting client").
         .max_response_buffer_size(1)
         .max_borrowed_responses_per_pending_response(1)
         .open_or_create()
@@ -370,8 +370,11 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         .server_builder()
         .max_loaned_responses_per_request(1)
         .override_response_preallocation(move |worst| worst / per_request_slots)
-        .initial_max_slice_len(256)
-        .allocation_strategy(AllocationStrategy::PowerOfTwo)
+        // Every chunk preallocated at the largest answer (a page of the class list), in one
+        // static segment: iceoryx2 walks each segment a growable pool may have (255) on
+        // every client connect or leave; a static pool has one (issue 39).
+        .initial_max_slice_len(MAX_RESPONSE_ENTRIES)
+        .allocation_strategy(AllocationStrategy::Static)
         .create()
         .map_err(iox(
             "create server port (is another guardiand serving this service name?)",

@@ -145,7 +145,7 @@ fn request() -> impl Strategy<Value = (RequestHeader, Vec<f32>)> {
                     op,
                     channels,
                     examples,
-                    reserved: 0,
+                    first: 0,
                     waypoints,
                     class_name,
                 };

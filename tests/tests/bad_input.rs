@@ -194,7 +194,7 @@ fn request() -> impl Strategy<Value = (RequestHeader, Vec<f32>)> {
                 mut waypoints,
                 consistent,
                 class_name,
-                reserved,
+                first,
                 payload,
             )| {
                 if consistent && channels != 0 {
@@ -205,7 +205,7 @@ fn request() -> impl Strategy<Value = (RequestHeader, Vec<f32>)> {
                     op,
                     channels,
                     examples,
-                    reserved,
+                    first,
                     waypoints,
                     class_name,
                 };

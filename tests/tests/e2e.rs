@@ -662,3 +662,105 @@ fn an_answer_wakes_only_its_client_and_legacy_clients_share_the_common_event() {
         assert!(quiet(&wake_a) && quiet(&wake_b));
     }
 }
+
+/// A client coming or going made iceoryx2 walk one flag per response chunk for each of the
+/// 255 segments a growable pool may have, inside the serving loop's receive: every planner
+/// stalled 50-80 ms (issue 39). The daemon's response pool and the client's request pool
+/// are static (one segment each), so that walk is one segment long; the class list, the one
+/// answer that could outgrow a fixed chunk, is paged. 300 classes are listed whole, in name
+/// order, over iceoryx2 and over the admin socket, and a raw request for a page past the
+/// first gets that page with the whole bank's count.
+#[test]
+fn pools_are_static_and_the_class_list_is_paged() {
+    use guardian_shared::wire::{self, ClassEntry, MAX_RESPONSE_ENTRIES, Op, RequestHeader};
+    use iceoryx2::port::DataSegmentType;
+    use iceoryx2::prelude::*;
+    use iceoryx2::service::dynamic_config::request_response::{ClientDetails, ServerDetails};
+
+    let mut s = Setup::new(24);
+    let socket = s.dir.path().join("admin.sock");
+    s.extra = format!("default-threshold = 1e9\n[admin]\nsocket = {socket:?}\n");
+    let d = Daemon::start(&s);
+    let client = s.client();
+    // One class enrolled, 299 more added to the bank on disk with the lab API and reloaded.
+    let n = 300u32;
+    let mut names: Vec<String> = (0..n).map(|c| format!("t{c:03}")).collect();
+    client.enroll(&names[0], &[traj(0, 1)]).expect("enroll");
+    let path = s.state_dir().join("bank.gcb");
+    let mut bank = guardian_models::bank::ClassBank::load(&path).expect("bank");
+    for (c, name) in names.iter().enumerate().skip(1) {
+        let dim = bank.dim();
+        let mut e = vec![0.0f32; dim];
+        e[c % dim] = 1.0;
+        bank.enroll(name, &[e]).expect("enroll on disk");
+    }
+    bank.save(&path).expect("save");
+    d.signal("HUP");
+    d.wait_log("reload complete");
+    names.sort();
+    assert!(names.len() > MAX_RESPONSE_ENTRIES);
+
+    // Both ports have one static segment (the daemon's server, this process's client).
+    let raw = s.raw_planner();
+    let mut servers: Vec<ServerDetails> = Vec::new();
+    raw.rpc.dynamic_config().list_servers(|d| {
+        servers.push(*d);
+        CallbackProgression::Continue
+    });
+    let mut clients: Vec<ClientDetails> = Vec::new();
+    raw.rpc.dynamic_config().list_clients(|d| {
+        clients.push(*d);
+        CallbackProgression::Continue
+    });
+    assert_eq!(servers.len(), 1);
+    assert_eq!(
+        (
+            servers[0].data_segment_type,
+            servers[0].max_number_of_segments
+        ),
+        (DataSegmentType::Static, 1),
+        "{servers:?}"
+    );
+    assert_eq!(servers[0].max_slice_len, MAX_RESPONSE_ENTRIES);
+    assert_eq!(
+        clients.len(),
+        1,
+        "only the client of this test is connected"
+    );
+    assert_eq!(
+        (
+            clients[0].data_segment_type,
+            clients[0].max_number_of_segments
+        ),
+        (DataSegmentType::Static, 1),
+        "{clients:?}"
+    );
+
+    // The whole list, through the client's pages and the admin socket's.
+    let listed = |v: Vec<guardian_client::ClassInfo>| -> Vec<String> {
+        v.into_iter().map(|c| c.name).collect()
+    };
+    assert_eq!(listed(client.classes().expect("classes")), names);
+    let admin = guardian_client::AdminClient::new(&socket, Duration::from_secs(10));
+    assert_eq!(listed(admin.classes().expect("admin classes")), names);
+
+    // A raw request for the second page: the classes from the 256th on, the bank's count.
+    let port = raw.client_port();
+    let mut h = RequestHeader::new(7, Op::Classes);
+    h.first = MAX_RESPONSE_ENTRIES as u32;
+    let mut req = port.loan_slice_uninit(0).expect("loan");
+    *req.user_header_mut() = h;
+    let pending = req.write_from_slice(&[]).send().expect("send");
+    raw.wake.notify().expect("notify");
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    let (r, entries): (_, Vec<ClassEntry>) = loop {
+        if let Some(resp) = pending.receive().expect("receive") {
+            break (*resp.user_header(), resp.payload().to_vec());
+        }
+        assert!(std::time::Instant::now() < deadline, "no answer");
+        std::thread::sleep(Duration::from_millis(2));
+    };
+    assert_eq!((r.status, r.class_count), (0, n));
+    let page: Vec<String> = entries.iter().map(|e| wire::decode_text(&e.name)).collect();
+    assert_eq!(page, names[MAX_RESPONSE_ENTRIES..]);
+}

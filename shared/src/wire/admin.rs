@@ -116,7 +116,7 @@ pub fn encode_request(h: &RequestHeader, payload: &[f32]) -> Vec<u8> {
     o.u32(h.op);
     o.u32(h.channels);
     o.u32(h.examples);
-    o.u32(h.reserved);
+    o.u32(h.first);
     for w in h.waypoints {
         o.u32(w);
     }
@@ -138,7 +138,7 @@ pub fn decode_request(body: &[u8]) -> Result<(RequestHeader, Vec<f32>), FrameErr
         op: i.u32(),
         channels: i.u32(),
         examples: i.u32(),
-        reserved: i.u32(),
+        first: i.u32(),
         waypoints: std::array::from_fn(|_| i.u32()),
         class_name: i.take::<NAME_BYTES>(),
     };

@@ -45,6 +45,11 @@ pub const DEFAULT_SERVICE_NAME: &str = "guardian/v4/rpc";
 pub const DEFAULT_ADMIN_SOCKET: &str = "/run/guardian/admin.sock";
 /// Size of every fixed name field (class names, model version), NUL-padded.
 pub const NAME_BYTES: usize = 64;
+/// Most entries in one response. A `classes` answer lists the bank a page at a time: the
+/// classes from the request's `first` on, at most this many; `class_count` in the response
+/// is the whole bank's. The daemon preallocates every response chunk at this size, so no
+/// answer is ever larger (`docs/wire-protocol.md`).
+pub const MAX_RESPONSE_ENTRIES: usize = 256;
 /// Longest class name in bytes (UTF-8); one byte of [`NAME_BYTES`] stays NUL.
 pub const MAX_CLASS_NAME: usize = NAME_BYTES - 1;
 /// Most examples in one enroll request.
@@ -223,8 +228,9 @@ pub struct RequestHeader {
     /// Number of trajectories in the payload: 1 for check and identify, 1..=16 for
     /// enroll, 0 otherwise.
     pub examples: u32,
-    /// Reserved, zero.
-    pub reserved: u32,
+    /// Classes: the index of the first class to list (the bank's name order); a response
+    /// lists at most [`MAX_RESPONSE_ENTRIES`] classes. Zero for every other op.
+    pub first: u32,
     /// Waypoints of each trajectory, in payload order; entries past `examples` are zero.
     pub waypoints: [u32; MAX_EXAMPLES],
     /// The class (check: claimed; enroll, forget: target), UTF-8, NUL-padded.
@@ -245,7 +251,7 @@ impl RequestHeader {
             op: op as u32,
             channels: 0,
             examples: 0,
-            reserved: 0,
+            first: 0,
             waypoints: [0; MAX_EXAMPLES],
             class_name: [0; NAME_BYTES],
         }
@@ -523,7 +529,7 @@ mod tests {
         assert_eq!(offset_of!(RequestHeader, op), 8);
         assert_eq!(offset_of!(RequestHeader, channels), 12);
         assert_eq!(offset_of!(RequestHeader, examples), 16);
-        assert_eq!(offset_of!(RequestHeader, reserved), 20);
+        assert_eq!(offset_of!(RequestHeader, first), 20);
         assert_eq!(offset_of!(RequestHeader, waypoints), 24);
         assert_eq!(offset_of!(RequestHeader, class_name), 88);
 

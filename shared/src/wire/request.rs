@@ -40,8 +40,12 @@ pub enum Request<'a> {
         /// The target class.
         class: &'a str,
     },
-    /// List the enrolled classes.
-    Classes,
+    /// List the enrolled classes, a page of at most
+    /// [`MAX_RESPONSE_ENTRIES`](super::MAX_RESPONSE_ENTRIES) from the `first`-th on.
+    Classes {
+        /// Index of the first class to list.
+        first: usize,
+    },
     /// Versions, counters and latency percentiles.
     Status,
 }
@@ -148,7 +152,9 @@ impl<'a> Request<'a> {
                 Self::Enroll { class, examples }
             }
             Op::Forget => Self::Forget { class: class()? },
-            Op::Classes => Self::Classes,
+            Op::Classes => Self::Classes {
+                first: header.first as usize,
+            },
             Op::Status => Self::Status,
         })
     }
@@ -160,7 +166,7 @@ impl<'a> Request<'a> {
             Self::Identify { .. } => Op::Identify,
             Self::Enroll { .. } => Op::Enroll,
             Self::Forget { .. } => Op::Forget,
-            Self::Classes => Op::Classes,
+            Self::Classes { .. } => Op::Classes,
             Self::Status => Op::Status,
         }
     }
