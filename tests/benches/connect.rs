@@ -1,10 +1,12 @@
 //! A connecting client must not stall the others (issue 39): one persistent planner checks
 //! a plan every millisecond against a real `guardiand`, alone and while a second *process*
 //! connects, checks once and exits every 100 ms (a script, a monitor, `guardianctl`
-//! coming and going). Phases alternate (alone, churn, alone, churn, …) so that both see the
-//! same machine; for each kind the planner's round trip p50 / p99 / max over all its rounds
-//! is printed, with the p99 ratio and the targets (churn p99 <= 1.5 x alone p99, churn max
-//! below 5 ms).
+//! coming and going). A control kind, other, runs the same processes against a second
+//! `guardiand` on the same machine: what a client starting, connecting and leaving costs
+//! the planner through the shared cores alone, without the planner's daemon doing anything
+//! for it. Phases rotate (alone, other, churn, alone, …) so that all see the same machine; for each kind the planner's round trip p50 / p99 / max over all
+//! its rounds is printed, with the p99 ratios and the targets (churn p99 <= 1.5 x alone
+//! p99, churn max below 5 ms).
 //!
 //! Run: `RAYON_NUM_THREADS=1 cargo bench -p guardian-tests --bench connect`. Options after
 //! `--`: `--rounds N` (3 of each kind), `--seconds S` (5 per round), `--period-ms P` (100),
@@ -18,6 +20,13 @@ use guardian_tests::harness::{Daemon, Setup, traj};
 
 /// Set in a child process: connect with this service name, check once, exit.
 const CHILD: &str = "GUARDIAN_CONNECT_BENCH_CHILD";
+/// The kinds of round, in the order they rotate.
+#[derive(Clone, Copy, PartialEq)]
+enum Kind {
+    Alone,
+    Other,
+    Churn,
+}
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
@@ -60,6 +69,14 @@ fn main() -> Result<()> {
         s.extra.push_str(&format!("max-clients = {n}\n"));
     }
     let daemon = Daemon::start(&s);
+    // The control's daemon: same configuration, its own service, prefix and directory.
+    let mut other = Setup::new(72);
+    other.extra = s.extra.clone();
+    let _other_daemon = Daemon::start(&other);
+    other
+        .client()
+        .enroll("task2", &[traj(2, 1), traj(2, 2), traj(2, 3)])
+        .map_err(|e| anyhow::anyhow!("enroll (other daemon): {e}"))?;
     let planner = s.client();
     for c in 0..4 {
         planner
@@ -68,20 +85,21 @@ fn main() -> Result<()> {
     }
     let plan = traj(1, 9);
     println!(
-        "  planner: one check of a {}-waypoint plan every 1 ms, {rounds} rounds of {seconds} s per kind, alternating; churn: a new process connects, checks once and exits every {period_ms} ms; max-clients {}",
+        "  planner: one check of a {}-waypoint plan every 1 ms, {rounds} rounds of {seconds} s per kind, rotating; churn: a new process connects, checks once and exits every {period_ms} ms; other (control): the same processes against a second guardiand; max-clients {}",
         plan.len(),
         max_clients.map_or_else(|| "default".to_owned(), |n| n.to_string())
     );
     println!();
     let exe = std::env::current_exe()?;
-    let mut alone = Vec::new();
-    let mut churn = Vec::new();
+    let (mut alone, mut others, mut churn) = (Vec::new(), Vec::new(), Vec::new());
     let (mut spawned, mut failed) = (0usize, 0usize);
-    for round in 0..2 * rounds {
-        let with_churn = round % 2 == 1;
+    let kinds = [Kind::Alone, Kind::Other, Kind::Churn];
+    for round in 0..kinds.len() * rounds {
+        let kind = kinds[round % kinds.len()];
         let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-        let spawner = with_churn.then(|| {
-            let (stop, exe, s) = (stop.clone(), exe.clone(), &s);
+        let spawner = (kind != Kind::Alone).then(|| {
+            let (stop, exe) = (stop.clone(), exe.clone());
+            let s = if kind == Kind::Other { &other } else { &s };
             let cfg = (
                 s.service.clone(),
                 s.dir.path().join("iox"),
@@ -122,7 +140,11 @@ fn main() -> Result<()> {
                 (n, bad)
             })
         });
-        let lat = if with_churn { &mut churn } else { &mut alone };
+        let lat = match kind {
+            Kind::Alone => &mut alone,
+            Kind::Other => &mut others,
+            Kind::Churn => &mut churn,
+        };
         let end = Instant::now() + Duration::from_secs(seconds);
         let mut next = Instant::now();
         while Instant::now() < end {
@@ -141,7 +163,9 @@ fn main() -> Result<()> {
         stop.store(true, std::sync::atomic::Ordering::Relaxed);
         if let Some(h) = spawner {
             let (n, bad) = h.join().expect("spawner");
-            spawned += n;
+            if kind == Kind::Churn {
+                spawned += n;
+            }
             failed += bad;
         }
     }
@@ -163,10 +187,19 @@ fn main() -> Result<()> {
         "phase", "checks", "p50 us", "p99 us", "max us", "over 5 ms"
     );
     let (a99, _) = row("alone", &mut alone);
+    let (o99, _) = row("other", &mut others);
     let (c99, cmax) = row("churn", &mut churn);
     println!();
-    println!("connecting processes: {spawned} started, {failed} failed");
+    println!("connecting processes: {spawned} started; child processes failed: {failed}");
     let verdict = |ok: bool| if ok { "met" } else { "MISSED" };
+    println!(
+        "other p99 / alone p99   {:>6.2}  (control: the same clients, another guardiand)",
+        o99 / a99
+    );
+    println!(
+        "churn p99 / other p99   {:>6.2}  (what serving them adds on the planner's guardiand)",
+        c99 / o99
+    );
     println!(
         "churn p99 / alone p99   {:>6.2}  <= 1.5   {}",
         c99 / a99,
