@@ -502,10 +502,24 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         if sleep {
             // Wake on a client notification, or after one tick to re-check has_requests,
             // flags and the watchdog.
-            match listener.timed_wait(|_| {}, tick) {
+            let mut woken = false;
+            match listener.timed_wait(|_| woken = true, tick) {
                 // A signal (SIGHUP, SIGTERM) interrupted the wait: loop to look at the flags.
                 Ok(_) | Err(ListenerWaitError::InterruptSignal) => {}
                 Err(e) => return Err(iox("wait on request events")(e)),
+            }
+            // A request found after a whole tick with no notification, before or since, may
+            // have waited for the tick: its client's wake-up did not come. Said, so that
+            // it cannot hide in a latency tail (issue 39).
+            if !woken && server.has_requests().unwrap_or(false) {
+                let mut late = false;
+                let _ = listener.try_wait(|_| late = true);
+                if !late {
+                    tracing::warn!(
+                        tick_ms = tick.as_millis() as u64,
+                        "a request was found after a tick without its wake-up"
+                    );
+                }
             }
         } else {
             // Drop accumulated notifications so the queue does not fill up.

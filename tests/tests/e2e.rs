@@ -764,3 +764,40 @@ fn pools_are_static_and_the_class_list_is_paged() {
     let page: Vec<String> = entries.iter().map(|e| wire::decode_text(&e.name)).collect();
     assert_eq!(page, names[MAX_RESPONSE_ENTRIES..]);
 }
+
+/// A request whose client never notifies the daemon is still answered, at the serving
+/// loop's next tick, and the daemon says that a wake-up did not come (a lost wake-up must
+/// not hide in a latency tail, issue 39). A notified request is not reported.
+#[test]
+fn a_request_without_its_wake_up_is_answered_at_the_tick_and_reported() {
+    use guardian_shared::wire::{Op, RequestHeader};
+
+    const MISSED: &str = "a request was found after a tick without its wake-up";
+    let mut s = Setup::new(25);
+    s.extra = "default-threshold = 1e9".into();
+    let d = Daemon::start(&s);
+    let raw = s.raw_planner();
+    let port = raw.client_port();
+    let call = |id: u64, notify: bool| {
+        let mut r = port.loan_slice_uninit(0).expect("loan");
+        *r.user_header_mut() = RequestHeader::new(id, Op::Status);
+        let pending = r.write_from_slice(&[]).send().expect("send");
+        if notify {
+            raw.wake.notify().expect("notify");
+        }
+        let start = std::time::Instant::now();
+        loop {
+            if let Some(resp) = pending.receive().expect("receive") {
+                assert_eq!(resp.user_header().request_id, id);
+                return;
+            }
+            assert!(start.elapsed() < harness::PATIENCE, "no response");
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    };
+    call(1, true);
+    assert!(!d.log().contains(MISSED), "{}", d.log());
+    call(2, false);
+    d.wait_log(MISSED);
+    assert_eq!(d.log().matches(MISSED).count(), 1, "{}", d.log());
+}
