@@ -15,7 +15,7 @@ use futures::{FutureExt, StreamExt, pin_mut};
 use guardian_models::kinematics::RobotDescription;
 use ros2_client::action::{
     ActionClient, ActionClientQosPolicies, ActionServerQosPolicies, AsyncActionServer,
-    GoalEndStatus, GoalId, GoalStatusEnum,
+    GoalEndStatus, GoalId, GoalStatusEnum, SendGoalResponse,
 };
 use ros2_client::{
     ActionTypeName, Context, MessageTypeName, Name, NodeName, NodeOptions, Publisher, QosProfile,
@@ -33,6 +33,13 @@ use crate::plan::PlanMapper;
 use crate::screen::{Outcome, Screen};
 
 type Server = AsyncActionServer<Goal, GoalResult, Feedback>;
+/// The controller's pending answer to a goal the gate sent.
+type GoalAnswer<'a> =
+    futures::future::LocalBoxFuture<'a, ros2_client::ReadResult<SendGoalResponse>>;
+
+/// How long a goal the gate aborted for an unanswered controller is watched for a late
+/// acceptance, which is cancelled.
+const LATE_WINDOW: Duration = Duration::from_secs(10);
 type Controller = ActionClient<Goal, GoalResult, Feedback>;
 
 /// ROS 2's service default: reliable, volatile, keep last 10.
@@ -373,14 +380,11 @@ impl Gate<'_> {
 
     /// Send the goal unchanged to the controller and relay its answers.
     async fn forward(&self, handle: ros2_client::action::NewGoalHandle<Goal>, goal: Goal) {
-        let sent = futures::future::select(
-            self.controller.async_send_goal(goal).boxed_local(),
-            smol::Timer::after(self.config.controller_timeout()),
-        )
-        .await;
-        let (ctrl_id, response) = match sent {
-            futures::future::Either::Left((Ok(r), _)) => r,
-            futures::future::Either::Left((Err(e), _)) => {
+        // The gate chooses the controller goal's id when it sends it, so a goal the
+        // controller has not answered in time can still be cancelled by id.
+        let (request, ctrl_id) = match self.controller.send_goal(goal) {
+            Ok(sent) => sent,
+            Err(e) => {
                 self.counts.errors.set(self.counts.errors.get() + 1);
                 self.refuse(
                     handle,
@@ -393,20 +397,46 @@ impl Gate<'_> {
                 .await;
                 return;
             }
-            futures::future::Either::Right(_) => {
-                // The controller may still accept it later: the gate cannot cancel a goal
-                // whose id it never learned, so it says so.
+        };
+        let answer = self
+            .controller
+            .goal_client()
+            .async_receive_response(request)
+            .boxed_local();
+        let sent =
+            futures::future::select(answer, smol::Timer::after(self.config.controller_timeout()))
+                .await;
+        let response = match sent {
+            futures::future::Either::Left((Ok(r), _)) => r,
+            futures::future::Either::Left((Err(e), _)) => {
                 self.counts.errors.set(self.counts.errors.get() + 1);
                 self.refuse(
                     handle,
                     error_code::INVALID_GOAL,
                     format!(
-                        "guardian gate: controller {} did not answer within {:?}",
+                        "guardian gate: the goal's answer from {} was lost: {e:?}",
+                        self.config.controller
+                    ),
+                )
+                .await;
+                self.cancel_late(ctrl_id, None).await;
+                return;
+            }
+            futures::future::Either::Right((_, answer)) => {
+                // MoveIt hears "aborted"; the controller may still accept the goal later:
+                // it is cancelled now, and again if a late acceptance comes.
+                self.counts.errors.set(self.counts.errors.get() + 1);
+                self.refuse(
+                    handle,
+                    error_code::INVALID_GOAL,
+                    format!(
+                        "guardian gate: controller {} did not answer within {:?}; the goal is cancelled at the controller",
                         self.config.controller,
                         self.config.controller_timeout()
                     ),
                 )
                 .await;
+                self.cancel_late(ctrl_id, Some(answer)).await;
                 return;
             }
         };
@@ -472,6 +502,48 @@ impl Gate<'_> {
             .await
         {
             tracing::warn!("relaying the result: {e:?}");
+        }
+    }
+
+    /// Cancel controller goal `ctrl_id`, which MoveIt was told is aborted: at once and, if
+    /// its acceptance (`answer`) still arrives within [`LATE_WINDOW`], again then (a cancel
+    /// that reached the controller before the goal is refused there as unknown). New goals
+    /// wait meanwhile: the gate relays one goal at a time.
+    async fn cancel_late(&self, ctrl_id: GoalId, answer: Option<GoalAnswer<'_>>) {
+        let cancel = || {
+            if let Err(e) = self.controller.cancel_goal(ctrl_id) {
+                tracing::error!("cancelling an unanswered goal at the controller: {e:?}");
+            }
+        };
+        cancel();
+        let Some(answer) = answer else { return };
+        match futures::future::select(answer, smol::Timer::after(LATE_WINDOW)).await {
+            futures::future::Either::Left((Ok(r), _)) if r.accepted => {
+                cancel();
+                // Its end, for the log (and an action server that holds a result until
+                // it is asked for it).
+                let end = futures::future::select(
+                    self.controller.async_request_result(ctrl_id).boxed_local(),
+                    smol::Timer::after(LATE_WINDOW),
+                )
+                .await;
+                let status = match end {
+                    futures::future::Either::Left((Ok((status, _)), _)) => format!("{status:?}"),
+                    futures::future::Either::Left((Err(e), _)) => format!("unknown ({e:?})"),
+                    futures::future::Either::Right(_) => "unknown (no result in time)".into(),
+                };
+                tracing::warn!(
+                    goal = %uuid_hex(&ctrl_id),
+                    %status,
+                    "the controller accepted a goal after the gate had aborted it; it was cancelled again"
+                );
+            }
+            futures::future::Either::Left(_) => {}
+            futures::future::Either::Right(_) => tracing::warn!(
+                goal = %uuid_hex(&ctrl_id),
+                window = ?LATE_WINDOW,
+                "the controller never answered a goal the gate aborted; a cancel was sent"
+            ),
         }
     }
 

@@ -27,6 +27,10 @@ use ros2_client::{MessageTypeName, Name, Node, NodeName, NodeOptions, QosProfile
 const PATIENCE: Duration = Duration::from_secs(30);
 /// A goal whose `goal_time_tolerance.sec` is this runs until canceled (or 20 s).
 const LONG: i32 = 99;
+/// A goal whose `goal_time_tolerance.sec` is this is answered only after [`SLOW_ACCEPT`]
+/// (past the gate's `controller-timeout-ms`, 5 s here), then runs as a `LONG` one.
+const SLOW: i32 = 98;
+const SLOW_ACCEPT: Duration = Duration::from_secs(6);
 
 fn loopback() -> Vec<std::net::IpAddr> {
     vec!["127.0.0.1".parse().unwrap()]
@@ -97,10 +101,12 @@ fn in_order() -> Vec<usize> {
 struct Seen {
     goals: Mutex<Vec<Goal>>,
     cancels: AtomicUsize,
+    /// Cancels that came for a goal not accepted yet (refused as unknown).
+    early_cancels: AtomicUsize,
 }
 
 /// The controller stand-in: accepts every goal, sends feedback every 20 ms, succeeds after
-/// 5 of them (a `LONG` goal runs until canceled).
+/// 5 of them (a `LONG` goal runs until canceled; a `SLOW` one is answered late).
 fn controller(
     domain: u16,
     ns: &str,
@@ -129,8 +135,24 @@ fn controller(
                     _ = tick => continue,
                 };
                 let g = server.get_new_goal(handle.clone()).unwrap();
-                let long = g.goal_time_tolerance.sec == LONG;
+                let slow = g.goal_time_tolerance.sec == SLOW;
+                let long = g.goal_time_tolerance.sec == LONG || slow;
                 seen.goals.lock().unwrap().push(g);
+                // A late answer. Meanwhile a cancel is refused as for an unknown goal, as
+                // ros2_control's controller refuses a cancel for a goal it does not hold.
+                let until = Instant::now() + if slow { SLOW_ACCEPT } else { Duration::ZERO };
+                while Instant::now() < until {
+                    let cancel = server.receive_cancel_request().fuse();
+                    let tick = FutureExt::fuse(smol::Timer::after(Duration::from_millis(20)));
+                    pin_mut!(cancel, tick);
+                    futures::select! {
+                        c = cancel => {
+                            seen.early_cancels.fetch_add(1, Ordering::SeqCst);
+                            server.respond_to_cancel_requests(&c.unwrap(), std::iter::empty()).await.unwrap();
+                        }
+                        _ = tick => {}
+                    }
+                }
                 let accepted = server.accept_goal(handle).await.unwrap();
                 let executing = server.start_executing_goal(accepted).await.unwrap();
                 let mut sent = 0;
@@ -511,6 +533,28 @@ fn gate_screens_forwards_relays_and_fails_closed() {
         assert_eq!(seen.goals.lock().unwrap().len(), 3);
         assert_eq!(next_verdict().await.verdict, "go");
 
+        // 5b. The controller answers only after the gate's timeout: MoveIt hears aborted, and
+        // the goal, which the controller accepts late, is cancelled there (a first cancel is
+        // refused as unknown, the one after the late acceptance lands).
+        let mut g = goal(0, 7, &in_order());
+        g.goal_time_tolerance.sec = SLOW;
+        let r = send(&client, g, false).await;
+        assert_eq!(r.status, Some(GoalStatusEnum::Aborted), "{r:?}");
+        let res = r.result.unwrap();
+        assert_eq!(res.error_code, error_code::INVALID_GOAL);
+        assert!(res.error_string.contains("did not answer"), "{res:?}");
+        assert_eq!(next_verdict().await.verdict, "go");
+        let deadline = Instant::now() + PATIENCE;
+        while seen.cancels.load(Ordering::SeqCst) < 2 {
+            assert!(
+                Instant::now() < deadline,
+                "the late goal was not cancelled at the controller"
+            );
+            smol::Timer::after(Duration::from_millis(20)).await;
+        }
+        assert!(seen.early_cancels.load(Ordering::SeqCst) >= 1);
+        assert_eq!(seen.goals.lock().unwrap().len(), 4);
+
         // 6. Identify mode (no claim): an outlier is refused, a genuine plan goes.
         claim("");
         wait_claim("").await;
@@ -529,7 +573,7 @@ fn gate_screens_forwards_relays_and_fails_closed() {
             ("no-go", "outlier", ""),
             "{v:?}"
         );
-        assert_eq!(seen.goals.lock().unwrap().len(), 3);
+        assert_eq!(seen.goals.lock().unwrap().len(), 4);
         let r = send(&client, goal(1, 8, &in_order()), false).await;
         assert_eq!(r.status, Some(GoalStatusEnum::Succeeded), "{r:?}");
         let v = next_verdict().await;
@@ -538,7 +582,7 @@ fn gate_screens_forwards_relays_and_fails_closed() {
             ("go", "task-b"),
             "{v:?}"
         );
-        assert_eq!(seen.goals.lock().unwrap().len(), 4);
+        assert_eq!(seen.goals.lock().unwrap().len(), 5);
 
         // 7. guardiand killed: the goal is refused, never forwarded.
         daemon.child.kill().unwrap();
@@ -551,7 +595,7 @@ fn gate_screens_forwards_relays_and_fails_closed() {
         assert!(res.error_string.contains("fail closed"), "{res:?}");
         assert_eq!(
             seen.goals.lock().unwrap().len(),
-            4,
+            5,
             "a goal was forwarded without a verdict"
         );
         let v = next_verdict().await;
