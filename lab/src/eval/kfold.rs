@@ -60,8 +60,19 @@ pub const RECIPE_COMMON: &[&str] = &[
     "one-cycle",
 ];
 
-/// The sequence branch of the shipped recipe.
-pub const RECIPE_SEQUENCE: &[&str] = &["--channels", "32,64,128", "--reverse-average"];
+/// The sequence branch of the shipped recipe: the supervised contrastive loss (temperature
+/// 0.1) over batches of 64 classes x 4 drawings (`models/MODEL.md`, "How to retrain").
+pub const RECIPE_SEQUENCE: &[&str] = &[
+    "--channels",
+    "32,64,128",
+    "--reverse-average",
+    "--loss",
+    "supcon",
+    "--margin",
+    "0.1",
+    "--p-classes",
+    "64",
+];
 
 /// The picture branch of the shipped recipe.
 pub const RECIPE_PICTURE: &[&str] = &[
@@ -986,6 +997,10 @@ mod tests {
         assert_eq!(a.channels, [32, 64, 128]);
         assert!(a.reverse_average && !a.resume);
         assert_eq!(a.fault_share, 1.0);
+        assert_eq!(
+            (a.loss, a.margin),
+            (crate::train::config::LossKind::Supcon, 0.1)
+        );
     }
 
     #[test]
