@@ -32,12 +32,7 @@ fn start(record: bool) -> Result<(Setup, Daemon, Client)> {
     );
     let d = Daemon::start(&s);
     let client = s.client();
-    for c in 0..4 {
-        let examples: Vec<_> = (0..4).map(|d| traj(c, d)).collect();
-        client
-            .enroll(&format!("task{c}"), &examples)
-            .map_err(|e| anyhow::anyhow!("enroll: {e}"))?;
-    }
+    harness::enroll_tasks(&client, &[0, 1, 2, 3]);
     Ok((s, d, client))
 }
 

@@ -487,6 +487,19 @@ pub fn run_as_nobody(child: &str, env: &[(&str, &std::ffi::OsStr)]) -> std::proc
     cmd.output().expect("run setpriv")
 }
 
+/// Enroll `task<c>` for every `c` of `classes` from drawers 0..4 of [`task`], asserting
+/// each answer (4 examples, the name).
+pub fn enroll_tasks(client: &Client, classes: &[u32]) {
+    for &c in classes {
+        let examples: Vec<Trajectory> = (0..4).map(|d| traj(c, d)).collect();
+        let info = client
+            .enroll(&format!("task{c}"), &examples)
+            .expect("enroll");
+        assert_eq!(info.examples, 4);
+        assert_eq!(info.name, format!("task{c}"));
+    }
+}
+
 pub fn traj(class: u32, drawer: u32) -> Trajectory {
     Trajectory::from_waypoints(&task(class, drawer), PANDA_JOINTS)
 }

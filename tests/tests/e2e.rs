@@ -8,18 +8,7 @@ use guardian_client::{
     CheckError, Client, Decision, EnrollError, InvalidKind, MAX_WAYPOINTS, NoGoReason, Trajectory,
 };
 use guardian_tests::harness;
-use guardian_tests::harness::{Daemon, Setup, task, traj};
-
-fn enroll_classes(client: &Client, classes: &[u32]) {
-    for &c in classes {
-        let examples: Vec<Trajectory> = (0..4).map(|d| traj(c, d)).collect();
-        let info = client
-            .enroll(&format!("task{c}"), &examples)
-            .expect("enroll");
-        assert_eq!(info.examples, 4);
-        assert_eq!(info.name, format!("task{c}"));
-    }
-}
+use guardian_tests::harness::{Daemon, Setup, enroll_tasks, task, traj};
 
 fn no_go(d: &Decision) -> &NoGoReason {
     match d {
@@ -34,7 +23,7 @@ fn go_wrong_task_unknown_class_identify_classes_status() {
     s.extra = "default-threshold = 1e9\nk-nearest = 3".into();
     let _d = Daemon::start(&s);
     let client = s.client();
-    enroll_classes(&client, &[0, 1, 2, 3]);
+    enroll_tasks(&client, &[0, 1, 2, 3]);
 
     // Genuine: an unseen drawer of task1 claiming task1.
     let genuine = traj(1, 11);
@@ -87,7 +76,7 @@ fn outlier_when_the_claimed_class_is_nearest_but_beyond_threshold() {
     s.extra = "default-threshold = 0.0".into();
     let _d = Daemon::start(&s);
     let client = s.client();
-    enroll_classes(&client, &[0, 1]);
+    enroll_tasks(&client, &[0, 1]);
     let v = client.check(&traj(0, 12), "task0").expect("check");
     assert_eq!(no_go(&v.decision), &NoGoReason::Outlier, "{v:?}");
     assert!(v.margin.unwrap() < 0.0);
@@ -100,7 +89,7 @@ fn every_invalid_input_is_answered_with_its_reason_and_serving_continues() {
     s.extra = "default-threshold = 1e9".into();
     let _d = Daemon::start(&s);
     let client = s.client();
-    enroll_classes(&client, &[0, 1]);
+    enroll_tasks(&client, &[0, 1]);
     let good = task(0, 13);
 
     let expect = |t: Trajectory, kind: InvalidKind, index: u32| {
@@ -218,7 +207,7 @@ fn eight_concurrent_clients_get_their_own_answers() {
     let mut s = Setup::new(10);
     s.extra = "default-threshold = 1e9".into();
     let _d = Daemon::start(&s);
-    enroll_classes(&s.client(), &[0, 1, 2, 3, 4, 5, 6, 7]);
+    enroll_tasks(&s.client(), &[0, 1, 2, 3, 4, 5, 6, 7]);
     let config = s.client_config();
     let threads: Vec<_> = (0..8u32)
         .map(|c| {
@@ -263,7 +252,7 @@ fn enrollment_persists_across_restart() {
     {
         let mut d = Daemon::start(&s);
         let client = s.client();
-        enroll_classes(&client, &[0, 1, 2]);
+        enroll_tasks(&client, &[0, 1, 2]);
         client.forget("task2").expect("forget");
         model_version = client.status().expect("status").model_version;
         drop(client);
@@ -326,7 +315,7 @@ fn sighup_reloads_and_a_failed_reload_keeps_the_old_state() {
     s.extra = "default-threshold = 1e9".into();
     let d = Daemon::start(&s);
     let client = s.client();
-    enroll_classes(&client, &[0, 1]);
+    enroll_tasks(&client, &[0, 1]);
     let before = client.status().expect("status");
 
     // A successful reload picks up a bank changed on disk: add a class with the lab API.
@@ -364,7 +353,7 @@ fn sigterm_stops_gracefully_and_a_dead_daemon_is_an_error() {
     s.extra = "default-threshold = 1e9".into();
     let mut d = Daemon::start(&s);
     let client = s.client();
-    enroll_classes(&client, &[0]);
+    enroll_tasks(&client, &[0]);
     d.signal("TERM");
     let status = d.wait_exit();
     assert!(status.success(), "exit {status:?}\n{}", d.log());
@@ -458,7 +447,7 @@ fn busy_poll_and_spin_then_sleep_modes_serve() {
         s.extra = format!("default-threshold = 1e9\nserving-mode = \"{mode}\"");
         let d = Daemon::start(&s);
         let client = s.client();
-        enroll_classes(&client, &[0, 1]);
+        enroll_tasks(&client, &[0, 1]);
         let v = client.check(&traj(1, 17), "task1").expect("check");
         assert_eq!(v.decision, Decision::Go, "{mode}");
         d.wait_log(&format!(
@@ -483,7 +472,7 @@ fn raw_wire_requests_are_validated_by_the_daemon() {
     let mut s = Setup::new(19);
     s.extra = "default-threshold = 1e9".into();
     let _d = Daemon::start(&s);
-    enroll_classes(&s.client(), &[0]);
+    enroll_tasks(&s.client(), &[0]);
 
     let raw = s.raw_planner();
     let wake = &raw.wake;
@@ -573,7 +562,7 @@ fn an_answer_wakes_only_its_client_and_legacy_clients_share_the_common_event() {
     let mut s = Setup::new(23);
     s.extra = "default-threshold = 1e9".into();
     let _d = Daemon::start(&s);
-    enroll_classes(&s.client(), &[0]);
+    enroll_tasks(&s.client(), &[0]);
 
     let raw = s.raw_planner();
     let (node, wake) = (&raw.node, &raw.wake);

@@ -290,12 +290,7 @@ fn a_full_disk_turns_the_record_off_and_checks_go_on() {
     };
     let d = harness::Daemon::start(&s);
     let client = s.client();
-    for c in 0..4 {
-        let examples: Vec<_> = (0..4).map(|d| traj(c, d)).collect();
-        client
-            .enroll(&format!("task{c}"), &examples)
-            .expect("enroll");
-    }
+    harness::enroll_tasks(&client, &[0, 1, 2, 3]);
     let metrics = d.metrics_address();
     let scrape = || harness::http_get(&metrics, "/metrics").expect("scrape").1;
     assert_eq!(metric(&scrape(), "guardian_record_enabled"), Some(1.0));

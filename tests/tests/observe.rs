@@ -20,12 +20,7 @@ fn setup_with_a_stop(tables: &str) -> (Setup, Daemon, Client) {
     s.tables = tables.to_owned();
     let d = Daemon::start(&s);
     let client = s.client();
-    for c in 0..4 {
-        let examples: Vec<_> = (0..4).map(|d| traj(c, d)).collect();
-        client
-            .enroll(&format!("task{c}"), &examples)
-            .expect("enroll");
-    }
+    harness::enroll_tasks(&client, &[0, 1, 2, 3]);
     let genuine = traj(1, 11);
     assert!(client.check(&genuine, "task1").expect("check").is_go());
     let stop = client.check(&genuine, "task2").expect("check");
