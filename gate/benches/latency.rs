@@ -12,11 +12,9 @@ use guardian_gate::msgs::{
     FollowJointTrajectoryFeedback as Feedback, FollowJointTrajectoryGoal as Goal,
     FollowJointTrajectoryResult as GoalResult, JointTrajectory, JointTrajectoryPoint,
 };
-use guardian_gate::node::{
-    action_client_qos, action_name, action_server_qos, context, follow_joint_trajectory,
-};
+use guardian_gate::node::{Controller, action_client, action_server, context};
 use guardian_tests::harness::{Daemon, Setup, machine_line, workspace_root};
-use ros2_client::action::{ActionClient, AsyncActionServer, GoalEndStatus};
+use ros2_client::action::{ActionClient, GoalEndStatus};
 use ros2_client::{Node, NodeName, NodeOptions, ServiceMapping};
 
 fn node(domain: u16, name: &str) -> Node {
@@ -113,15 +111,7 @@ fn main() {
     std::thread::spawn(move || {
         smol::block_on(async move {
             let mut node = node(domain, "bench_controller");
-            let server = AsyncActionServer::new(
-                node.create_action_server::<Goal, GoalResult, Feedback>(
-                    ServiceMapping::Enhanced,
-                    &action_name(&ctrl_ns2).unwrap(),
-                    &follow_joint_trajectory(),
-                    action_server_qos(),
-                )
-                .unwrap(),
-            );
+            let server = action_server(&mut node, ServiceMapping::Enhanced, &ctrl_ns2).unwrap();
             loop {
                 let h = server.receive_new_goal().await.unwrap();
                 let _ = arrivals.send(Instant::now());
@@ -137,15 +127,8 @@ fn main() {
 
     let (through_gate, straight) = smol::block_on(async {
         let mut moveit = node(domain, "bench_moveit");
-        let client = |ns: &str, moveit: &mut Node| -> ActionClient<Goal, GoalResult, Feedback> {
-            moveit
-                .create_action_client(
-                    ServiceMapping::Enhanced,
-                    &action_name(ns).unwrap(),
-                    &follow_joint_trajectory(),
-                    action_client_qos(),
-                )
-                .unwrap()
+        let client = |ns: &str, moveit: &mut Node| -> Controller {
+            action_client(moveit, ServiceMapping::Enhanced, ns).unwrap()
         };
         let via_gate = client(&gate_ns, &mut moveit);
         let to_ctrl = client(&ctrl_ns, &mut moveit);

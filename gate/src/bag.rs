@@ -175,38 +175,44 @@ pub fn read_plans(path: &Path, topic: &str, mapper: &PlanMapper) -> Result<Vec<P
     Ok(plans)
 }
 
+/// Write `(topic, message type, CDR bytes)` messages as a rosbag2-style MCAP file (profile
+/// `ros2`, `ros2msg` schemas, `cdr` channels, one message a millisecond): what
+/// [`read_plans`] reads, for tests and tools that make recordings.
+pub fn write_bag(path: &Path, messages: &[(&str, &str, Vec<u8>)]) -> Result<(), mcap::McapError> {
+    let file = std::io::BufWriter::new(std::fs::File::create(path)?);
+    let mut w = mcap::WriteOptions::new().profile("ros2").create(file)?;
+    let mut channels = std::collections::BTreeMap::new();
+    for (seq, (topic, schema, data)) in messages.iter().enumerate() {
+        let id = match channels.get(*topic) {
+            Some(&id) => id,
+            None => {
+                let s = w.add_schema(schema, "ros2msg", b"")?;
+                let id = w.add_channel(s, topic, "cdr", &std::collections::BTreeMap::new())?;
+                channels.insert(topic.to_string(), id);
+                id
+            }
+        };
+        let t = 1_700_000_000_000_000_000 + seq as u64 * 1_000_000;
+        w.write_to_known_channel(
+            &mcap::records::MessageHeader {
+                channel_id: id,
+                sequence: seq as u32,
+                log_time: t,
+                publish_time: t,
+            },
+            data,
+        )?;
+    }
+    w.finish()?;
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::msgs::{JointTrajectoryPoint, StringMsg};
     use crate::plan::ToolSource;
     use guardian_models::kinematics::RobotDescription;
-    use std::collections::BTreeMap;
-
-    fn write_bag(path: &Path, messages: &[(&str, &str, Vec<u8>)]) {
-        let mut w = mcap::Writer::new(std::io::BufWriter::new(
-            std::fs::File::create(path).unwrap(),
-        ))
-        .unwrap();
-        let mut channels = BTreeMap::new();
-        for (seq, (topic, schema, data)) in messages.iter().enumerate() {
-            let id = *channels.entry(topic.to_string()).or_insert_with(|| {
-                let s = w.add_schema(schema, "ros2msg", b"").unwrap();
-                w.add_channel(s, topic, "cdr", &BTreeMap::new()).unwrap()
-            });
-            w.write_to_known_channel(
-                &mcap::records::MessageHeader {
-                    channel_id: id,
-                    sequence: seq as u32,
-                    log_time: seq as u64,
-                    publish_time: seq as u64,
-                },
-                data,
-            )
-            .unwrap();
-        }
-        w.finish().unwrap();
-    }
 
     fn trajectory(names: &[String], q: f64) -> JointTrajectory {
         JointTrajectory {
@@ -258,7 +264,8 @@ mod tests {
                 ),
                 ("/send_goal", TRAJECTORY_TYPES[2], request),
             ],
-        );
+        )
+        .unwrap();
         let plans = read_plans(&path, "/plans", &mapper).unwrap();
         assert_eq!(plans.len(), 2);
         assert_eq!(plans[0].data[0], 0.1f32);

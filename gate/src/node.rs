@@ -32,7 +32,10 @@ use crate::msgs::{
 use crate::plan::PlanMapper;
 use crate::screen::{Outcome, Screen};
 
-type Server = AsyncActionServer<Goal, GoalResult, Feedback>;
+/// A FollowJointTrajectory action server (the gate's own, a controller's).
+pub type Server = AsyncActionServer<Goal, GoalResult, Feedback>;
+/// A FollowJointTrajectory action client (the gate's to its controller, MoveIt's).
+pub type Controller = ActionClient<Goal, GoalResult, Feedback>;
 /// The controller's pending answer to a goal the gate sent.
 type GoalAnswer<'a> =
     futures::future::LocalBoxFuture<'a, ros2_client::ReadResult<SendGoalResponse>>;
@@ -40,7 +43,6 @@ type GoalAnswer<'a> =
 /// How long a goal the gate aborted for an unanswered controller is watched for a late
 /// acceptance, which is cancelled.
 const LATE_WINDOW: Duration = Duration::from_secs(10);
-type Controller = ActionClient<Goal, GoalResult, Feedback>;
 
 /// ROS 2's service default: reliable, volatile, keep last 10.
 fn service_qos() -> QosProfile {
@@ -96,6 +98,40 @@ pub fn follow_joint_trajectory() -> ActionTypeName {
 pub fn action_name(namespace: &str) -> anyhow::Result<Name> {
     Name::new(namespace, "follow_joint_trajectory")
         .map_err(|e| anyhow!("action name under {namespace:?}: {e:?}"))
+}
+
+/// The FollowJointTrajectory action server `<namespace>/follow_joint_trajectory` on `node`,
+/// with ROS 2's action QoS.
+pub fn action_server(
+    node: &mut ros2_client::Node,
+    mapping: ServiceMapping,
+    namespace: &str,
+) -> anyhow::Result<Server> {
+    Ok(AsyncActionServer::new(
+        node.create_action_server::<Goal, GoalResult, Feedback>(
+            mapping,
+            &action_name(namespace)?,
+            &follow_joint_trajectory(),
+            action_server_qos(),
+        )
+        .map_err(|e| anyhow!("action server under {namespace:?}: {e:?}"))?,
+    ))
+}
+
+/// A FollowJointTrajectory action client of `<namespace>/follow_joint_trajectory` on `node`,
+/// with ROS 2's action QoS.
+pub fn action_client(
+    node: &mut ros2_client::Node,
+    mapping: ServiceMapping,
+    namespace: &str,
+) -> anyhow::Result<Controller> {
+    node.create_action_client::<Goal, GoalResult, Feedback>(
+        mapping,
+        &action_name(namespace)?,
+        &follow_joint_trajectory(),
+        action_client_qos(),
+    )
+    .map_err(|e| anyhow!("action client of {namespace:?}: {e:?}"))
 }
 
 /// A DDS participant on `domain`, limited to the interfaces with `only_networks` (all if
@@ -159,23 +195,9 @@ pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
     let spinner = node.spinner().map_err(|e| anyhow!("node spinner: {e:?}"))?;
     smol::spawn(spinner.spin()).detach();
 
-    let server = AsyncActionServer::new(
-        node.create_action_server::<Goal, GoalResult, Feedback>(
-            service_mapping(config.service_mapping),
-            &action_name(&config.gate)?,
-            &follow_joint_trajectory(),
-            action_server_qos(),
-        )
-        .map_err(|e| anyhow!("action server: {e:?}"))?,
-    );
-    let controller = node
-        .create_action_client::<Goal, GoalResult, Feedback>(
-            service_mapping(config.service_mapping),
-            &action_name(&config.controller)?,
-            &follow_joint_trajectory(),
-            action_client_qos(),
-        )
-        .map_err(|e| anyhow!("controller action client: {e:?}"))?;
+    let mapping = service_mapping(config.service_mapping);
+    let server = action_server(&mut node, mapping, &config.gate)?;
+    let controller = action_client(&mut node, mapping, &config.controller)?;
     let task_topic = node
         .create_topic(
             &Name::new(&config.gate, "task").map_err(|e| anyhow!("task topic: {e:?}"))?,

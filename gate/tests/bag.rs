@@ -2,11 +2,11 @@
 //! crate's writer with CDR-encoded `trajectory_msgs/msg/JointTrajectory` messages, against
 //! a real guardiand.
 
-use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::Command;
 
 use guardian_client::samples;
+use guardian_gate::bag::write_bag;
 use guardian_gate::cdr;
 use guardian_gate::msgs::{JointTrajectory, JointTrajectoryPoint, StringMsg};
 use guardian_tests::harness::{Daemon, Setup, ctl_bin};
@@ -32,34 +32,6 @@ fn trajectory(class: u32, drawer: u32) -> JointTrajectory {
     }
 }
 
-/// A rosbag2-style MCAP file: `ros2msg` schemas, `cdr` channels.
-fn write_bag(path: &Path, messages: &[(&str, &str, Vec<u8>)]) {
-    let file = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
-    let mut w = mcap::WriteOptions::new()
-        .profile("ros2")
-        .create(file)
-        .unwrap();
-    let mut channels = BTreeMap::new();
-    for (seq, (topic, schema, data)) in messages.iter().enumerate() {
-        let id = *channels.entry(topic.to_string()).or_insert_with(|| {
-            let s = w.add_schema(schema, "ros2msg", b"").unwrap();
-            w.add_channel(s, topic, "cdr", &BTreeMap::new()).unwrap()
-        });
-        let t = 1_700_000_000_000_000_000 + seq as u64 * 1_000_000;
-        w.write_to_known_channel(
-            &mcap::records::MessageHeader {
-                channel_id: id,
-                sequence: seq as u32,
-                log_time: t,
-                publish_time: t,
-            },
-            data,
-        )
-        .unwrap();
-    }
-    w.finish().unwrap();
-}
-
 const JT: &str = "trajectory_msgs/msg/JointTrajectory";
 
 #[test]
@@ -82,7 +54,7 @@ fn enroll_and_check_from_a_recording() {
         })
         .unwrap(),
     ));
-    write_bag(&enroll_bag, &messages);
+    write_bag(&enroll_bag, &messages).unwrap();
     let check_bag = s.dir.path().join("check.mcap");
     write_bag(
         &check_bag,
@@ -91,7 +63,8 @@ fn enroll_and_check_from_a_recording() {
             ("/executed", JT, cdr::encode(&trajectory(0, 8)).unwrap()),
             ("/other", JT, cdr::encode(&trajectory(1, 7)).unwrap()),
         ],
-    );
+    )
+    .unwrap();
 
     let ctl = |args: &[&str]| {
         let out = Command::new(ctl_bin())

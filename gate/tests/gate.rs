@@ -15,11 +15,9 @@ use guardian_gate::msgs::{
     FollowJointTrajectoryResult as GoalResult, JointTrajectory, JointTrajectoryPoint, StringMsg,
     Verdict, error_code,
 };
-use guardian_gate::node::{
-    action_client_qos, action_name, action_server_qos, context, follow_joint_trajectory,
-};
+use guardian_gate::node::{action_client, action_server, context};
 use guardian_tests::harness::{Daemon, Setup, workspace_root};
-use ros2_client::action::{ActionClient, AsyncActionServer, GoalEndStatus, GoalStatusEnum};
+use ros2_client::action::{ActionClient, GoalEndStatus, GoalStatusEnum};
 use ros2_client::qos::{Durability, History};
 use ros2_client::{MessageTypeName, Name, Node, NodeName, NodeOptions, QosProfile, ServiceMapping};
 
@@ -117,15 +115,7 @@ fn controller(
     std::thread::spawn(move || {
         smol::block_on(async move {
             let mut node = node(domain, "controller_standin");
-            let server = AsyncActionServer::new(
-                node.create_action_server::<Goal, GoalResult, Feedback>(
-                    ServiceMapping::Enhanced,
-                    &action_name(&ns).unwrap(),
-                    &follow_joint_trajectory(),
-                    action_server_qos(),
-                )
-                .unwrap(),
-            );
+            let server = action_server(&mut node, ServiceMapping::Enhanced, &ns).unwrap();
             while !stop.load(Ordering::Relaxed) {
                 let next = server.receive_new_goal().fuse();
                 let tick = FutureExt::fuse(smol::Timer::after(Duration::from_millis(100)));
@@ -341,14 +331,7 @@ fn gate_screens_forwards_relays_and_fails_closed() {
 
     smol::block_on(async {
         let mut moveit = node(domain, "moveit_standin");
-        let client = moveit
-            .create_action_client::<Goal, GoalResult, Feedback>(
-                ServiceMapping::Enhanced,
-                &action_name(&gate_ns).unwrap(),
-                &follow_joint_trajectory(),
-                action_client_qos(),
-            )
-            .unwrap();
+        let client = action_client(&mut moveit, ServiceMapping::Enhanced, &gate_ns).unwrap();
         let task_topic = moveit
             .create_topic(
                 &Name::new(&gate_ns, "task").unwrap(),
