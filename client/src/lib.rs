@@ -646,10 +646,20 @@ impl std::fmt::Debug for Client {
     }
 }
 
+/// Held while a [`Client`] opens its iceoryx2 ports (see [`Client::connect`]).
+static CONNECTING: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 impl Client {
     /// Open the daemon's services. Fails with [`ConnectError::DaemonNotRunning`] when no
     /// daemon serves `config.service_name`.
     pub fn connect(config: ClientConfig) -> Result<Client, ConnectError> {
+        // iceoryx2 sets the process umask to 0177 while it binds a Unix datagram socket
+        // (a listener) and restores what it found; two threads connecting at once could
+        // leave 0177 behind for the whole process (files it creates later: 0600,
+        // directories unusable). Connects in one process take turns.
+        let _one_at_a_time = CONNECTING
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
         let ic = guardian_shared::ipc::iceoryx2_config(
             config.iceoryx2_root_path.as_deref(),
             config.iceoryx2_prefix.as_deref(),

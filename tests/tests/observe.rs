@@ -275,6 +275,17 @@ fn the_page_shows_a_stopped_plan_beside_its_class_in_chromium() {
     // Read-only: no write operations.
     assert_eq!(http_get(&page, "/nothing").unwrap().0, 404);
 
+    // The umask chromium inherits: with 0177 it cannot use the directories it creates
+    // and dies at start (it did while two test threads' client connects could leave the
+    // process at 0177; `Client::connect` now takes turns).
+    let umask = || {
+        std::fs::read_to_string("/proc/self/status")
+            .unwrap_or_default()
+            .lines()
+            .find(|l| l.starts_with("Umask:"))
+            .unwrap_or("Umask: ?")
+            .to_owned()
+    };
     let browser = |args: &[String]| {
         let profile = tempfile::tempdir().expect("profile dir");
         let mut cmd = Command::new(&chromium);
@@ -291,7 +302,11 @@ fn the_page_shows_a_stopped_plan_beside_its_class_in_chromium() {
         .arg(format!("--user-data-dir={}", profile.path().display()))
         .args(args);
         let (status, out, err) = run_bounded(cmd, Duration::from_secs(120));
-        assert!(status.success(), "chromium failed: {err}");
+        assert!(
+            status.success(),
+            "chromium failed (this process's {}): {err}",
+            umask()
+        );
         out
     };
     // The front page lists the stop and links to it.
