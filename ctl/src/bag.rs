@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use guardian_client::Trajectory;
 use guardian_gate::plan::{PlanMapper, ToolSource};
-use guardian_models::kinematics::RobotDescription;
+use guardian_robot::kinematics::RobotDescription;
 
 /// The options of `enroll --bag` and `check --bag`.
 #[derive(Debug, clap::Args)]

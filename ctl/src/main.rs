@@ -3,6 +3,7 @@
 #![forbid(unsafe_code)]
 
 mod bag;
+mod robot;
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -19,7 +20,7 @@ use guardian_client::{
 ///
 /// check, identify, classes and status use the planners' iceoryx2 service; enroll and
 /// forget use the daemon's admin socket, which only admin uids/gids may use.
-/// The go/no-go demo on real drawings is `guardian-lab demo`.
+/// The go/no-go demo on real drawings is `cargo run --release --example demo`.
 ///
 /// Exit status: 0 done (check: go), 1 failed or not applied (check: no-go), 3 the outcome
 /// of an enroll or forget is unknown (sent, no answer, and the daemon could not be asked
@@ -104,6 +105,13 @@ enum Cmd {
     },
     /// Versions, counters and latency percentiles.
     Status,
+    /// Print a robot description (built-in name or file) and check its kinematics before a
+    /// daemon serves it: FK fast path, Jacobian, IK round trips, home pose and canvas reach
+    /// (exit status 1 on a failure). Needs no daemon.
+    Robot {
+        /// A built-in robot (panda, ur5e) or the path of a robot description file.
+        robot: String,
+    },
     /// The daemon's verdict record: recent checks, oldest first (read from its file).
     Verdicts {
         /// No-go verdicts only.
@@ -143,6 +151,7 @@ fn main() -> anyhow::Result<()> {
     let connect = || Client::connect(config.clone()).context("cannot connect to guardiand");
     let json = args.json;
     match args.cmd {
+        Cmd::Robot { robot } => robot::run(&robot)?,
         Cmd::Check {
             file,
             class,

@@ -14,11 +14,11 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use guardian_models::check::Station;
-use guardian_models::kinematics::{
+use guardian_robot::kinematics::{
     DEFAULT_ROBOT, RobotDescription, RobotLoadError, WorkcellOverrideError,
     apply_workcell_overrides,
 };
+use guardian_screen::check::Station;
 use guardian_shared::workcell::Workcell;
 use serde::{Deserialize, Serialize};
 
@@ -395,7 +395,7 @@ impl Config {
              #   defaults from the robot description, each key set here overrides one;\n\
              #   enabled = false turns them off (docs/guardiand.md).\n\
              {body}\n{FLEET_TEMPLATE}",
-            guardian_models::bank::DEFAULT_THRESHOLD
+            guardian_bank::DEFAULT_THRESHOLD
         )
     }
 
@@ -506,8 +506,8 @@ impl Config {
     }
 
     /// The bank limits.
-    pub fn limits(&self) -> guardian_models::bank::BankLimits {
-        guardian_models::bank::BankLimits {
+    pub fn limits(&self) -> guardian_bank::BankLimits {
+        guardian_bank::BankLimits {
             max_classes: self.max_classes,
             max_examples_per_class: self.max_examples_per_class,
             max_bytes: self.max_bank_bytes,

@@ -9,6 +9,7 @@ use std::path::Path;
 use std::sync::Arc;
 use std::sync::mpsc;
 
+use guardian_bank::Class;
 use guardian_fleet::config::FleetConfig;
 use guardian_fleet::keys::{KeyError, hex, read_signing_key};
 use guardian_fleet::node::{Incoming, Node, NodeError, RemoteCall, frame_batch};
@@ -16,7 +17,6 @@ use guardian_fleet::record::{Change, Record, Unsigned};
 use guardian_fleet::remote::{Gate, now_ms, seal_response};
 use guardian_fleet::store::{Offer, STORE_FILE, Store, StoreError, Undo};
 use guardian_fleet::{SigningKey, VerifyingKey};
-use guardian_models::bank::Class;
 use guardian_shared::wire::{ClassEntry, Op, VerdictCode, admin, encode_text};
 
 use crate::record::RemoteCheck;

@@ -1,15 +1,15 @@
 //! The screen: model, class bank and statistics, and the dispatch of one decoded request to
 //! its operation. Transport-free, so every request path is testable without iceoryx2. A
-//! check runs the models' one check pipeline (`guardian_models::check`); state loading is
+//! check runs the models' one check pipeline (`guardian_screen::check`); state loading is
 //! in `state.rs`, the statistics in `stats.rs`.
 
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use guardian_models::bank::{BankLimits, Class, ClassBank, journal_path};
-use guardian_models::check::{self, EnrollmentError, PlanCheck, Prepared, Station};
+use guardian_bank::{BankLimits, Class, ClassBank, journal_path};
 use guardian_models::embedder::{EmbedError, Embedder};
+use guardian_screen::check::{self, EnrollmentError, PlanCheck, Prepared, Station};
 use guardian_shared::trajectory::{InvalidTrajectory, Waypoint};
 use guardian_shared::wire::{
     CheckAnswer, ClassEntry, DaemonState, Failure, Limit, MAX_RESPONSE_ENTRIES, NoGo, Op, Request,
@@ -665,7 +665,7 @@ impl Screen {
 
     /// Save the bank now as a snapshot and remove its journal (at start and shutdown; every
     /// change is already persisted).
-    pub fn flush(&mut self) -> Result<(), guardian_models::bank::SaveBankError> {
+    pub fn flush(&mut self) -> Result<(), guardian_bank::SaveBankError> {
         if self.bank.generation() == 0 && !self.bank_path.exists() {
             return Ok(());
         }
@@ -673,7 +673,7 @@ impl Screen {
     }
 
     /// Write the bank as a snapshot, which removes its journal.
-    fn snapshot(&mut self) -> Result<(), guardian_models::bank::SaveBankError> {
+    fn snapshot(&mut self) -> Result<(), guardian_bank::SaveBankError> {
         self.bank.save(&self.bank_path)?;
         self.journal_bytes = 0;
         self.journal_ok = true;

@@ -68,10 +68,10 @@ pub enum RunError {
     Admin(#[from] crate::admin::AdminSocketError),
     /// Compacting the bank journal at start failed.
     #[error("cannot compact the class bank journal at start: {0}")]
-    Compact(guardian_models::bank::SaveBankError),
+    Compact(guardian_bank::SaveBankError),
     /// Saving the bank at shutdown failed.
     #[error("cannot flush class bank at shutdown: {0}")]
-    Flush(#[from] guardian_models::bank::SaveBankError),
+    Flush(#[from] guardian_bank::SaveBankError),
     /// Fleet membership could not be started.
     #[cfg(feature = "fleet")]
     #[error("cannot join the fleet: {0}")]
@@ -99,7 +99,7 @@ impl Member {
 
 #[cfg(not(feature = "fleet"))]
 impl crate::screen::ChangeLog for Member {
-    fn record(&mut self, _: &str, _: Option<&guardian_models::bank::Class>) -> Result<(), String> {
+    fn record(&mut self, _: &str, _: Option<&guardian_bank::Class>) -> Result<(), String> {
         match *self {}
     }
 
@@ -205,7 +205,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     // written: every enroll would fail later, far from the cause.
     check_writable(&state_dir)?;
     // A daemon killed while persisting leaves its temporary file (never a damaged bank).
-    match guardian_models::bank::remove_stale_temporaries(&config.bank_path()) {
+    match guardian_bank::remove_stale_temporaries(&config.bank_path()) {
         Ok(removed) if !removed.is_empty() => {
             tracing::warn!(?removed, "removed temporaries of an interrupted bank save")
         }

@@ -4,10 +4,11 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use guardian_models::bank::{BankLimits, ClassBank, DEFAULT_THRESHOLD, ReembedError};
-use guardian_models::check::Station;
+use guardian_bank::{BankLimits, ClassBank, DEFAULT_THRESHOLD};
 use guardian_models::embedder::{EmbedError, Embedder, LoadModelError};
-use guardian_models::kinematics::{PANDA_JOINTS, RobotRecord};
+use guardian_robot::kinematics::{PANDA_JOINTS, RobotRecord};
+use guardian_screen::check::Station;
+use guardian_screen::reembed::ReembedError;
 
 use crate::config::{Config, ConfigError};
 
@@ -58,7 +59,7 @@ pub enum LoadStateError {
         /// The bank file.
         path: PathBuf,
         /// Why.
-        source: guardian_models::bank::LoadBankError,
+        source: guardian_bank::LoadBankError,
     },
     /// The robot (or its workcell) could not be loaded.
     #[error("cannot load the robot: {0}")]
@@ -101,7 +102,7 @@ pub enum LoadStateError {
         /// The new model.
         model: String,
         /// Why.
-        source: guardian_models::bank::SaveBankError,
+        source: guardian_bank::SaveBankError,
     },
 }
 
@@ -313,9 +314,13 @@ pub fn reembed(
         },
         _ => None,
     };
-    let (out, report) = bank
-        .reembedded(embedder, station.robot(), calibrated.as_ref())
-        .map_err(|e| match e {
+    let (out, report) = guardian_screen::reembed::reembedded(
+        bank,
+        embedder,
+        station.robot(),
+        calibrated.as_ref(),
+    )
+    .map_err(|e| match e {
             ReembedError::MissingExamples { .. } => mismatch(
                 e.to_string(),
                 "re-enroll those classes, or remove the file and re-enroll every class",

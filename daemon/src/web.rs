@@ -14,8 +14,8 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
-use guardian_models::bank::{Class, ClassBank};
-use guardian_models::kinematics::Robot;
+use guardian_bank::{Class, ClassBank};
+use guardian_robot::kinematics::Robot;
 use guardian_shared::trajectory::{TOOL, Waypoint, split_flat};
 
 use crate::config::Config;

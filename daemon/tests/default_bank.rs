@@ -1,9 +1,9 @@
 //! The shipped default bank (`models/default-bank.gcb`, built by `guardian-lab bank`) loads
 //! with the shipped model and carries the calibrated thresholds the decision uses.
 
+use guardian_bank::MIN_CLASS_CALIBRATION;
 use guardian_daemon::config::Config;
 use guardian_daemon::state::{BankSource, LoadStateError, load_bank, load_model};
-use guardian_models::bank::MIN_CLASS_CALIBRATION;
 
 #[test]
 fn shipped_default_bank_matches_the_shipped_model_and_is_calibrated() {
@@ -69,10 +69,10 @@ fn shipped_default_bank_keeps_the_plans_its_embeddings_came_from() {
     for (name, class) in bank.classes() {
         let xs: Vec<_> = class.examples.iter().map(|x| x.to_resampled()).collect();
         let (embeddings, geometry) =
-            guardian_models::bank::enrollment(&embedder, station.robot(), &xs).unwrap();
+            guardian_screen::reembed::enrollment(&embedder, station.robot(), &xs).unwrap();
         assert_eq!(geometry, class.geometry, "{name}");
         for (e, stored) in embeddings.iter().zip(&class.embeddings) {
-            worst = worst.max(guardian_models::bank::distance(e, stored));
+            worst = worst.max(guardian_bank::distance(e, stored));
         }
     }
     // The bank was built by the lab's batched embedding; the daemon embeds one plan at a

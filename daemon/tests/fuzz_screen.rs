@@ -5,12 +5,12 @@
 //! echoing its id, an error status never carries a verdict, and `Go` is answered only to a
 //! well-formed check of an enrolled class whose distance is within the threshold.
 
+use guardian_bank::ClassBank;
 use guardian_client::samples::task;
 use guardian_daemon::screen::Screen;
-use guardian_models::bank::ClassBank;
-use guardian_models::check::{self, Station};
 use guardian_models::embedder::Embedder;
-use guardian_models::kinematics::{PANDA_JOINTS, Robot};
+use guardian_robot::kinematics::{PANDA_JOINTS, Robot};
+use guardian_screen::check::{self, Station};
 use guardian_shared::trajectory::{Waypoint, from_flat};
 use guardian_shared::wire::{
     MAX_EXAMPLES, NAME_BYTES, Op, RequestHeader, ResponseHeader, Status, VerdictCode,

@@ -3,8 +3,8 @@
 //! it back by `Verdict::from_response`. This test holds the two conversions together: every
 //! outcome, with and without each number, comes back as the same verdict.
 
+use guardian_bank::{Decision, Neighbour, Outcome};
 use guardian_client::{Decision as ClientDecision, NoGoReason, Verdict};
-use guardian_models::bank::{Decision, Neighbour, Outcome};
 use guardian_shared::wire::{
     ClassEntry, Op, RequestHeader, ResponseHeader, encode_check, encode_class_name, encode_text,
 };

@@ -2,7 +2,7 @@
 """An example Python planner: reads a dataset of the project (`guardian-lab dataset`,
 docs/dataset.md), enrolls a few of its characters as task classes through the admin socket,
 checks every other drawing of them — as the task it is and as another task — plus a few
-faulty plans, and prints a go/no-go table like `guardian-lab demo`.
+faulty plans, and prints a go/no-go table like the demo (`examples/demo`).
 
     cargo run --release -p guardian-lab -- dataset --strokes ../shared/omniglot/strokes --out omniglot.safetensors
     python3 examples/python/planner.py omniglot.safetensors

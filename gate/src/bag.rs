@@ -212,7 +212,7 @@ mod tests {
     use super::*;
     use crate::msgs::{JointTrajectoryPoint, StringMsg};
     use crate::plan::ToolSource;
-    use guardian_models::kinematics::RobotDescription;
+    use guardian_robot::kinematics::RobotDescription;
 
     fn trajectory(names: &[String], q: f64) -> JointTrajectory {
         JointTrajectory {

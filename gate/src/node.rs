@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context as _, anyhow};
 use futures::{FutureExt, StreamExt, pin_mut};
-use guardian_models::kinematics::RobotDescription;
+use guardian_robot::kinematics::RobotDescription;
 use ros2_client::action::{
     ActionClient, ActionClientQosPolicies, ActionServerQosPolicies, AsyncActionServer,
     GoalEndStatus, GoalId, GoalStatusEnum, SendGoalResponse,

@@ -1,7 +1,7 @@
 //! A ROS 2 `JointTrajectory` → guardian's plan: the served robot's joints in URDF order,
 //! found by name in any order, then the tool channel (docs/ros2.md, "Goal → plan").
 
-use guardian_models::kinematics::{Robot, RobotDescription, joint_vector};
+use guardian_robot::kinematics::{Robot, RobotDescription, joint_vector};
 use guardian_shared::workcell::Workcell;
 use serde::Deserialize;
 use sha2::{Digest, Sha256};
@@ -215,7 +215,7 @@ impl PlanMapper {
 mod tests {
     use super::*;
     use crate::msgs::JointTrajectoryPoint;
-    use guardian_models::kinematics::IkOptions;
+    use guardian_robot::kinematics::IkOptions;
 
     fn panda(tool: ToolSource) -> PlanMapper {
         PlanMapper::new(&RobotDescription::named("panda").unwrap(), tool)
@@ -314,7 +314,7 @@ mod tests {
         let up = m.map(&traj(&refs, &[READY.to_vec()])).unwrap();
         assert_eq!(up.data[7], 0.0);
         // Solve a pose with the pen tip on the canvas centre by the models' IK.
-        let target = guardian_models::kinematics::Frame::from_xyz_rpy(
+        let target = guardian_robot::kinematics::Frame::from_xyz_rpy(
             [
                 d.workcell.canvas_x,
                 d.workcell.canvas_y,

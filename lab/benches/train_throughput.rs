@@ -31,14 +31,14 @@ use std::time::Instant;
 
 use anyhow::Context as _;
 use candle_core::{DType, Tensor, Var};
-use guardian_lab::dataset::generate_files;
-use guardian_lab::path::Geometry;
-use guardian_lab::strokes::scan;
 use guardian_lab::train::{Learner, LossKind, Prepared, batch_loss};
 use guardian_models::embedder::Embedder;
 use guardian_models::fast::FastNet;
 use guardian_models::features::FeatureKind;
 use guardian_models::net::{Net, NetConfig};
+use guardian_omniglot::dataset::generate_files;
+use guardian_omniglot::path::Geometry;
+use guardian_omniglot::strokes::scan;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
@@ -235,7 +235,7 @@ fn main() -> anyhow::Result<()> {
 
 fn bench(
     here: &Path,
-    data: &guardian_lab::dataset::Dataset,
+    data: &guardian_omniglot::dataset::Dataset,
     config: &NetConfig,
     steps: usize,
     rounds: usize,

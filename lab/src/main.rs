@@ -14,9 +14,7 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Convert Omniglot strokes into joint trajectories of a robot (safetensors dataset).
-    Dataset(guardian_lab::data::dataset::Args),
-    /// Plot one drawing of a dataset: strokes, FK pen tip, joint curves.
-    Plot(guardian_lab::tools::plot::Args),
+    Dataset(guardian_lab::dataset::Args),
     /// Train the embedding network.
     Train(Box<guardian_lab::train::Args>),
     /// Few-shot evaluation of a model or a baseline.
@@ -32,12 +30,6 @@ enum Command {
     Bank(guardian_lab::tools::bank::Args),
     /// Faulty-plan detection metrics (AUROC, TPR at 1% FPR, detection, false rejects).
     Outliers(guardian_lab::eval::outliers::Args),
-    /// Print a robot description (built-in name or file) and check its kinematics: FK fast
-    /// path, Jacobian, IK round trips, home pose and canvas reach (exit status 1 on a failure).
-    Robot(guardian_lab::tools::robot::Args),
-    /// Enroll real drawings in a running guardiand, send genuine and faulty plans, print a
-    /// go/no-go table (exit status 1 if any case is not as expected).
-    Demo(guardian_lab::tools::demo::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -47,8 +39,7 @@ fn main() -> anyhow::Result<()> {
         .init();
     let cli = Cli::parse();
     match &cli.command {
-        Command::Dataset(args) => guardian_lab::data::dataset::run(args),
-        Command::Plot(args) => guardian_lab::tools::plot::run(args),
+        Command::Dataset(args) => guardian_lab::dataset::run(args),
         Command::Train(args) => guardian_lab::train::run(args),
         Command::Eval(args) => guardian_lab::eval::run(args),
         Command::Kfold(args) => guardian_lab::eval::kfold::run(args),
@@ -56,8 +47,6 @@ fn main() -> anyhow::Result<()> {
         Command::Report(args) => guardian_lab::eval::report::run(args),
         Command::Bank(args) => guardian_lab::tools::bank::run(args),
         Command::Outliers(args) => guardian_lab::eval::outliers::run(args),
-        Command::Demo(args) => guardian_lab::tools::demo::run(args),
-        Command::Robot(args) => guardian_lab::tools::robot::run(args),
     }
 }
 

@@ -4,12 +4,12 @@
 
 use std::path::{Path, PathBuf};
 
-use guardian_lab::dataset::{
+use guardian_omniglot::dataset::{
     ConvertError, Dataset, LoadDatasetError, convert_strokes, generate, generate_files,
 };
-use guardian_lab::path::{Geometry, PathSolver};
-use guardian_lab::strokes::{DrawingFile, Point, Stroke, read_strokes, scan};
-use guardian_models::preprocess::joints_of;
+use guardian_omniglot::path::{Geometry, PathSolver};
+use guardian_omniglot::strokes::{DrawingFile, Point, Stroke, read_strokes, scan};
+use guardian_robot::kinematics::joints_of;
 use guardian_shared::trajectory::{InvalidKind, MAX_WAYPOINTS, SLOTS, STEPS, TOOL};
 use nalgebra::Vector3;
 

@@ -7,13 +7,13 @@
 
 use std::path::{Path, PathBuf};
 
-use guardian_lab::dataset::convert_strokes;
-use guardian_lab::path::{Geometry, PathSolver};
-use guardian_lab::strokes::{read_strokes, scan};
 use guardian_models::embedder::Embedder;
-use guardian_models::preprocess::{
-    default_panda, joints_of, pen_path_lengths, pen_path_lengths_reference, preprocess,
-    preprocess_reference,
+use guardian_omniglot::dataset::convert_strokes;
+use guardian_omniglot::path::{Geometry, PathSolver};
+use guardian_omniglot::strokes::{read_strokes, scan};
+use guardian_robot::kinematics::{default_panda, joints_of};
+use guardian_robot::preprocess::{
+    pen_path_lengths, pen_path_lengths_reference, preprocess, preprocess_reference,
 };
 use guardian_shared::trajectory::Waypoint;
 

@@ -4,10 +4,10 @@
 
 use std::path::{Path, PathBuf};
 
-use guardian_lab::data::faults::{CorruptError, Fault, SEVERITIES, corrupt};
-use guardian_lab::dataset::convert_strokes;
-use guardian_lab::path::{Geometry, PathSolver};
-use guardian_lab::strokes::read_strokes;
+use guardian_omniglot::corrupt::{CorruptError, Fault, SEVERITIES, corrupt};
+use guardian_omniglot::dataset::convert_strokes;
+use guardian_omniglot::path::{Geometry, PathSolver};
+use guardian_omniglot::strokes::read_strokes;
 use guardian_shared::trajectory::validate;
 use rand::SeedableRng;
 use rand::rngs::StdRng;

@@ -7,10 +7,10 @@
 use std::path::{Path, PathBuf};
 
 use clap::Parser;
-use guardian_lab::dataset::generate_files;
 use guardian_lab::eval::kfold::{self, Row};
-use guardian_lab::path::Geometry;
-use guardian_lab::strokes::scan;
+use guardian_omniglot::dataset::generate_files;
+use guardian_omniglot::path::Geometry;
+use guardian_omniglot::strokes::scan;
 
 mod common;
 use common::first_characters;

@@ -6,15 +6,15 @@
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use guardian_lab::dataset::{Dataset, generate_files};
 use guardian_lab::eval::{self, Baseline, EpisodeSpec, Pool};
-use guardian_lab::path::Geometry;
-use guardian_lab::strokes::scan;
 use guardian_lab::train::{self, Item, Learner, LossKind, Prepared, TrainConfig};
 use guardian_models::embedder::{Embedder, sq_dist};
 use guardian_models::fast::FastNet;
 use guardian_models::features::FeatureKind;
 use guardian_models::net::{Net, NetConfig};
+use guardian_omniglot::dataset::{Dataset, generate_files};
+use guardian_omniglot::path::Geometry;
+use guardian_omniglot::strokes::scan;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
@@ -177,7 +177,7 @@ fn the_picture_network_learns_real_characters() {
     // The shipped form (an Embedder from the trained weights) embeds a plan as training did.
     let model = Embedder::from_trained(&learner.net().to_net().expect("net")).expect("model");
     let e = model
-        .embed(guardian_models::preprocess::default_panda(), &set.raw()[0])
+        .embed(guardian_robot::kinematics::default_panda(), &set.raw()[0])
         .expect("embed");
     let want = &embs[0];
     let err: f32 = e
@@ -223,7 +223,7 @@ fn the_training_pipeline_checkpoints_resumes_and_ships_a_loadable_model() {
     assert_eq!(model.version(), s.model_version);
     let e = model
         .embed_batch(
-            guardian_models::preprocess::default_panda(),
+            guardian_robot::kinematics::default_panda(),
             &data.trajectories[..3],
         )
         .expect("embed");
@@ -574,7 +574,7 @@ fn class_augmentation_adds_transformed_classes_with_their_faults_and_drops_dupli
     let d = plan.kept[0][0];
     assert_eq!(set.labels()[n0], c0 as u32);
     assert_eq!(set.faults_of(n0), set.faults_of(0));
-    let mut moved = guardian_models::features::pen_path(&set.raw()[0]);
+    let mut moved = guardian_robot::pen::pen_path(&set.raw()[0]);
     d.apply(&mut moved);
     let items = [Item::Genuine(n0), Item::Fault(n0, 0)];
     let sources = set.sources(&items);
@@ -596,11 +596,11 @@ fn class_augmentation_adds_transformed_classes_with_their_faults_and_drops_dupli
     // A character whose 180° turn is also a class of the set: that turn is dropped as a
     // collision (real Latin strokes, the class-0 drawings turned by 180° added as a class).
     let fresh = Prepared::new(data, &["Latin".to_string()], FeatureKind::Pen).expect("prepare");
-    let mut groups: Vec<Vec<[guardian_models::features::PenPoint; 128]>> = (0..fresh.classes())
+    let mut groups: Vec<Vec<[guardian_robot::pen::PenPoint; 128]>> = (0..fresh.classes())
         .map(|c| {
             (0..fresh.len())
                 .filter(|&i| fresh.labels()[i] == c as u32)
-                .map(|i| guardian_models::features::pen_path(&fresh.raw()[i]))
+                .map(|i| guardian_robot::pen::pen_path(&fresh.raw()[i]))
                 .collect()
         })
         .collect();
@@ -613,7 +613,7 @@ fn class_augmentation_adds_transformed_classes_with_their_faults_and_drops_dupli
         })
         .collect();
     groups.push(turned);
-    let refs: Vec<Vec<&[guardian_models::features::PenPoint; 128]>> =
+    let refs: Vec<Vec<&[guardian_robot::pen::PenPoint; 128]>> =
         groups.iter().map(|g| g.iter().collect()).collect();
     let plan2 = classaug::plan(&refs, Dihedral::non_identity(), SymmetryRule::default());
     assert!(

@@ -2,7 +2,7 @@
 
 use std::path::{Path, PathBuf};
 
-use guardian_lab::strokes::{ReadStrokesError, parse_strokes, read_strokes, scan};
+use guardian_omniglot::strokes::{ReadStrokesError, parse_strokes, read_strokes, scan};
 
 /// `<workspace root>/../shared/omniglot/strokes`.
 fn shared_strokes() -> PathBuf {

@@ -4,12 +4,12 @@
 
 use std::path::Path;
 
-use guardian_lab::dataset::convert_strokes;
-use guardian_lab::path::{Geometry, PathSolver};
-use guardian_lab::strokes::{Stroke, character_files, read_strokes};
-use guardian_models::kinematics::{PANDA_JOINTS, PANDA_Q_MAX, PANDA_Q_MIN};
-use guardian_models::preprocess::default_panda;
-use guardian_models::workcell::{inspect, plan_geometry};
+use guardian_omniglot::dataset::convert_strokes;
+use guardian_omniglot::path::{Geometry, PathSolver};
+use guardian_omniglot::strokes::{Stroke, character_files, read_strokes};
+use guardian_robot::kinematics::default_panda;
+use guardian_robot::kinematics::{PANDA_JOINTS, PANDA_Q_MAX, PANDA_Q_MIN};
+use guardian_robot::workcell::{inspect, plan_geometry};
 use guardian_shared::trajectory::Waypoint;
 use guardian_shared::workcell::{GeometryFeature, Workcell, WorkcellKind};
 

@@ -2,7 +2,7 @@
 //!
 //! An embedder holds a network, not a robot: every call names the robot whose forward
 //! kinematics turns a trajectory into the pen-tip path the network sees (the daemon's
-//! [`crate::check::Station`] owns it), so one trained model screens any arm drawing the same
+//! `guardian_screen::Station` owns it), so one trained model screens any arm drawing the same
 //! tasks. Models on joint features ([`FeatureKind::Joints`], the paper's baseline) are
 //! Panda-only ([`Embedder::serves`]).
 //!
@@ -28,11 +28,12 @@ use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 use sha2::{Digest, Sha256};
 
 use crate::fast::{FastNet, FastNetError, Scratch};
-use crate::features::{Augment, FeatureKind, PenPoint, pen_path_with};
-use crate::kinematics::{PANDA_JOINTS, Robot};
+use crate::features::{Augment, FeatureKind};
 #[cfg(feature = "train")]
 use crate::net::Net;
 use crate::net::NetConfig;
+use guardian_robot::kinematics::{PANDA_JOINTS, Robot};
+use guardian_robot::pen::{PenPoint, pen_path_with};
 
 pub use crate::net::EMBED_DIM;
 
@@ -572,7 +573,7 @@ impl Embedder {
         )
     }
 
-    /// [`Embedder::embed`], also returning the pen path ([`crate::features::pen_path`]) the
+    /// [`Embedder::embed`], also returning the pen path ([`guardian_robot::pen::pen_path`]) the
     /// features were computed from, so a caller that needs the path too (the plan geometry)
     /// does not run the forward kinematics of the 128 points a second time.
     pub fn embed_with_pen_path(
@@ -618,7 +619,7 @@ impl Embedder {
     }
 
     /// [`Embedder::embed`] with the pen path through the general kinematic chain
-    /// ([`crate::features::pen_path_reference`]) instead of the specialised position FK:
+    /// ([`guardian_robot::pen::pen_path_reference`]) instead of the specialised position FK:
     /// the path as it was before the specialised FK, kept as the reference the fast path is
     /// tested against (`lab/tests/embed_equivalence.rs`; feature `test-support`).
     #[cfg(any(test, feature = "test-support"))]
@@ -628,7 +629,7 @@ impl Embedder {
             robot,
             std::slice::from_ref(x),
             &mut out,
-            |x: &Resampled| crate::features::pen_path_reference_with(robot, x),
+            |x: &Resampled| guardian_robot::pen::pen_path_reference_with(robot, x),
             None,
         )?;
         Ok(out[0])
@@ -990,14 +991,15 @@ mod tests {
         assert_eq!(back.version(), e.version());
         let xs = [sample(0.0), sample(1.0)];
         let a = e
-            .embed_batch(crate::preprocess::default_panda(), &xs)
+            .embed_batch(guardian_robot::kinematics::default_panda(), &xs)
             .unwrap();
         let b = back
-            .embed_batch(crate::preprocess::default_panda(), &xs)
+            .embed_batch(guardian_robot::kinematics::default_panda(), &xs)
             .unwrap();
         assert_eq!(a, b);
         assert_eq!(
-            e.embed(crate::preprocess::default_panda(), &xs[1]).unwrap(),
+            e.embed(guardian_robot::kinematics::default_panda(), &xs[1])
+                .unwrap(),
             a[1]
         );
         let norm: f32 = a[0].iter().map(|v| v * v).sum();
@@ -1015,13 +1017,13 @@ mod tests {
         let mut rev = x;
         rev.reverse();
         let plain = e
-            .embed_batch(crate::preprocess::default_panda(), &[x, rev])
+            .embed_batch(guardian_robot::kinematics::default_panda(), &[x, rev])
             .unwrap();
         assert!(sq_dist(&plain[0], &plain[1]) > 1e-6);
         e.set_reverse_average(true);
         let version = e.version().to_string();
         let avg = e
-            .embed_batch(crate::preprocess::default_panda(), &[x, rev])
+            .embed_batch(guardian_robot::kinematics::default_panda(), &[x, rev])
             .unwrap();
         assert!(sq_dist(&avg[0], &avg[1]) < 1e-8);
         assert_eq!(e.version(), version);
@@ -1029,7 +1031,8 @@ mod tests {
         let back = Embedder::from_bytes(&e.to_bytes().unwrap()).unwrap();
         assert!(back.configs()[0].reverse_average);
         assert_eq!(
-            back.embed(crate::preprocess::default_panda(), &x).unwrap(),
+            back.embed(guardian_robot::kinematics::default_panda(), &x)
+                .unwrap(),
             avg[0]
         );
     }
@@ -1060,7 +1063,7 @@ mod tests {
 
     #[test]
     fn a_fused_model_concatenates_its_branches_and_averages_their_distances() {
-        let panda = crate::preprocess::default_panda();
+        let panda = guardian_robot::kinematics::default_panda();
         let mut seq = branch(FeatureKind::Pen, 1);
         seq.set_reverse_average(true);
         let pic = branch(FeatureKind::Picture, 2);
@@ -1095,7 +1098,7 @@ mod tests {
         // The pen path comes out as from a single network.
         let (e, path) = fused.embed_with_pen_path(panda, &xs[1]).unwrap();
         assert_eq!(e, f[1]);
-        assert_eq!(path, crate::features::pen_path_with(panda, &xs[1]));
+        assert_eq!(path, guardian_robot::pen::pen_path_with(panda, &xs[1]));
         // The file round-trips with both branches, under a version of its own.
         let bytes = fused.to_bytes().unwrap();
         let back = Embedder::from_bytes(&bytes).unwrap();
@@ -1305,10 +1308,10 @@ mod reference_tests {
         let xs = trajectories(5, 2);
         for (i, e) in embedders.iter().enumerate() {
             let want = e
-                .embed_batch_reference(crate::preprocess::default_panda(), &xs)
+                .embed_batch_reference(guardian_robot::kinematics::default_panda(), &xs)
                 .unwrap();
             let got = e
-                .embed_batch(crate::preprocess::default_panda(), &xs)
+                .embed_batch(guardian_robot::kinematics::default_panda(), &xs)
                 .unwrap();
             for (k, (g, w)) in got.iter().zip(&want).enumerate() {
                 let err = rel_err(g, w);
@@ -1318,7 +1321,9 @@ mod reference_tests {
                 );
             }
             // Batch 1 through `embed` gives the same as the batched fast path.
-            let one = e.embed(crate::preprocess::default_panda(), &xs[3]).unwrap();
+            let one = e
+                .embed(guardian_robot::kinematics::default_panda(), &xs[3])
+                .unwrap();
             assert!(rel_err(&one, &got[3]) <= 1e-6);
         }
     }

@@ -1,26 +1,22 @@
-//! guardian-models: the learned and the physical models behind guardian.
+//! guardian-models: the embedding networks behind guardian.
 //!
-//! It holds the triplet-loss 1D-CNN that embeds a resampled joint trajectory (candle), its
-//! losses, the inference fast path used by the daemon and its hand-written backward used by
-//! training, the class-bank math (prototypes, thresholds, nearest-class search) and the
-//! kinematics of any serial arm (URDF + robot description, forward kinematics, Jacobian,
-//! inverse kinematics; the Panda and the UR5e built in). Shipped artifacts (weights, default
-//! class bank, `robots/`, model card) live in this crate's folder.
+//! A plan's tool path (`guardian_robot::pen`) is seen in two views, a time sequence of pen
+//! features and a picture of the pen-down path ([`features`]); each has a CNN trained with a
+//! metric loss, and a fused model concatenates their embeddings ([`embedder`]: the model
+//! file, fusion, embedding). [`fast`] is the serving forward of the sequence network (gemm
+//! over overlapping rows), [`picture`] the picture network's, and, with the `train` feature,
+//! [`grad`] and the picture module's backward train them; [`net`] is the architecture and its
+//! candle reference, [`loss`] the losses. Shipped artifacts (weights, default class bank,
+//! `robots/`, model card) live in this crate's folder.
 // `deny`, not `forbid`: `fast::gemm_strided` allows its single bounds-checked call into `gemm`.
 #![deny(unsafe_code)]
 
-pub mod bank;
-pub mod check;
 pub mod embedder;
 pub mod fast;
 pub mod features;
-pub mod geometry;
 #[cfg(feature = "train")]
 pub mod grad;
-pub mod kinematics;
 #[cfg(feature = "train")]
 pub mod loss;
 pub mod net;
 pub mod picture;
-pub mod preprocess;
-pub mod workcell;

@@ -17,7 +17,7 @@ import guardian
 
 from conftest import REPO
 
-# Three Latin characters (as `guardian-lab demo`): enrolled from drawers 1-5, checked with 6/7.
+# Three Latin characters (as the demo (`cargo run --release --example demo`)): enrolled from drawers 1-5, checked with 6/7.
 TASKS = {"py-latin-01": "Latin/character01", "py-latin-13": "Latin/character13", "py-latin-18": "Latin/character18"}
 ENROLL = [1, 2, 3, 4, 5]
 

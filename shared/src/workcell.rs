@@ -3,7 +3,7 @@
 //! These are absolute, physical rules a robotics engineer expects of every drawing plan,
 //! independent of the learned model (`docs/operating.md`): the canvas geometry and the
 //! commanded tool orientation of `shared/GUIDE.md` §3, with tolerances. The check itself
-//! (forward kinematics of every waypoint) lives in `guardian_models::workcell`; this module
+//! (forward kinematics of every waypoint) lives in `guardian_robot::workcell`; this module
 //! holds the configuration, the violation kinds carried on the wire, and the names of the
 //! plan-geometry features a class is compared on.
 

@@ -15,8 +15,8 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use anyhow::{Result, bail};
+use guardian_bank::{ClassBank, journal_path};
 use guardian_client::AdminClient;
-use guardian_models::bank::{ClassBank, journal_path};
 use guardian_tests::harness::{Daemon, Setup, random_bank, traj};
 
 /// A bank for `model` with `n` classes of 5 pseudo-random embeddings each.

@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Result, bail};
 use guardian_client::Trajectory;
-use guardian_models::kinematics::PANDA_JOINTS;
+use guardian_robot::kinematics::PANDA_JOINTS;
 use guardian_shared::trajectory::{MAX_WAYPOINTS, Waypoint, to_flat};
 use guardian_shared::wire::{MAX_EXAMPLES, Op, RequestHeader, encode_class_name};
 use guardian_tests::harness::{Daemon, Setup, task, traj};

@@ -22,7 +22,7 @@
 //! The bench builds `guardiand` with the bench's own profile before spawning it
 //! (`GUARDIAND_BIN` overrides the binary).
 
-use guardian_models::kinematics::PANDA_JOINTS;
+use guardian_robot::kinematics::PANDA_JOINTS;
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::{Path, PathBuf};
@@ -35,11 +35,11 @@ use guardian_client::{Client, ClientConfig, Trajectory, Verdict};
 use guardian_daemon::config::Config;
 use guardian_daemon::screen::Screen;
 use guardian_daemon::state::{load_bank, load_model};
-use guardian_lab::dataset::convert_strokes;
-use guardian_lab::path::{Geometry, PathSolver};
-use guardian_lab::strokes::read_strokes;
 use guardian_models::embedder::{EMBED_DIM, Embedder};
 use guardian_models::fast::{Scratch, sgemm};
+use guardian_omniglot::dataset::convert_strokes;
+use guardian_omniglot::path::{Geometry, PathSolver};
+use guardian_omniglot::strokes::read_strokes;
 use guardian_shared::trajectory::Waypoint;
 use guardian_shared::wire::{
     Op, ReasonCode, RequestHeader, VerdictCode, decode_code, decode_text, encode_class_name,
@@ -498,8 +498,8 @@ fn compute_breakdown(
     drawings: &Drawings,
     n: usize,
 ) -> Result<Vec<(&'static str, Vec<Duration>)>> {
-    use guardian_models::check::{self, Embedded, Prepared};
-    use guardian_models::workcell::inspect_with;
+    use guardian_robot::workcell::inspect_with;
+    use guardian_screen::check::{self, Embedded, Prepared};
     let (mut screen, config, reqs) = in_process_screen(dep, drawings, "in-process")?;
     let len = reqs.len();
     let (station, bank, embedder, k) = (
@@ -785,11 +785,11 @@ fn run(o: Opts) -> Result<()> {
     let samples: Vec<_> = drawings
         .checks
         .iter()
-        .map(|(_, w)| guardian_models::preprocess::preprocess(w))
+        .map(|(_, w)| guardian_robot::preprocess::preprocess(w))
         .collect::<Result<_, _>>()?;
     // Per network: its input for the first check drawing (forward, and reversed when
     // averaging), copies, steps and channels.
-    let path = guardian_models::features::pen_path(&samples[0]);
+    let path = guardian_robot::pen::pen_path(&samples[0]);
     let inputs: Vec<(Vec<f32>, usize, usize, usize)> = embedder
         .nets()
         .iter()
@@ -874,7 +874,7 @@ fn run(o: Opts) -> Result<()> {
             fast_fwd.extend(f);
         }
     }
-    let panda = guardian_models::preprocess::default_panda();
+    let panda = guardian_robot::kinematics::default_panda();
     let mut k = 0usize;
     let embed = time_n(50, n_fwd, || {
         k += 1;
@@ -887,28 +887,26 @@ fn run(o: Opts) -> Result<()> {
     let prep = time_n(50, n_fwd, || {
         k += 1;
         let w = &drawings.checks[k % samples.len()].1;
-        std::hint::black_box(guardian_models::preprocess::preprocess(w)?);
+        std::hint::black_box(guardian_robot::preprocess::preprocess(w)?);
         Ok(())
     })?;
     let mut k = 0usize;
     let prep_ref = time_n(50, n_fwd, || {
         k += 1;
         let w = &drawings.checks[k % samples.len()].1;
-        std::hint::black_box(guardian_models::preprocess::preprocess_reference(panda, w)?);
+        std::hint::black_box(guardian_robot::preprocess::preprocess_reference(panda, w)?);
         Ok(())
     })?;
     let mut k = 0usize;
     let path_fk = time_n(50, n_fwd, || {
         k += 1;
-        std::hint::black_box(guardian_models::features::pen_path(
-            &samples[k % samples.len()],
-        ));
+        std::hint::black_box(guardian_robot::pen::pen_path(&samples[k % samples.len()]));
         Ok(())
     })?;
     let mut k = 0usize;
     let path_ref = time_n(50, n_fwd, || {
         k += 1;
-        std::hint::black_box(guardian_models::features::pen_path_reference(
+        std::hint::black_box(guardian_robot::pen::pen_path_reference(
             &samples[k % samples.len()],
         ));
         Ok(())
@@ -916,7 +914,7 @@ fn run(o: Opts) -> Result<()> {
     let mut k = 0usize;
     let full = time_n(50, n_fwd, || {
         k += 1;
-        let x = guardian_models::preprocess::preprocess(&drawings.checks[k % samples.len()].1)?;
+        let x = guardian_robot::preprocess::preprocess(&drawings.checks[k % samples.len()].1)?;
         std::hint::black_box(embedder.embed(panda, &x)?);
         Ok(())
     })?;

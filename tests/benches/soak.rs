@@ -11,7 +11,7 @@
 //! (default `models/embedder.safetensors`), `--strokes DIR` (default
 //! `../shared/omniglot/strokes`).
 
-use guardian_models::kinematics::PANDA_JOINTS;
+use guardian_robot::kinematics::PANDA_JOINTS;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -20,9 +20,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use guardian_client::{Client, Decision, NoGoReason, Trajectory, Waypoint};
-use guardian_lab::dataset::convert_strokes;
-use guardian_lab::path::{Geometry, PathSolver};
-use guardian_lab::strokes::read_strokes;
+use guardian_omniglot::dataset::convert_strokes;
+use guardian_omniglot::path::{Geometry, PathSolver};
+use guardian_omniglot::strokes::read_strokes;
 use guardian_tests::harness::{Daemon, Expected, Setup, workspace_root};
 
 /// Latin characters enrolled as task classes, drawers used to enroll, drawers checked.

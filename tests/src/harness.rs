@@ -1,7 +1,7 @@
 //! Test harness for end-to-end tests: a real `guardiand` process with its own service name, iceoryx2 prefix,
 //! state directory, model file and `NOTIFY_SOCKET`, killed on drop.
 
-use guardian_models::kinematics::PANDA_JOINTS;
+use guardian_robot::kinematics::PANDA_JOINTS;
 use std::io::Read;
 use std::os::unix::net::UnixDatagram;
 use std::path::{Path, PathBuf};
@@ -438,10 +438,10 @@ pub fn random_bank(
     classes: usize,
     examples: usize,
     seed: u64,
-) -> guardian_models::bank::ClassBank {
+) -> guardian_bank::ClassBank {
     let embedder = Embedder::load(model).expect("load model");
     let dim = guardian_models::embedder::EMBED_DIM;
-    let mut bank = guardian_models::bank::ClassBank::new(dim, embedder.version(), 1e9);
+    let mut bank = guardian_bank::ClassBank::new(dim, embedder.version(), 1e9);
     let mut x = seed | 1;
     let mut next = || {
         x ^= x << 13;

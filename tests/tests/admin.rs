@@ -12,8 +12,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
+use guardian_bank::{ClassBank, journal_path};
 use guardian_client::{AdminClient, CheckError, Decision, EnrollError, LimitKind, Trajectory};
-use guardian_models::bank::{ClassBank, journal_path};
 use guardian_tests::harness::{self, Daemon, Setup, traj};
 
 const CHILD: &str = "GUARDIAN_ADMIN_CHILD_SOCKET";

@@ -10,7 +10,7 @@ use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
 use guardian_client::{CheckError, EnrollError};
-use guardian_models::kinematics::{PANDA_JOINTS, Robot};
+use guardian_robot::kinematics::{PANDA_JOINTS, Robot};
 use guardian_shared::trajectory::{MAX_WAYPOINTS, from_flat, to_flat};
 
 /// The daemon under test serves the Panda: 7 joints and the tool.

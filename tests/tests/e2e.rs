@@ -1,6 +1,6 @@
 //! End-to-end tests across real processes: the `guardiand` binary and `guardian-client`.
 
-use guardian_models::kinematics::PANDA_JOINTS;
+use guardian_robot::kinematics::PANDA_JOINTS;
 use guardian_shared::trajectory::{TOOL, to_flat};
 use std::time::Duration;
 
@@ -320,7 +320,7 @@ fn sighup_reloads_and_a_failed_reload_keeps_the_old_state() {
 
     // A successful reload picks up a bank changed on disk: add a class with the lab API.
     let path = s.state_dir().join("bank.gcb");
-    let mut bank = guardian_models::bank::ClassBank::load(&path).expect("bank");
+    let mut bank = guardian_bank::ClassBank::load(&path).expect("bank");
     let e = vec![0.5f32; bank.dim()];
     bank.enroll("from-disk", &[e]).expect("enroll");
     bank.save(&path).expect("save");
@@ -676,7 +676,7 @@ fn pools_are_static_and_the_class_list_is_paged() {
     let mut names: Vec<String> = (0..n).map(|c| format!("t{c:03}")).collect();
     client.enroll(&names[0], &[traj(0, 1)]).expect("enroll");
     let path = s.state_dir().join("bank.gcb");
-    let mut bank = guardian_models::bank::ClassBank::load(&path).expect("bank");
+    let mut bank = guardian_bank::ClassBank::load(&path).expect("bank");
     for (c, name) in names.iter().enumerate().skip(1) {
         let dim = bank.dim();
         let mut e = vec![0.0f32; dim];

@@ -3,7 +3,7 @@
 //! per request and each (plan, claim) has a known answer taken before the load — with zero
 //! lost and zero mismatched responses.
 
-use guardian_models::kinematics::PANDA_JOINTS;
+use guardian_robot::kinematics::PANDA_JOINTS;
 use std::sync::{Arc, Barrier};
 
 use guardian_client::{Client, Decision, NoGoReason, Trajectory};

@@ -7,10 +7,10 @@
 
 use std::path::{Path, PathBuf};
 
+use guardian_bank::{Calibration, ClassBank};
 use guardian_client::{Client, Trajectory, Verdict};
-use guardian_models::bank::{Calibration, ClassBank};
 use guardian_models::embedder::Embedder;
-use guardian_models::kinematics::{Robot, RobotRecord};
+use guardian_robot::kinematics::{Robot, RobotRecord};
 use guardian_tests::harness::{self, Daemon, Setup, traj};
 
 /// The classes the operator enrolls under model A: (name, sample class, drawers).
@@ -74,13 +74,13 @@ fn default_bank_for(model: &Path, out: &Path) {
         wrong_task_tolerance: Some(0.05),
         measured_rate: None,
     });
-    let (bank, _) = shipped
-        .reembedded(
-            &b,
-            guardian_models::preprocess::default_panda(),
-            Some(&calibration),
-        )
-        .expect("the shipped default bank keeps its examples");
+    let (bank, _) = guardian_screen::reembed::reembedded(
+        &shipped,
+        &b,
+        guardian_robot::kinematics::default_panda(),
+        Some(&calibration),
+    )
+    .expect("the shipped default bank keeps its examples");
     bank.save(out).expect("save B's default bank");
 }
 

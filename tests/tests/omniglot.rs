@@ -2,15 +2,15 @@
 //! the dataset library) sent through a real `guardiand`: the daemon must preprocess and
 //! embed them exactly as the lab does.
 
-use guardian_models::kinematics::PANDA_JOINTS;
+use guardian_robot::kinematics::PANDA_JOINTS;
 use std::path::PathBuf;
 
+use guardian_bank::distance;
 use guardian_client::Trajectory;
-use guardian_lab::dataset::convert_strokes;
-use guardian_lab::path::{Geometry, PathSolver};
-use guardian_lab::strokes::{character_files, read_strokes};
-use guardian_models::bank::distance;
 use guardian_models::embedder::Embedder;
+use guardian_omniglot::dataset::convert_strokes;
+use guardian_omniglot::path::{Geometry, PathSolver};
+use guardian_omniglot::strokes::{character_files, read_strokes};
 use guardian_tests::harness;
 use guardian_tests::harness::{Daemon, Setup};
 
@@ -43,7 +43,7 @@ fn real_drawings_are_embedded_exactly_as_the_lab_does() {
             let conv = convert_strokes(&solver, &read_strokes(&drawing(c, d)).unwrap()).unwrap();
             embs.push(
                 embedder
-                    .embed(guardian_models::preprocess::default_panda(), &conv.sample)
+                    .embed(guardian_robot::kinematics::default_panda(), &conv.sample)
                     .unwrap()
                     .to_vec(),
             );
@@ -67,7 +67,7 @@ fn real_drawings_are_embedded_exactly_as_the_lab_does() {
     for c in 1..=3u32 {
         let conv = convert_strokes(&solver, &read_strokes(&drawing(c, 10)).unwrap()).unwrap();
         let e = embedder
-            .embed(guardian_models::preprocess::default_panda(), &conv.sample)
+            .embed(guardian_robot::kinematics::default_panda(), &conv.sample)
             .unwrap();
         let t = Trajectory::from_waypoints(&conv.dense.waypoints, PANDA_JOINTS);
         let v = client.check(&t, &format!("latin{c}")).expect("check");

@@ -10,8 +10,8 @@ use std::path::Path;
 use std::process::Output;
 use std::time::{Duration, Instant};
 
+use guardian_bank::{ClassBank, Replay, journal_path};
 use guardian_client::{CheckError, Client, Decision, EnrollError, Trajectory};
-use guardian_models::bank::{ClassBank, Replay, journal_path};
 use guardian_tests::harness::{self, Daemon, Setup, traj};
 
 /// Kill rounds of the SIGKILL-during-persistence test (the issue asks for >= 100).

@@ -6,10 +6,10 @@
 //! The same drawings drawn by the Panda and sent to a Panda daemon get the same verdicts.
 
 use guardian_client::{Decision, InvalidKind, NoGoReason, Trajectory};
-use guardian_lab::dataset::convert_strokes;
-use guardian_lab::path::{Geometry, PathSolver};
-use guardian_lab::strokes::{character_files, read_strokes};
-use guardian_models::kinematics::RobotDescription;
+use guardian_omniglot::dataset::convert_strokes;
+use guardian_omniglot::path::{Geometry, PathSolver};
+use guardian_omniglot::strokes::{character_files, read_strokes};
+use guardian_robot::kinematics::RobotDescription;
 use guardian_tests::harness::{self, Daemon, Setup};
 
 /// Dense joint plans of `Latin/characterNN` drawers `drawers` (1-based) drawn by `robot`.

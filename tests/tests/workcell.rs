@@ -5,13 +5,13 @@
 //! enrolled through the daemon get descriptors, and the same drawing placed elsewhere on
 //! the canvas is answered `GeometryMismatch` naming the centre.
 
+use guardian_bank::{ClassBank, GeometryCalibration};
 use guardian_client::{Decision, GeometryFeature, NoGoReason, Trajectory, WorkcellKind};
-use guardian_lab::dataset::convert_strokes;
-use guardian_lab::path::{Geometry, PathSolver};
-use guardian_lab::strokes::{character_files, read_strokes};
-use guardian_models::bank::{ClassBank, GeometryCalibration};
 use guardian_models::embedder::{EMBED_DIM, Embedder};
-use guardian_models::kinematics::PANDA_JOINTS;
+use guardian_omniglot::dataset::convert_strokes;
+use guardian_omniglot::path::{Geometry, PathSolver};
+use guardian_omniglot::strokes::{character_files, read_strokes};
+use guardian_robot::kinematics::PANDA_JOINTS;
 use guardian_shared::trajectory::Waypoint;
 use guardian_tests::harness::{self, Daemon, Setup};
 

@@ -4,7 +4,7 @@
 //! Calibration data: the classes of the calibration (validation) alphabets. In each of
 //! `reps` rounds every class gets `shots` randomly drawn enrolled drawings; every other
 //! drawing of the class is a genuine plan scored against that bank (distance to its class,
-//! to the nearest other class, and its class's spread). [`guardian_models::bank::calibrate`]
+//! to the nearest other class, and its class's spread). [`guardian_bank::calibrate`]
 //! turns those scores into the global threshold, the wrong-task tolerance and the
 //! per-class scale for a target false-reject rate. Cross-fitting pools the genuine scores
 //! of fold models on the alphabets each never saw ([`cross_fit`]).
@@ -12,16 +12,16 @@
 use std::path::PathBuf;
 
 use anyhow::Context as _;
-use guardian_models::bank::{self, Calibration, ClassBank, GenuineScore, GeometryCalibration};
-use guardian_models::geometry::{self, PlanGeometry};
-use guardian_models::kinematics::Robot;
+use guardian_bank::{self as bank, Calibration, ClassBank, GenuineScore, GeometryCalibration};
+use guardian_robot::geometry::{self, PlanGeometry};
+use guardian_robot::kinematics::Robot;
 use guardian_shared::trajectory::Resampled;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 
-use crate::data::dataset::Dataset;
 use crate::eval::Pool;
+use guardian_omniglot::dataset::Dataset;
 
 /// Indices of each dense label, in pool order.
 pub fn by_class(labels: &[u32]) -> Vec<Vec<usize>> {
@@ -108,7 +108,7 @@ pub fn genuine_scores(
 pub fn geometry_of(xs: &[Resampled], robot: &Robot) -> Vec<Option<PlanGeometry>> {
     use rayon::prelude::*;
     xs.par_iter()
-        .map(|x| guardian_models::workcell::plan_geometry(robot, x))
+        .map(|x| guardian_robot::workcell::plan_geometry(robot, x))
         .collect()
 }
 
@@ -231,7 +231,7 @@ pub fn cross_fit(
     let mut pools = Vec::new();
     let mut names = Vec::new();
     for p in pairs {
-        let model = data.embedder(&p.model)?;
+        let model = crate::dataset::model_for(data, &p.model)?;
         let pool = Pool::new(data, &p.alphabets)?;
         let emb = pool.embed(&model)?;
         scores.extend(genuine_scores(

@@ -26,9 +26,9 @@ use guardian_models::embedder::Embedder;
 use serde::{Deserialize, Serialize};
 
 use crate::cli::{DatasetArgs, StrokesArgs};
-use crate::data::dataset::Dataset;
 use crate::eval::calibration::CrossFitPair;
 use crate::eval::{EpisodeSpec, Pool, evaluate};
+use guardian_omniglot::dataset::Dataset;
 
 /// The alphabets with official, dense, real-time stroke files: the drawings closest to a
 /// served plan, reported apart.
@@ -603,7 +603,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let compare = args
         .compare
         .as_ref()
-        .map(|p| data.embedder(p))
+        .map(|p| crate::dataset::model_for(&data, p))
         .transpose()?;
 
     // Train and measure the episodes of every selected fold.
@@ -617,7 +617,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             .collect();
         train_branch(args, &train, RECIPE_SEQUENCE, &dir.join("seq"))?;
         train_branch(args, &train, RECIPE_PICTURE, &dir.join("pic"))?;
-        let model = data.embedder(&fuse(&dir)?)?;
+        let model = crate::dataset::model_for(&data, &fuse(&dir)?)?;
         for a in &folds[k] {
             let base = Row::blank(k, a, args.dense.contains(a), "fold", "episodes");
             let mut rows = Vec::new();

@@ -1,7 +1,7 @@
 //! The lab's detection metrics, in one place: AUROC, the ROC curve, the true-positive rate
 //! at a false-positive rate (outliers, report) and the pair AUC of distances (report).
 
-use guardian_models::bank;
+use guardian_bank as bank;
 
 /// Area under the ROC curve of `pos` (faulty) vs `neg` (genuine) scores, higher = faulty;
 /// ties count one half. `NaN` if either set is empty.

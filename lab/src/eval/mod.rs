@@ -24,7 +24,7 @@ pub mod report;
 use std::path::PathBuf;
 
 use guardian_models::embedder::{EMBED_DIM, Embedder};
-use guardian_models::kinematics::Robot;
+use guardian_robot::kinematics::Robot;
 use guardian_shared::trajectory::{Resampled, STEPS, TOOL};
 use rand::rngs::StdRng;
 use rand::seq::IndexedRandom;
@@ -32,7 +32,7 @@ use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
 use crate::cli::{DatasetArgs, EpisodeArgs};
-use crate::data::dataset::Dataset;
+use guardian_omniglot::dataset::Dataset;
 
 /// Evaluation failed.
 #[derive(Debug, thiserror::Error)]
@@ -466,9 +466,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     anyhow::bail!("--baseline siamese needs --siamese-model or --model")
                 }
             };
-            Some(data.embedder(&path)?)
+            Some(crate::dataset::model_for(&data, &path)?)
         }
-        (None, Some(m)) => Some(data.embedder(m)?),
+        (None, Some(m)) => Some(crate::dataset::model_for(&data, m)?),
         (None, None) => anyhow::bail!("--model is required unless --baseline random|knn"),
         (Some(_), _) => None,
     };

@@ -25,7 +25,7 @@
 //!   target`), the geometry score divided by its calibrated threshold (the rest of the
 //!   budget, [`bank::calibrate_geometry`]), and the workcell score (the largest deviation
 //!   over all waypoints and rules, each divided by its tolerance,
-//!   [`guardian_models::workcell::Inspection::score`]);
+//!   [`guardian_robot::workcell::Inspection::score`]);
 //! - `guardian-embedding`: the shipped embedder alone, calibrated for the whole target
 //!   (the decision before the workcell and geometry checks existed), for comparison;
 //! - `siamese`, `knn`: the baselines.
@@ -39,11 +39,11 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use anyhow::Context as _;
-use guardian_models::bank::{self, Calibration, ClassBank, GenuineScore, GeometryCalibration};
-use guardian_models::check::{self, Embedded};
+use guardian_bank::{self as bank, Calibration, ClassBank, GenuineScore, GeometryCalibration};
 use guardian_models::embedder::Embedder;
-use guardian_models::geometry::{self, PlanGeometry};
-use guardian_models::workcell;
+use guardian_robot::geometry::{self, PlanGeometry};
+use guardian_robot::workcell;
+use guardian_screen::check::{self, Embedded};
 use guardian_shared::trajectory::Resampled;
 use guardian_shared::workcell::Workcell;
 use rand::SeedableRng;
@@ -53,13 +53,13 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::cli::{DatasetArgs, ScreenArgs, StrokesArgs};
-use crate::data::dataset::{Dataset, StrokeIndex};
-use crate::data::faults::{self, Fault, SEVERITIES};
-use crate::data::path::PathSolver;
-use crate::data::strokes;
 use crate::eval::calibration::split;
 use crate::eval::metrics::{auroc, share_above, tpr_at_fpr};
 use crate::eval::{Pool, standardised_raw};
+use guardian_omniglot::corrupt::{self, Fault, SEVERITIES};
+use guardian_omniglot::dataset::{Dataset, StrokeIndex};
+use guardian_omniglot::path::PathSolver;
+use guardian_omniglot::strokes;
 
 /// How a method measures a query against a class.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -336,7 +336,7 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
     let data = Dataset::load(&args.data.dataset)?;
     // Pen paths by the forward kinematics of the robot that drew the data set.
     let robot = data.robot()?;
-    let model = data.embedder(&args.screen.model)?;
+    let model = crate::dataset::model_for(&data, &args.screen.model)?;
     args.screen.check_disjoint()?;
     let cpool = Pool::new(&data, &args.screen.calib_alphabets)?;
     let pool = Pool::new(&data, &args.screen.alphabets)?;
@@ -375,13 +375,13 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
             let mut r = StdRng::seed_from_u64(seed ^ f as u64);
             let x = source_strokes[si]
                 .as_ref()
-                .and_then(|st| faults::corrupt(&solver, f, s, st, &mut r).ok());
+                .and_then(|st| corrupt::corrupt(&solver, f, s, st, &mut r).ok());
             (si, p, f, s, x)
         })
         .collect();
     let mut sources: BTreeMap<String, usize> = BTreeMap::new();
     for (_, _, f, s, x) in &made {
-        if x.is_some() && *s == faults::MODERATE {
+        if x.is_some() && *s == corrupt::MODERATE {
             *sources.entry(f.name().to_owned()).or_default() += 1;
         }
     }
@@ -443,7 +443,7 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
         geometry::pooled_scales(&groups).context("no geometry spread on the calibration data")?
     };
     if let Some(p) = &args.siamese_model {
-        let s = data.embedder(p)?;
+        let s = crate::dataset::model_for(&data, p)?;
         methods.push((
             Method::Siamese,
             vectors(&embed(&s, &cpool.xs)?),

@@ -15,9 +15,9 @@ use rand::rngs::StdRng;
 use rand::seq::IndexedRandom;
 
 use crate::cli::DatasetArgs;
-use crate::data::dataset::Dataset;
 use crate::eval::{self, EpisodeSpec, Pool, Scorer};
 use crate::train::EpochMetrics;
+use guardian_omniglot::dataset::Dataset;
 
 /// `guardian-lab report`: markdown report with plots for a trained model.
 #[derive(Debug, Clone, clap::Args)]
@@ -438,13 +438,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         .with_context(|| format!("creating {}", args.out.display()))?;
     let data = Dataset::load(&args.data.dataset)?;
     let pool = Pool::new(&data, &args.alphabets)?;
-    let model = data.embedder(&args.model)?;
+    let model = crate::dataset::model_for(&data, &args.model)?;
     let siamese_path = args
         .siamese_model
         .clone()
         .unwrap_or_else(|| args.model.with_file_name("siamese.safetensors"));
     let siamese = if siamese_path.exists() {
-        Some(data.embedder(&siamese_path)?)
+        Some(crate::dataset::model_for(&data, &siamese_path)?)
     } else {
         None
     };

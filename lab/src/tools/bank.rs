@@ -5,19 +5,19 @@
 use std::path::PathBuf;
 
 use anyhow::Context as _;
-use guardian_models::bank::{self, Calibration, ClassBank, Example, GeometryCalibration};
+use guardian_bank::{self as bank, Calibration, ClassBank, Example, GeometryCalibration};
 use guardian_models::embedder::Embedder;
-use guardian_models::geometry::PlanGeometry;
+use guardian_robot::geometry::PlanGeometry;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use serde::Serialize;
 
 use crate::cli::{DatasetArgs, ScreenArgs};
-use crate::data::dataset::Dataset;
 use crate::eval::Pool;
 use crate::eval::calibration::{
     CrossFitPair, calibrate_geometry_pool, cross_fit, genuine_scores, geometry_of, split,
 };
+use guardian_omniglot::dataset::Dataset;
 
 /// `guardian-lab bank`: calibrate on the validation alphabets and build a class bank.
 #[derive(Debug, Clone, clap::Args)]
@@ -118,7 +118,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
 /// Calibrate and write the bank of `guardian-lab bank`; what was done, not printed.
 pub fn build(args: &Args) -> anyhow::Result<BankSummary> {
     let data = Dataset::load(&args.data.dataset)?;
-    let model = data.embedder(&args.screen.model)?;
+    let model = crate::dataset::model_for(&data, &args.screen.model)?;
     args.screen.check_geometry_share()?;
     let (cal, gcal) = if let Some(p) = &args.calibration_from {
         let from =

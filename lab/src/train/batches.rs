@@ -7,18 +7,19 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use candle_core::{Device, Tensor};
-use guardian_models::features::{self, Augment, FeatureKind, PenPoint};
+use guardian_models::features::{self, Augment, FeatureKind};
+use guardian_robot::pen::{PenPoint, pen_path_with};
 use guardian_shared::trajectory::{Resampled, STEPS};
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 
-use crate::data::dataset::{Dataset, StrokeIndex};
-use crate::data::faults::{self, Fault};
-use crate::data::path::PathSolver;
 use crate::train::TrainError;
 use crate::train::classaug::{self, AugmentPlan, Dihedral, SymmetryRule};
+use guardian_omniglot::corrupt::{self, Fault};
+use guardian_omniglot::dataset::{Dataset, StrokeIndex};
+use guardian_omniglot::path::PathSolver;
 
 /// Labels of fault negatives in a batch count down from here (one label per corrupted
 /// plan, so it is a negative of every genuine sample and the positive of none).
@@ -83,10 +84,8 @@ impl Prepared {
         let pen = if kind != FeatureKind::Joints {
             // Pen paths by the forward kinematics of the robot that drew the data set.
             let robot = data.robot().map_err(|e| TrainError::Setup(e.to_string()))?;
-            raw.iter()
-                .map(|x| features::pen_path_with(&robot, x))
-                .collect()
-        } else if data.robot.joints != guardian_models::kinematics::PANDA_JOINTS {
+            raw.iter().map(|x| pen_path_with(&robot, x)).collect()
+        } else if data.robot.joints != guardian_robot::kinematics::PANDA_JOINTS {
             return Err(TrainError::Setup(format!(
                 "joint features are for Panda data sets; this one was drawn by {}",
                 data.robot
@@ -149,8 +148,8 @@ impl Prepared {
                     tries += 1;
                     let fault = kinds[rng.random_range(0..kinds.len())];
                     let severity = rng.random_range(0.25..=1.0);
-                    if let Ok(x) = faults::corrupt(&solver, fault, severity, &st, &mut rng) {
-                        out.push(features::pen_path_with(solver.robot(), &x));
+                    if let Ok(x) = corrupt::corrupt(&solver, fault, severity, &st, &mut rng) {
+                        out.push(pen_path_with(solver.robot(), &x));
                     }
                 }
                 out

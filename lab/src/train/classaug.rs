@@ -18,7 +18,7 @@
 //! the two halves of one class's drawers typically are to each other ([`SymmetryRule`]) is
 //! "the same character".
 
-use guardian_models::features::{self, PenPoint};
+use guardian_robot::pen::{PenPoint, pen_down_box};
 use guardian_shared::trajectory::STEPS;
 use serde::{Deserialize, Serialize};
 
@@ -122,7 +122,7 @@ const GRID: usize = 24;
 pub fn raster(path: &[PenPoint; STEPS]) -> Vec<f32> {
     let any_down = path.iter().any(|q| q[2] > 0.5);
     let down = |q: &PenPoint| !any_down || q[2] > 0.5;
-    let (lo, hi) = features::pen_down_box(path);
+    let (lo, hi) = pen_down_box(path);
     let centre = [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])];
     let half = (0.5 * (hi[0] - lo[0]).max(hi[1] - lo[1])).max(1e-6);
     let h = (GRID as f32 - 1.0) / 2.0;

@@ -9,8 +9,8 @@ use guardian_models::net::NetConfig;
 use serde::{Deserialize, Serialize};
 
 use crate::cli::{DatasetArgs, StrokesArgs};
-use crate::data::faults::Fault;
 use crate::train::TrainError;
+use guardian_omniglot::corrupt::Fault;
 
 /// Which loss trains the network.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]

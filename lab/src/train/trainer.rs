@@ -14,7 +14,6 @@ use rand::SeedableRng;
 use rand::rngs::StdRng;
 use serde::{Deserialize, Serialize};
 
-use crate::data::dataset::Dataset;
 use crate::eval::{self, EpisodeSpec};
 use crate::train::batches::{Item, Prepared};
 use crate::train::checkpoint::{State, load_opt, read_json, save_opt, write_json};
@@ -25,6 +24,7 @@ use crate::train::objective::objective;
 use crate::train::optim::Learner;
 use crate::train::schedule::{EpochEnd, end_epoch, one_cycle_lr};
 use crate::train::{TrainError, io_err};
+use guardian_omniglot::dataset::Dataset;
 
 /// One epoch's metrics (one JSONL line).
 #[derive(Debug, Clone, Serialize, Deserialize)]

@@ -1,10 +1,10 @@
 //! Helpers shared by the lab's integration tests.
 #![allow(dead_code)] // each test crate uses its own subset
 
-use guardian_lab::strokes::DrawingFile;
 use guardian_lab::train::{LossKind, TrainConfig};
 use guardian_models::features::FeatureKind;
 use guardian_models::net::NetConfig;
+use guardian_omniglot::strokes::DrawingFile;
 
 /// A tiny pen-feature network (16-32 channels).
 pub fn tiny_net() -> NetConfig {

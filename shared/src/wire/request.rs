@@ -118,7 +118,7 @@ impl<'a> Request<'a> {
     /// the op, then the class name (check, enroll, forget), then the example count and
     /// payload length, then each trajectory's shape in order. Trajectories must have the
     /// served robot's channel count (`joints + 1`); their values are validated once, by the
-    /// check pipeline that resamples them (`guardian_models::check`), for every op.
+    /// check pipeline that resamples them (`guardian_screen::check`), for every op.
     pub fn decode(
         header: &'a RequestHeader,
         payload: &[f32],

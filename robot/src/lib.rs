@@ -1,0 +1,18 @@
+//! guardian-robot: the robot behind a plan, without any learned model.
+//!
+//! - [`kinematics`]: any serial arm from its URDF and a small description file (the Panda and
+//!   the UR5e built in): forward kinematics, the Jacobian, a damped-least-squares IK.
+//! - [`pen`]: the tool (pen) path of a resampled plan by forward kinematics.
+//! - [`workcell`]: the one validation of a plan, its workcell rules on every waypoint and its
+//!   resampling to the model's steps; [`preprocess`] is the same with the rules off.
+//! - [`geometry`]: the plan geometry (position, size, strokes, direction) the screen compares
+//!   with a class's enrolled examples.
+//!
+//! `guardianctl`, the ROS 2 gate and the data generator link this crate and no network code.
+#![forbid(unsafe_code)]
+
+pub mod geometry;
+pub mod kinematics;
+pub mod pen;
+pub mod preprocess;
+pub mod workcell;
