@@ -190,7 +190,7 @@ pub enum NoGoReason {
     },
 }
 
-/// One line, as `guardianctl` and `guardian-lab demo` print it: `GO`, or `NO-GO` and the
+/// One line, as `guardianctl` and the demo (`examples/demo`) print it: `GO`, or `NO-GO` and the
 /// reason.
 impl std::fmt::Display for Decision {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {

@@ -3,7 +3,7 @@
 //! changes of amplitude, phase, speed and waypoint count. They are not Omniglot drawings
 //! and do not draw on the canvas (a daemon with the workcell rules on answers them no-go
 //! `Workcell`); they only exercise the protocol and the decision rule. The demo on real
-//! drawings is `guardian-lab demo`.
+//! drawings is the demo (`cargo run --release --example demo`).
 
 use crate::Waypoint;
 

@@ -12,9 +12,10 @@ use guardian_models::embedder::Embedder;
 use guardian_robot::kinematics::{PANDA_JOINTS, Robot};
 use guardian_screen::check::{self, Station};
 use guardian_shared::trajectory::{Waypoint, from_flat};
+use guardian_shared::wire::strategy;
 use guardian_shared::wire::{
-    MAX_EXAMPLES, NAME_BYTES, Op, RequestHeader, ResponseHeader, Status, VerdictCode,
-    decode_class_name, decode_code, encode_class_name,
+    MAX_EXAMPLES, Op, RequestHeader, ResponseHeader, Status, VerdictCode, decode_class_name,
+    decode_code, encode_class_name,
 };
 use proptest::prelude::*;
 use std::sync::{Mutex, OnceLock};
@@ -64,94 +65,18 @@ fn screen(dir: &std::path::Path) -> Screen {
     Screen::new(embedder, station, bank, dir.join("bank.gcb"), 3)
 }
 
-fn f32_any() -> impl Strategy<Value = f32> {
-    prop_oneof![
-        any::<u32>().prop_map(f32::from_bits),
-        -4.0f32..4.0,
-        Just(f32::NAN),
-        Just(f32::INFINITY),
-        Just(0.5f32),
-    ]
-}
-
-/// Payloads: genuine plans (often mutated at one value), random floats, empty.
-fn payload() -> impl Strategy<Value = Vec<f32>> {
-    prop_oneof![
-        (
-            0u32..3,
-            0u32..40,
-            prop::option::of((any::<prop::sample::Index>(), f32_any()))
-        )
-            .prop_map(|(c, d, m)| {
-                let mut p: Vec<f32> =
-                    guardian_shared::trajectory::to_flat(&task(c, d), PANDA_JOINTS);
-                if let Some((i, v)) = m {
-                    let i = i.index(p.len());
-                    p[i] = v;
-                }
-                p
-            }),
-        prop::collection::vec(f32_any(), 0..300),
-        Just(Vec::new()),
-    ]
-}
-
-fn name_field() -> impl Strategy<Value = [u8; NAME_BYTES]> {
-    prop_oneof![
-        prop::sample::select(&ENROLLED[..]).prop_map(|n| encode_class_name(n).unwrap()),
-        prop::collection::vec(any::<u8>(), NAME_BYTES).prop_map(|v| v.try_into().unwrap()),
-        "[\\x00-\\x1f\\x7f a-z\\u{80}-\\u{ff}]{0,64}".prop_map(|s| {
-            let mut f = [0u8; NAME_BYTES];
-            let b = s.as_bytes();
-            let n = b.len().min(NAME_BYTES);
-            f[..n].copy_from_slice(&b[..n]);
-            f
-        }),
-        Just([0u8; NAME_BYTES]),
-        Just([b'x'; NAME_BYTES]),
-    ]
-}
-
-fn count() -> impl Strategy<Value = u32> {
-    prop_oneof![
-        any::<u32>(),
-        0u32..8,
-        Just(u32::MAX),
-        Just(4097),
-        Just(1 << 31)
-    ]
-}
-
 /// A header, often consistent with its payload so that requests reach validation and the
-/// model, otherwise arbitrary in every field.
+/// model, otherwise arbitrary in every field; payloads are genuine plans of three tasks
+/// (often mutated at one value), random floats or empty.
 fn request() -> impl Strategy<Value = (RequestHeader, Vec<f32>)> {
-    (
-        any::<u64>(),
-        prop_oneof![4 => 1u32..=6, 1 => any::<u32>()],
-        prop_oneof![4 => Just(CHANNELS as u32), 1 => count()],
-        prop_oneof![4 => Just(1u32), 1 => 0u32..=17, 1 => count()],
-        prop::array::uniform16(count()),
-        prop::bool::weighted(0.7),
-        name_field(),
-        payload(),
+    let genuine = (0u32..3, 0u32..40)
+        .prop_map(|(c, d)| guardian_shared::trajectory::to_flat(&task(c, d), PANDA_JOINTS));
+    strategy::request(
+        CHANNELS as u32,
+        strategy::name_field(ENROLLED.to_vec()),
+        Just(0u32),
+        strategy::payload(genuine, 300),
     )
-        .prop_map(
-            |(id, op, channels, examples, mut waypoints, consistent, class_name, payload)| {
-                if consistent && channels != 0 {
-                    waypoints[0] = (payload.len() / channels as usize) as u32;
-                }
-                let h = RequestHeader {
-                    request_id: id,
-                    op,
-                    channels,
-                    examples,
-                    first: 0,
-                    waypoints,
-                    class_name,
-                };
-                (h, payload)
-            },
-        )
 }
 
 /// Whether the request is a well-formed check of a class enrolled in `bank` with a valid

@@ -15,10 +15,10 @@ use guardian_shared::trajectory::{MAX_WAYPOINTS, from_flat, to_flat};
 
 /// The daemon under test serves the Panda: 7 joints and the tool.
 const CHANNELS: usize = PANDA_JOINTS + 1;
+use guardian_shared::wire::strategy;
 use guardian_shared::wire::{
     self, ClassEntry, ClassNameError, MAX_EXAMPLES, MAX_REQUEST_FLOATS, NAME_BYTES, Op, ReasonCode,
     RequestHeader, ResponseHeader, Status, VerdictCode, decode_class_name, decode_code,
-    encode_class_name,
 };
 use guardian_tests::harness::{Daemon, PATIENCE, RawPlanner, RawPort, Setup, task, traj};
 use proptest::prelude::*;
@@ -120,98 +120,16 @@ fn judge(
     Ok(())
 }
 
-fn f32_any() -> impl Strategy<Value = f32> {
-    prop_oneof![
-        any::<u32>().prop_map(f32::from_bits),
-        -4.0f32..4.0,
-        Just(f32::NAN),
-        Just(f32::NEG_INFINITY),
-    ]
-}
-
-fn count() -> impl Strategy<Value = u32> {
-    prop_oneof![
-        any::<u32>(),
-        0u32..8,
-        Just(u32::MAX),
-        Just(MAX_WAYPOINTS as u32 + 1),
-        Just(1 << 31)
-    ]
-}
-
-fn name_field() -> impl Strategy<Value = [u8; NAME_BYTES]> {
-    prop_oneof![
-        prop::sample::select(vec!["task0", "task1", "fuzzed"])
-            .prop_map(|n| encode_class_name(n).unwrap()),
-        prop::collection::vec(any::<u8>(), NAME_BYTES).prop_map(|v| v.try_into().unwrap()),
-        "[\\x00-\\x1f\\x7f a-z\\u{80}-\\u{ff}]{0,64}".prop_map(|s| {
-            let mut f = [0u8; NAME_BYTES];
-            let n = s.len().min(NAME_BYTES);
-            f[..n].copy_from_slice(&s.as_bytes()[..n]);
-            f
-        }),
-    ]
-}
-
-fn payload() -> impl Strategy<Value = Vec<f32>> {
-    prop_oneof![
-        (
-            0u32..2,
-            0u32..40,
-            prop::option::of((any::<prop::sample::Index>(), f32_any()))
-        )
-            .prop_map(|(c, d, m)| {
-                let mut p = flat(c, d);
-                if let Some((i, v)) = m {
-                    let i = i.index(p.len());
-                    p[i] = v;
-                }
-                p
-            }),
-        prop::collection::vec(f32_any(), 0..200),
-        Just(Vec::new()),
-    ]
-}
-
+/// Hostile and half-valid requests (`guardian_shared::wire::strategy`): genuine plans of two
+/// enrolled tasks (often mutated at one value), random floats or empty payloads.
 fn request() -> impl Strategy<Value = (RequestHeader, Vec<f32>)> {
-    (
-        any::<u64>(),
-        prop_oneof![4 => 1u32..=6, 1 => any::<u32>()],
-        prop_oneof![4 => Just(CHANNELS as u32), 1 => count()],
-        prop_oneof![4 => Just(1u32), 1 => 0u32..=17, 1 => count()],
-        prop::array::uniform16(count()),
-        prop::bool::weighted(0.7),
-        name_field(),
+    let genuine = (0u32..2, 0u32..40).prop_map(|(c, d)| flat(c, d));
+    strategy::request(
+        CHANNELS as u32,
+        strategy::name_field(vec!["task0", "task1", "fuzzed"]),
         any::<u32>(),
-        payload(),
+        strategy::payload(genuine, 200),
     )
-        .prop_map(
-            |(
-                id,
-                op,
-                channels,
-                examples,
-                mut waypoints,
-                consistent,
-                class_name,
-                first,
-                payload,
-            )| {
-                if consistent && channels != 0 {
-                    waypoints[0] = (payload.len() / channels as usize) as u32;
-                }
-                let h = RequestHeader {
-                    request_id: id,
-                    op,
-                    channels,
-                    examples,
-                    first,
-                    waypoints,
-                    class_name,
-                };
-                (h, payload)
-            },
-        )
 }
 
 #[test]

@@ -26,6 +26,8 @@ use iceoryx2::prelude::ZeroCopySend;
 pub mod admin;
 mod request;
 mod response;
+#[cfg(feature = "proptest")]
+pub mod strategy;
 
 pub use request::{Request, RequestError};
 pub use response::{
