@@ -1,5 +1,5 @@
-//! guardian-bank: the class bank: a prototype per enrolled task class, its decision threshold, nearest-class
-//! search, the go/no-go decision rule, and the bank's on-disk format.
+//! guardian-bank: the class bank — a prototype per enrolled task class, its decision
+//! threshold, nearest-class search, the go/no-go decision rule, and the bank's on-disk format.
 //!
 //! The daemon serves from it and the lab builds the shipped default bank and evaluates with
 //! it, so serving and evaluation share one decision rule ([`ClassBank::decide`]):
