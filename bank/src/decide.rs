@@ -7,6 +7,7 @@ use guardian_shared::workcell::GeometryFeature;
 use super::distance::{Distances, distance};
 use super::{ClassBank, Neighbour};
 use guardian_robot::geometry::{self, PlanGeometry};
+use guardian_robot::place::{self, PlaceRule, PlaceScore, PlaceSignature};
 
 /// Step 2 of the rule: another class, at distance `nearest_other`, is nearer than the
 /// claimed one (at `claimed`) by more than the wrong-task `tolerance`.
@@ -218,5 +219,213 @@ impl ClassBank {
             }
         }
         d
+    }
+
+    /// The place score of `plan` against class `name` under `rule` (`None` for a class not
+    /// enrolled). A class without place signatures cannot say where it happens: its score
+    /// is infinite, so an anchored deployment never passes a plan on it.
+    pub fn place_score(
+        &self,
+        plan: &PlaceSignature,
+        name: &str,
+        rule: &PlaceRule,
+    ) -> Option<PlaceScore> {
+        let class = self.classes.get(name)?;
+        let unplaced = PlaceScore {
+            excess: f32::INFINITY,
+            point: None,
+            deviation: f32::INFINITY,
+        };
+        if !class.has_place() {
+            return Some(unplaced);
+        }
+        Some(place::score(plan, &class.place, rule).unwrap_or(unplaced))
+    }
+
+    /// Every class with its distance to `query`, the classes in the plan's place (under
+    /// `rule`) first, each part nearest first: what identify answers in an anchored
+    /// deployment, so a plan is named after a task that happens where it does.
+    pub fn ranked_in_place(
+        &self,
+        query: &[f32],
+        plan: &PlaceSignature,
+        rule: &PlaceRule,
+    ) -> Vec<Neighbour> {
+        self.ranked_with_place(query, plan, rule)
+            .into_iter()
+            .map(|(n, _)| n)
+            .collect()
+    }
+
+    /// [`ClassBank::ranked_in_place`], each class with whether it is in the plan's place
+    /// (every class's place scored once).
+    fn ranked_with_place(
+        &self,
+        query: &[f32],
+        plan: &PlaceSignature,
+        rule: &PlaceRule,
+    ) -> Vec<(Neighbour, bool)> {
+        let (mut inside, outside): (Vec<_>, Vec<_>) = self
+            .ranked(query)
+            .into_iter()
+            .map(|n| {
+                let here = self
+                    .place_score(plan, &n.name, rule)
+                    .is_some_and(|s| !rule.is_other_place(s.excess));
+                (n, here)
+            })
+            .partition(|(_, here)| *here);
+        inside.extend(outside);
+        inside
+    }
+
+    /// The decision rule of an anchored deployment (see the crate docs): a plan must be its
+    /// claimed class in shape and in place. Only classes in the plan's place compete for
+    /// wrong task; then a plan in another place than its class's examples is a
+    /// [`Outcome::GeometryMismatch`] on [`GeometryFeature::Place`] (before the outlier step:
+    /// the place is the plainer reason), with the
+    /// place excess (m) as the geometry score and the rule's tolerance as its threshold.
+    /// The nearest classes are those of [`ClassBank::ranked_in_place`].
+    pub fn decide_in_place(
+        &self,
+        query: &[f32],
+        plan: &PlaceSignature,
+        rule: &PlaceRule,
+        claimed: &str,
+        k: usize,
+    ) -> Decision {
+        let ranked = self.ranked_with_place(query, plan, rule);
+        let nearest: Vec<Neighbour> = ranked.iter().take(k).map(|(n, _)| n.clone()).collect();
+        let (Some(class), Some(score)) = (
+            self.classes.get(claimed),
+            self.place_score(plan, claimed, rule),
+        ) else {
+            return Decision {
+                outcome: Outcome::UnknownClass,
+                claimed_distance: None,
+                threshold: None,
+                margin: None,
+                gap: None,
+                nearest,
+                geometry_score: None,
+                geometry_threshold: None,
+                geometry_feature: None,
+            };
+        };
+        let d = distance(query, &class.prototype);
+        let threshold = class.threshold.unwrap_or(self.default_threshold) * rule.shape;
+        // The nearest other class in the plan's place (ranked puts those first).
+        let other = ranked
+            .iter()
+            .find(|(n, here)| *here && n.name != claimed)
+            .map(|(n, _)| n);
+        let outcome = match other {
+            Some(o) if is_wrong_task(d, o.distance, self.wrong_task_tolerance) => {
+                Outcome::WrongTask {
+                    nearest: o.name.clone(),
+                }
+            }
+            // Another place is the plain, physical reason: said before the shape's.
+            _ if rule.is_other_place(score.excess) => Outcome::GeometryMismatch {
+                feature: GeometryFeature::Place,
+            },
+            _ if is_outlier(d, threshold) => Outcome::Outlier,
+            _ => Outcome::Go,
+        };
+        Decision {
+            outcome,
+            claimed_distance: Some(d),
+            threshold: Some(threshold),
+            margin: Some(threshold - d),
+            gap: other.map(|o| o.distance - d),
+            nearest,
+            geometry_score: Some(score.excess),
+            geometry_threshold: Some(rule.tolerance),
+            geometry_feature: Some(GeometryFeature::Place),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A pick-and-place signature to bin `bin` (bins 6 cm apart along x), the part `dy` off.
+    fn to_bin(bin: usize, dy: f64) -> PlaceSignature {
+        let start = [0.4, 0.0, 0.4];
+        let pick = [0.5, 0.2 + dy, 0.1];
+        let place = [0.4 + 0.06 * bin as f64, -0.2, 0.1];
+        let up = [place[0], place[1], 0.2];
+        let mut pos = vec![];
+        let mut tool = vec![];
+        for (a, b, on) in [
+            (start, pick, false),
+            (pick, place, true),
+            (place, up, false),
+        ] {
+            for i in 1..=8 {
+                let t = f64::from(i) / 8.0;
+                pos.push([0, 1, 2].map(|d| a[d] + t * (b[d] - a[d])));
+                tool.push(on);
+            }
+        }
+        PlaceSignature::of_path(&pos, &tool).unwrap()
+    }
+
+    /// Three tasks of one shape (the same embedding), each to its own bin.
+    fn cell() -> ClassBank {
+        let mut b = ClassBank::new(2, "m", 0.5);
+        for bin in 0..3 {
+            let e = vec![vec![1.0, 0.0], vec![1.0, 0.01], vec![0.99, 0.0]];
+            let place: Vec<PlaceSignature> = [-0.015, 0.0, 0.015]
+                .iter()
+                .map(|&dy| to_bin(bin, dy))
+                .collect();
+            b.enroll_placed(&format!("bin{bin}"), &e, &[], &[], &place)
+                .unwrap();
+        }
+        b
+    }
+
+    #[test]
+    fn in_a_cell_the_place_decides_between_tasks_of_one_shape() {
+        let b = cell();
+        let rule = PlaceRule::DEFAULT;
+        let q = [1.0, 0.005];
+        // Genuine: go, although two other classes have the same shape.
+        let d = b.decide_in_place(&q, &to_bin(1, 0.01), &rule, "bin1", 3);
+        assert_eq!(d.outcome, Outcome::Go, "{d:?}");
+        assert_eq!(d.nearest[0].name, "bin1");
+        assert_eq!(d.geometry_feature, Some(GeometryFeature::Place));
+        assert!(d.geometry_score.unwrap() <= rule.tolerance);
+        assert_eq!(
+            b.ranked_in_place(&q, &to_bin(2, 0.0), &rule)[0].name,
+            "bin2"
+        );
+        // The same motion to the neighbouring bin: no-go on the place, with its excess.
+        let d = b.decide_in_place(&q, &to_bin(2, 0.0), &rule, "bin1", 3);
+        assert_eq!(
+            d.outcome,
+            Outcome::GeometryMismatch {
+                feature: GeometryFeature::Place
+            }
+        );
+        assert!(d.geometry_score.unwrap() > 0.03, "{d:?}");
+        // The answer on the wire says so.
+        let a = d.answer();
+        assert_eq!(
+            a.verdict,
+            CheckVerdict::NoGo(NoGo::GeometryMismatch(GeometryFeature::Place))
+        );
+        // Not enrolled; enrolled without place signatures: never a go.
+        let d = b.decide_in_place(&q, &to_bin(1, 0.0), &rule, "nope", 3);
+        assert_eq!(d.outcome, Outcome::UnknownClass);
+        let mut b = b;
+        b.enroll("unplaced", &[vec![1.0, 0.005]]).unwrap();
+        let d = b.decide_in_place(&q, &to_bin(1, 0.0), &rule, "unplaced", 3);
+        assert!(
+            matches!(d.outcome, Outcome::GeometryMismatch { .. }),
+            "{d:?}"
+        );
     }
 }

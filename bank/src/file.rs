@@ -8,8 +8,8 @@ use std::path::{Path, PathBuf};
 use sha2::{Digest, Sha256};
 
 use super::{
-    ClassBank, FORMAT_VERSION, FORMAT_VERSION_WITHOUT_EXAMPLES, FORMAT_VERSION_WITHOUT_ROBOT,
-    OLDEST_FORMAT_VERSION,
+    ClassBank, FORMAT_VERSION, FORMAT_VERSION_WITHOUT_EXAMPLES, FORMAT_VERSION_WITHOUT_PLACE,
+    FORMAT_VERSION_WITHOUT_ROBOT, OLDEST_FORMAT_VERSION,
 };
 
 const MAGIC: &str = "guardian-class-bank";
@@ -90,8 +90,10 @@ impl ClassBank {
         let body = serde_json::to_vec(self)?;
         let sum = hex(&Sha256::digest(&body));
         // The oldest version that holds the bank, so older builds keep reading what they can.
-        let version = if self.classes.values().any(|c| !c.examples.is_empty()) {
+        let version = if self.classes.values().any(|c| !c.place.is_empty()) {
             FORMAT_VERSION
+        } else if self.classes.values().any(|c| !c.examples.is_empty()) {
+            FORMAT_VERSION_WITHOUT_PLACE
         } else if self.robot.is_some() {
             FORMAT_VERSION_WITHOUT_EXAMPLES
         } else {
@@ -181,6 +183,12 @@ impl ClassBank {
                     "class {name:?}: an enrolled example is not a plan of the bank's robot ({} joints)",
                     self.robot_joints()
                 ));
+            }
+            if !c.place.is_empty() && c.place.len() != c.embeddings.len() {
+                return inconsistent(format!("class {name:?}: place signature count"));
+            }
+            if c.place.iter().any(|p| !p.is_valid()) {
+                return inconsistent(format!("class {name:?}: a place signature is not valid"));
             }
             if c.examples.iter().any(|x| !x.is_finite()) {
                 return inconsistent(format!("class {name:?}: an enrolled example is not finite"));

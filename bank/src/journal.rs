@@ -45,7 +45,7 @@ enum Record {
     Put {
         generation: u64,
         class: String,
-        value: Class,
+        value: Box<Class>,
     },
     /// `class` was forgotten.
     Remove { generation: u64, class: String },
@@ -151,7 +151,7 @@ impl ClassBank {
         }
         match record {
             Record::Put { class, value, .. } => {
-                self.classes.insert(class, value);
+                self.classes.insert(class, *value);
             }
             Record::Remove { class, .. } => {
                 self.classes.remove(&class);
@@ -169,7 +169,7 @@ impl ClassBank {
             Some(c) => Record::Put {
                 generation: self.generation,
                 class: name.to_owned(),
-                value: c.clone(),
+                value: Box::new(c.clone()),
             },
             None => Record::Remove {
                 generation: self.generation,

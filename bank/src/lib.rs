@@ -15,6 +15,13 @@
 //!    calibration);
 //! 5. otherwise [`Outcome::Go`].
 //!
+//! An **anchored** deployment (a cell whose tasks are where they happen) decides with
+//! [`ClassBank::decide_in_place`]: only classes whose enrolled examples share the plan's
+//! place ([`guardian_robot::place`]) compete in step 2; then, before step 3, a plan in
+//! another place than its claimed class's examples is a [`Outcome::GeometryMismatch`] on
+//! the feature `place`, its score the place excess in metres; step 3 uses the class
+//! threshold times the rule's `shape` factor; there is no step 4.
+//!
 //! Distances are Euclidean between embeddings; a prototype is the mean of a class's enrolled
 //! embeddings. A class uses its own calibrated threshold when it has one, else the bank's
 //! global default ([`DEFAULT_THRESHOLD`] unless the bank says otherwise).
@@ -28,6 +35,9 @@
 //! (positive = the claimed class is the nearest).
 //!
 //! ## File format (version [`FORMAT_VERSION`])
+//! Version 5 adds each class's place signatures (`place`, one per enrolled example, kept for
+//! classes enrolled by an anchored deployment); a bank in which no class has one is still
+//! written as version 4 or older.
 //! Version 4 adds each class's enrolled examples (`examples`, one per embedding: the
 //! resampled plans in the robot's joints, [`Example`]), so that a daemon started with a new
 //! model embeds them again ([`ClassBank::reembedded`]) instead of refusing the bank. A bank
@@ -61,6 +71,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 
 use guardian_robot::geometry::PlanGeometry;
+use guardian_robot::place::PlaceSignature;
 
 pub use calibrate::{
     Calibration, GenuineScore, GeometryCalibration, MIN_CLASS_CALIBRATION, calibrate,
@@ -75,7 +86,10 @@ pub use limits::BankLimits;
 pub use reembed::{ReembedError, Reembedding};
 
 /// Version of the on-disk format written by [`ClassBank::to_bytes`].
-pub const FORMAT_VERSION: u32 = 4;
+pub const FORMAT_VERSION: u32 = 5;
+/// The version written for a bank whose classes hold no place signatures (read by builds
+/// before version 5).
+pub const FORMAT_VERSION_WITHOUT_PLACE: u32 = 4;
 /// The version written for a bank whose classes hold no enrolled examples (read by builds
 /// before version 4).
 pub const FORMAT_VERSION_WITHOUT_EXAMPLES: u32 = 3;
@@ -110,12 +124,22 @@ pub struct Class {
     /// and then the class cannot be embedded again for a new model.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub examples: Vec<Example>,
+    /// The place signature of every enrolled example, in enrollment order (format 5); empty
+    /// when any example has none (enrolled by a deployment that is not anchored), and then
+    /// an anchored deployment cannot tell the class's place: its plans are refused.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub place: Vec<PlaceSignature>,
 }
 
 impl Class {
     /// Every enrolled example has a geometry descriptor.
     pub fn has_geometry(&self) -> bool {
         !self.geometry.is_empty() && self.geometry.len() == self.embeddings.len()
+    }
+
+    /// Every enrolled example has a place signature.
+    pub fn has_place(&self) -> bool {
+        !self.place.is_empty() && self.place.len() == self.embeddings.len()
     }
 
     /// Every enrolled example's plan is kept: the class can be embedded by another model.
@@ -157,6 +181,14 @@ pub enum EnrollError {
         embeddings: usize,
         /// Descriptors given.
         geometry: usize,
+    },
+    /// Place signatures were given, but not one per embedding.
+    #[error("{place} place signatures for {embeddings} embeddings")]
+    PlaceCount {
+        /// Embeddings given.
+        embeddings: usize,
+        /// Signatures given.
+        place: usize,
     },
     /// Examples were given, but not one per embedding.
     #[error("{examples} enrolled examples for {embeddings} embeddings")]
@@ -406,6 +438,29 @@ impl ClassBank {
         geometry: &[PlanGeometry],
         examples: &[Example],
     ) -> Result<&Class, EnrollError> {
+        self.enroll_placed(name, embeddings, geometry, examples, &[])
+    }
+
+    /// [`ClassBank::enroll_plans`] with the examples' place signatures (one per embedding,
+    /// or none; an anchored deployment's enrollment). The class keeps signatures only while
+    /// every example has one.
+    pub fn enroll_placed(
+        &mut self,
+        name: &str,
+        embeddings: &[Vec<f32>],
+        geometry: &[PlanGeometry],
+        examples: &[Example],
+        place: &[PlaceSignature],
+    ) -> Result<&Class, EnrollError> {
+        if !place.is_empty() && place.len() != embeddings.len() {
+            return Err(EnrollError::PlaceCount {
+                embeddings: embeddings.len(),
+                place: place.len(),
+            });
+        }
+        if let Some(index) = place.iter().position(|p| !p.is_valid()) {
+            return Err(EnrollError::NonFinite { index });
+        }
         if !examples.is_empty() && examples.len() != embeddings.len() {
             return Err(EnrollError::ExampleCount {
                 embeddings: embeddings.len(),
@@ -449,7 +504,14 @@ impl ClassBank {
                 calibration: None,
                 geometry: Vec::new(),
                 examples: Vec::new(),
+                place: Vec::new(),
             });
+        let complete = class.place.len() == class.embeddings.len();
+        if complete && !place.is_empty() {
+            class.place.extend_from_slice(place);
+        } else {
+            class.place.clear();
+        }
         let complete = class.geometry.len() == class.embeddings.len();
         if complete && !geometry.is_empty() {
             class.geometry.extend_from_slice(geometry);
@@ -505,6 +567,9 @@ impl ClassBank {
                 .chain(std::iter::once(&class.prototype)),
         )?;
         if let Some(index) = class.geometry.iter().position(|g| !g.is_finite()) {
+            return Err(EnrollError::NonFinite { index });
+        }
+        if let Some(index) = class.place.iter().position(|p| !p.is_valid()) {
             return Err(EnrollError::NonFinite { index });
         }
         let joints = self.robot_joints();
@@ -732,14 +797,14 @@ mod tests {
         ));
         let newer = String::from_utf8(bytes.clone()).unwrap().replacen(
             "guardian-class-bank 2 ",
-            "guardian-class-bank 5 ",
+            "guardian-class-bank 6 ",
             1,
         );
         assert!(matches!(
             ClassBank::from_bytes(newer.as_bytes()),
             Err(LoadBankError::UnsupportedFormat {
-                found: 5,
-                supported: 4
+                found: 6,
+                supported: 5
             })
         ));
         assert!(matches!(

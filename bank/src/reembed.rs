@@ -168,7 +168,7 @@ impl ClassBank {
                 class: name.clone(),
                 source,
             })?;
-            out.enroll_plans(name, &embeddings, &geometry, &class.examples)
+            out.enroll_placed(name, &embeddings, &geometry, &class.examples, &class.place)
                 .map_err(|source| ReembedError::Enroll {
                     class: name.clone(),
                     source,

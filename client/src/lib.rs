@@ -210,6 +210,26 @@ impl std::fmt::Display for NoGoReason {
             Self::UnknownClass => write!(f, "unknown class"),
             Self::InvalidTrajectory { kind, index } => write!(f, "invalid: {kind:?} at {index}"),
             Self::Workcell { kind, index } => write!(f, "workcell: {kind:?} at waypoint {index}"),
+            // The place excess is in metres: said in centimetres. Not a number: the plan's
+            // tool changes (grasps, releases) are not those of any enrolled run.
+            Self::GeometryMismatch {
+                feature: GeometryFeature::Place,
+                score,
+                ..
+            } if !score.is_finite() => write!(
+                f,
+                "place: its grasps and releases are not those of any enrolled run"
+            ),
+            Self::GeometryMismatch {
+                feature: GeometryFeature::Place,
+                score,
+                threshold,
+            } => write!(
+                f,
+                "place: {:.1} cm beyond the enrolled runs (tolerance {:.1} cm)",
+                score * 100.0,
+                threshold * 100.0
+            ),
             Self::GeometryMismatch {
                 feature,
                 score,

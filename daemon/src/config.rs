@@ -14,10 +14,12 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use guardian_robot::cell::{Cell, InvalidCell, Region};
 use guardian_robot::kinematics::{
     DEFAULT_ROBOT, RobotDescription, RobotLoadError, WorkcellOverrideError,
     apply_workcell_overrides,
 };
+use guardian_robot::place::PlaceRule;
 use guardian_screen::check::Station;
 use guardian_shared::workcell::Workcell;
 use serde::{Deserialize, Serialize};
@@ -198,6 +200,11 @@ pub struct Config {
     /// set here override the robot description's `[workcell]` defaults one by one.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub workcell: Option<toml::Table>,
+    /// A cell that is not a canvas (`docs/cells.md`): anchoring tasks to their place, the
+    /// tool tip's allowed and keep-out boxes. While it is set, the canvas rules are off
+    /// unless `[workcell]` sets `enabled` itself.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cell: Option<CellConfig>,
     /// The admin endpoint and admin separation.
     pub admin: AdminConfig,
     /// The verdict record.
@@ -211,6 +218,80 @@ pub struct Config {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub fleet: Option<FleetTable>,
 }
+
+/// The `[cell]` table (`docs/cells.md`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields)]
+pub struct CellConfig {
+    /// Tasks are where they happen: a plan must be its claimed class in shape and in place
+    /// (its tool path in the base frame against the enrolled examples').
+    #[serde(default)]
+    pub anchored: bool,
+    /// The place rule's spread factor (see `guardian_robot::place`).
+    #[serde(default = "default_place_spread")]
+    pub place_spread: f32,
+    /// The place rule's factor for route points (see `guardian_robot::place`).
+    #[serde(default = "default_place_route")]
+    pub place_route: f32,
+    /// Factor on the class thresholds of the shape rule (see `guardian_robot::place`).
+    #[serde(default = "default_shape_scale")]
+    pub shape_scale: f32,
+    /// The place rule's tolerance (m).
+    #[serde(default = "default_place_tolerance")]
+    pub place_tolerance: f32,
+    /// The tool tip stays inside this box (base frame, m).
+    #[serde(default)]
+    pub allowed: Option<Region>,
+    /// The tool tip never enters these boxes (base frame, m).
+    #[serde(default)]
+    pub keep_out: Vec<Region>,
+}
+
+fn default_place_spread() -> f32 {
+    PlaceRule::DEFAULT.spread
+}
+
+fn default_place_route() -> f32 {
+    PlaceRule::DEFAULT.route
+}
+
+fn default_shape_scale() -> f32 {
+    PlaceRule::DEFAULT.shape
+}
+
+fn default_place_tolerance() -> f32 {
+    PlaceRule::DEFAULT.tolerance
+}
+
+impl CellConfig {
+    /// The cell's rules.
+    pub fn cell(&self) -> Cell {
+        Cell {
+            anchored: self.anchored,
+            place: PlaceRule {
+                spread: self.place_spread,
+                route: self.place_route,
+                shape: self.shape_scale,
+                tolerance: self.place_tolerance,
+            },
+            allowed: self.allowed,
+            keep_out: self.keep_out.clone(),
+        }
+    }
+}
+
+/// The `[cell]` table, commented out, as `--print-default-config` ends (`docs/cells.md`).
+pub const CELL_TEMPLATE: &str = "\
+# [cell]: a cell that is not a canvas (docs/cells.md). While set, the canvas rules\n\
+# are off unless [workcell] sets `enabled` itself.\n\
+# [cell]\n\
+# anchored = true                          # tasks are where they happen (base frame)\n\
+# place-spread = 1.5                       # times the demonstrated spread granted\n\
+# place-route = 2.0                        # route points: times the tolerance\n\
+# place-tolerance = 0.015                  # m beyond it\n\
+# shape-scale = 1.2                        # times the class thresholds (shape)\n\
+# allowed = { min = [0.2, -0.6, 0.0], max = [0.9, 0.6, 0.7] }\n\
+# keep-out = [{ min = [0.45, -0.05, 0.0], max = [0.55, 0.05, 0.3] }]\n";
 
 /// The `[fleet]` table, commented out, as `--print-default-config` ends: every key with
 /// an example value (`docs/fleet.md`, The config). Uncommented, it is a valid table.
@@ -258,6 +339,7 @@ impl Default for Config {
             max_bank_bytes: 256 << 20,
             iceoryx2: Iceoryx2Config::default(),
             workcell: None,
+            cell: None,
             admin: AdminConfig::default(),
             record: RecordConfig::default(),
             metrics: MetricsConfig::default(),
@@ -322,6 +404,9 @@ pub enum ConfigError {
     /// The `[workcell]` overrides do not fit.
     #[error("[workcell]: {0}")]
     Workcell(#[from] WorkcellOverrideError),
+    /// The `[cell]` table's values are unusable.
+    #[error("[cell]: {0}")]
+    Cell(#[from] InvalidCell),
     /// The config has a `[fleet]` table but this guardiand was built without fleet support.
     #[error(
         "[fleet]: this guardiand was built without the `fleet` feature; \
@@ -394,7 +479,7 @@ impl Config {
              # [workcell]: canvas geometry and tolerances of the workcell rules (m, rad);\n\
              #   defaults from the robot description, each key set here overrides one;\n\
              #   enabled = false turns them off (docs/guardiand.md).\n\
-             {body}\n{FLEET_TEMPLATE}",
+             {body}\n{CELL_TEMPLATE}{FLEET_TEMPLATE}",
             guardian_bank::DEFAULT_THRESHOLD
         )
     }
@@ -422,6 +507,9 @@ impl Config {
             return Err(ConfigError::KNearest(self.k_nearest));
         }
         apply_workcell_overrides(Workcell::DEFAULT, self.workcell.as_ref())?;
+        if let Some(c) = &self.cell {
+            c.cell().validate()?;
+        }
         // A caller whose uid or gid the daemon's user namespace does not map (systemd
         // PrivateUsers=) is reported as the overflow id 65534: never an admin.
         if self.admin.uids.contains(&OVERFLOW_ID) || self.admin.gids.contains(&OVERFLOW_ID) {
@@ -448,8 +536,18 @@ impl Config {
     /// calls this at start and on reload, and the screen owns the result.
     pub fn station(&self) -> Result<Station, ConfigError> {
         let description = RobotDescription::resolve(&self.robot)?;
-        let workcell = description.workcell_with(self.workcell.as_ref())?;
-        Ok(Station::new(description.robot, workcell))
+        let mut workcell = description.workcell_with(self.workcell.as_ref())?;
+        let Some(cell) = &self.cell else {
+            return Ok(Station::new(description.robot, workcell));
+        };
+        if !self
+            .workcell
+            .as_ref()
+            .is_some_and(|t| t.contains_key("enabled"))
+        {
+            workcell.enabled = false;
+        }
+        Ok(Station::new(description.robot, workcell).with_cell(cell.cell()))
     }
 
     /// The serving loop's longest sleep.
@@ -608,6 +706,44 @@ mod tests {
         }
         #[cfg(not(feature = "fleet"))]
         assert!(parsed.is_err());
+    }
+
+    /// The `[cell]` template, uncommented, is a cell the daemon accepts: anchored, its
+    /// boxes, the canvas rules off; bad boxes and numbers are refused by name.
+    #[test]
+    fn the_cell_table_turns_the_canvas_off_and_checks_its_boxes() {
+        let text = Config::default_toml();
+        let block: String = text
+            .lines()
+            .skip_while(|l| *l != "# [cell]")
+            .take_while(|l| !l.starts_with("# [fleet]:"))
+            .map(|l| format!("{}\n", l.trim_start_matches("# ")))
+            .collect();
+        let c = Config::from_toml(&block, Path::new("t")).unwrap();
+        let station = c.station().unwrap();
+        let cell = station.cell();
+        assert!(cell.anchored);
+        assert_eq!(cell.place, PlaceRule::DEFAULT);
+        assert_eq!(cell.keep_out.len(), 1);
+        assert!(cell.allowed.is_some());
+        assert!(!station.workcell().enabled);
+        // `enabled` set in [workcell] wins.
+        let c = Config::from_toml(
+            &format!("{block}[workcell]\nenabled = true\n"),
+            Path::new("t"),
+        )
+        .unwrap();
+        assert!(c.station().unwrap().workcell().enabled);
+        // Without [cell], nothing changes.
+        let s = Config::default().station().unwrap();
+        assert!(s.workcell().enabled && !s.cell().anchored && !s.cell().has_regions());
+        for bad in [
+            "[cell]\nkeep-out = [{ min = [0.0, 0.0, 1.0], max = [0.1, 0.1, 0.5] }]\n",
+            "[cell]\nplace-tolerance = 0.0\n",
+            "[cell]\nanchored = true\nplace = 1\n",
+        ] {
+            assert!(Config::from_toml(bad, Path::new("t")).is_err(), "{bad}");
+        }
     }
 
     #[test]

@@ -341,8 +341,11 @@ impl Writer {
                         })
                     })
                     .collect();
+                // A failure's message, or why a no-go is one (its rule, feature and numbers).
                 let message = if ok {
-                    String::new()
+                    guardian_shared::wire::decode_check(r)
+                        .map(|a| a.why())
+                        .unwrap_or_default()
                 } else {
                     decode_text(&r.message)
                 };

@@ -474,7 +474,7 @@ impl Screen {
                 tracing::error!(error = %e, "embedding failed");
                 embedding_failed(&e)
             })?;
-        match check::decide(&self.bank, &prepared, claimed, self.k) {
+        match check::decide(&self.bank, &self.station, &prepared, claimed, self.k) {
             PlanCheck::Invalid(inv) => early(NoGo::InvalidTrajectory(inv)),
             // Workcell rules first: absolute, no model involved.
             PlanCheck::Workcell(v) => early(NoGo::Workcell(v)),
@@ -495,16 +495,24 @@ impl Screen {
                 tracing::error!(error = %e, "embedding failed");
                 embedding_failed(&e)
             })?
-            .map_err(|inv| invalid(inv, 0))?
-            .embedding;
+            .map_err(|inv| invalid(inv, 0))?;
         if self.bank.is_empty() {
             return Err(Failure::EmptyBank {
                 message: "no classes enrolled".into(),
             });
         }
-        Ok(self
-            .bank
-            .nearest(&e, self.k)
+        // An anchored cell names the nearest task among those where the plan happens.
+        let ranked = match &e.place {
+            Some(place) => {
+                let mut r =
+                    self.bank
+                        .ranked_in_place(&e.embedding, place, &self.station.cell().place);
+                r.truncate(self.k);
+                r
+            }
+            None => self.bank.nearest(&e.embedding, self.k),
+        };
+        Ok(ranked
             .iter()
             .map(|n| self.entry(&n.name, n.distance))
             .collect())
@@ -539,11 +547,12 @@ impl Screen {
         let generation = self.bank.generation();
         let before = self.bank.class_bytes(name);
         self.bank
-            .enroll_plans(
+            .enroll_placed(
                 name,
                 &enrollment.embeddings,
                 &enrollment.geometry,
                 &enrollment.examples,
+                &enrollment.place,
             )
             .map_err(|e| Failure::Internal {
                 message: e.to_string(),

@@ -83,7 +83,7 @@ struct Row {
     client: String,
 }
 
-const COLUMNS: &str = "id, time_ms, claimed, verdict, reason, distance, threshold, margin, nearest, model, bank_version, client";
+const COLUMNS: &str = "id, time_ms, claimed, verdict, reason, distance, threshold, margin, nearest, model, bank_version, client, message";
 
 fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<Row> {
     let nearest: String = r.get(8)?;
@@ -102,7 +102,16 @@ fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<Row> {
         time_ms: r.get(1)?,
         claimed: r.get(2)?,
         verdict: r.get(3)?,
-        reason: r.get(4)?,
+        // The reason with why (the record's message: rule and waypoint, feature and
+        // numbers), when there is one.
+        reason: {
+            let (reason, why): (String, String) = (r.get(4)?, r.get(12)?);
+            if why.is_empty() {
+                reason
+            } else {
+                format!("{reason}: {why}")
+            }
+        },
         distance: r.get(5)?,
         threshold: r.get(6)?,
         margin: r.get(7)?,

@@ -355,7 +355,7 @@ fn shift_direction(
     (best.0, best.1.0)
 }
 
-type Case = (String, Trajectory, String, Outcome);
+pub type Case = (String, Trajectory, String, Outcome);
 
 /// Run the demo's cases against the daemon behind `client`.
 pub fn run_cases(client: &Client, opts: &Options) -> Result<Report, DemoError> {
@@ -532,36 +532,7 @@ pub fn run_cases(client: &Client, opts: &Options) -> Result<Report, DemoError> {
          it; drawer {gd} may be one of them"
     ));
 
-    let rows = cases
-        .into_iter()
-        .map(|(case, t, claimed, expected)| {
-            let start = Instant::now();
-            let result = client.check(&t, &claimed);
-            let round_trip_us = start.elapsed().as_secs_f64() * 1e6;
-            let (got, verdict, distance, threshold, geometry) = match &result {
-                Ok(v) => (
-                    Outcome::of(v),
-                    verdict_text(v),
-                    v.claimed_distance,
-                    v.threshold,
-                    v.geometry_score.zip(v.geometry_threshold),
-                ),
-                Err(e) => (Outcome::Error, format!("ERROR {e}"), None, None, None),
-            };
-            Row {
-                case,
-                claimed,
-                expected,
-                got,
-                verdict,
-                distance,
-                threshold,
-                geometry,
-                round_trip_us,
-                as_expected: got == expected,
-            }
-        })
-        .collect();
+    let rows = cases.into_iter().map(|c| check_case(client, c)).collect();
 
     let kept = if opts.keep {
         names
@@ -572,7 +543,37 @@ pub fn run_cases(client: &Client, opts: &Options) -> Result<Report, DemoError> {
     Ok(Report { rows, notes, kept })
 }
 
-fn forget_all(client: &Client, names: &[String]) -> Result<(), DemoError> {
+/// Check one case and time its round trip: its table row.
+pub fn check_case(client: &Client, (case, t, claimed, expected): Case) -> Row {
+    let start = Instant::now();
+    let result = client.check(&t, &claimed);
+    let round_trip_us = start.elapsed().as_secs_f64() * 1e6;
+    let (got, verdict, distance, threshold, geometry) = match &result {
+        Ok(v) => (
+            Outcome::of(v),
+            verdict_text(v),
+            v.claimed_distance,
+            v.threshold,
+            v.geometry_score.zip(v.geometry_threshold),
+        ),
+        Err(e) => (Outcome::Error, format!("ERROR {e}"), None, None, None),
+    };
+    Row {
+        case,
+        claimed,
+        expected,
+        got,
+        verdict,
+        distance,
+        threshold,
+        geometry,
+        round_trip_us,
+        as_expected: got == expected,
+    }
+}
+
+/// Forget `names` (those not enrolled are no error).
+pub fn forget_all(client: &Client, names: &[String]) -> Result<(), DemoError> {
     for name in names {
         match client.forget(name) {
             Ok(()) | Err(CheckError::UnknownClass { .. }) => {}

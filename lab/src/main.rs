@@ -30,6 +30,9 @@ enum Command {
     Bank(guardian_lab::tools::bank::Args),
     /// Faulty-plan detection metrics (AUROC, TPR at 1% FPR, detection, false rejects).
     Outliers(guardian_lab::eval::outliers::Args),
+    /// Manipulation cells never seen: identify, genuine go, wrong task and faults, anchored
+    /// against today's decision (or `--calibrate`: sweep the place rule).
+    Cell(guardian_lab::eval::cell::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -47,6 +50,7 @@ fn main() -> anyhow::Result<()> {
         Command::Report(args) => guardian_lab::eval::report::run(args),
         Command::Bank(args) => guardian_lab::tools::bank::run(args),
         Command::Outliers(args) => guardian_lab::eval::outliers::run(args),
+        Command::Cell(args) => guardian_lab::eval::cell::run(args),
     }
 }
 

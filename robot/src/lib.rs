@@ -7,12 +7,16 @@
 //!   resampling to the model's steps; [`preprocess`] is the same with the rules off.
 //! - [`geometry`]: the plan geometry (position, size, strokes, direction) the screen compares
 //!   with a class's enrolled examples.
+//! - [`place`]: where a plan happens (its tool path in the base frame), for cells whose tasks
+//!   are anchored to their place; [`cell`]: a cell's rules (allowed and keep-out boxes).
 //!
 //! `guardianctl`, the ROS 2 gate and the data generator link this crate and no network code.
 #![forbid(unsafe_code)]
 
+pub mod cell;
 pub mod geometry;
 pub mod kinematics;
 pub mod pen;
+pub mod place;
 pub mod preprocess;
 pub mod workcell;

@@ -218,6 +218,17 @@ pub fn inspect_with(
     cell: &Workcell,
     raw: &[Waypoint],
 ) -> Result<Inspection, InvalidTrajectory> {
+    inspect_in(robot, cell, &crate::cell::Cell::NONE, raw)
+}
+
+/// [`inspect_with`], then a cell's region rules ([`crate::cell::Cell::violation`]) on the
+/// same tool-tip positions, for a plan that broke no workcell rule.
+pub fn inspect_in(
+    robot: &Robot,
+    cell: &Workcell,
+    rules: &crate::cell::Cell,
+    raw: &[Waypoint],
+) -> Result<Inspection, InvalidTrajectory> {
     trajectory::validate(raw, robot.limits())?;
     let n = raw.len();
     let run = |s: &mut Scratch| {
@@ -247,6 +258,7 @@ pub fn inspect_with(
                 check_poses(cell, poses)
             }
         };
+        let violation = violation.or_else(|| rules.violation(positions));
         cumulative_lengths(positions, lengths);
         Inspection {
             resampled: trajectory::resample(raw, lengths, robot.joints()),

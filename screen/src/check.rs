@@ -14,15 +14,23 @@
 //! are resampled already (the lab's data sets) enter at the embedding stage
 //! ([`embed_resampled`]); their plan geometry comes from the same pen path
 //! ([`Embedded::geometry`]). Every trajectory is validated once, by the inspection.
+//!
+//! A station whose cell is anchored ([`Cell::anchored`]) also takes each plan's place
+//! signature (its tool path in the base frame, `guardian_robot::place`) in [`prepare`],
+//! [`embed_plan`] and [`enrollment`], and decides with the bank's place rule
+//! ([`ClassBank::decide_in_place`]) instead of the canvas geometry; its region rules (allowed
+//! and keep-out boxes) are checked with the workcell rules.
 
 use guardian_shared::trajectory::{InvalidTrajectory, Resampled, STEPS, Waypoint};
 use guardian_shared::workcell::{Workcell, WorkcellViolation};
 
 use guardian_bank::{ClassBank, Decision, Example};
 use guardian_models::embedder::{EmbedError, Embedder, Embedding};
+use guardian_robot::cell::Cell;
 use guardian_robot::geometry::PlanGeometry;
 use guardian_robot::kinematics::Robot;
 use guardian_robot::pen::PenPoint;
+use guardian_robot::place::PlaceSignature;
 use guardian_robot::workcell::{self, Inspection};
 
 /// The robot served and the workcell it works in: what a check needs of the physical
@@ -31,12 +39,17 @@ use guardian_robot::workcell::{self, Inspection};
 pub struct Station {
     robot: Robot,
     workcell: Workcell,
+    cell: Cell,
 }
 
 impl Station {
     /// `robot` working under `workcell`'s rules.
     pub fn new(robot: Robot, workcell: Workcell) -> Self {
-        Self { robot, workcell }
+        Self {
+            robot,
+            workcell,
+            cell: Cell::NONE,
+        }
     }
 
     /// The published Panda with the default pen, in the paper's workcell (rules on).
@@ -61,6 +74,23 @@ impl Station {
     pub fn with_workcell(self, workcell: Workcell) -> Self {
         Self { workcell, ..self }
     }
+
+    /// The same robot and workcell in `cell` (its region rules and anchoring).
+    pub fn with_cell(self, cell: Cell) -> Self {
+        Self { cell, ..self }
+    }
+
+    /// The cell's rules.
+    pub fn cell(&self) -> &Cell {
+        &self.cell
+    }
+
+    /// The place signature of a resampled plan, if the cell is anchored.
+    fn place_of(&self, x: &Resampled) -> Option<PlaceSignature> {
+        self.cell
+            .anchored
+            .then(|| PlaceSignature::of_plan(&self.robot, x))
+    }
 }
 
 /// A plan after the stages that do not depend on the bank.
@@ -81,6 +111,8 @@ pub struct Embedded {
     pub embedding: Embedding,
     /// The pen path of the resampled plan.
     pub path: [PenPoint; STEPS],
+    /// The plan's place signature (only for an anchored station).
+    pub place: Option<PlaceSignature>,
 }
 
 impl Embedded {
@@ -104,8 +136,9 @@ pub enum PlanCheck {
 /// Inspect `waypoints` against `station`'s robot and rules: the early outcome, or the
 /// inspection to embed.
 fn inspect(station: &Station, waypoints: &[Waypoint]) -> Result<Inspection, Prepared> {
-    let inspection = workcell::inspect_with(&station.robot, &station.workcell, waypoints)
-        .map_err(Prepared::Invalid)?;
+    let inspection =
+        workcell::inspect_in(&station.robot, &station.workcell, &station.cell, waypoints)
+            .map_err(Prepared::Invalid)?;
     match inspection.violation {
         Some(v) => Err(Prepared::Workcell(v)),
         None => Ok(inspection),
@@ -123,7 +156,12 @@ pub fn prepare(
         Err(early) => return Ok(early),
     };
     let (embedding, path) = embedder.embed_with_pen_path(&station.robot, &inspection.resampled)?;
-    Ok(Prepared::Embedded(Box::new(Embedded { embedding, path })))
+    let place = station.place_of(&inspection.resampled);
+    Ok(Prepared::Embedded(Box::new(Embedded {
+        embedding,
+        path,
+        place,
+    })))
 }
 
 /// The embedding stage alone, for plans of `robot` that are already resampled (the lab's
@@ -139,7 +177,11 @@ pub fn embed_resampled(
     Ok(embeddings
         .into_iter()
         .zip(paths)
-        .map(|(embedding, path)| Embedded { embedding, path })
+        .map(|(embedding, path)| Embedded {
+            embedding,
+            path,
+            place: None,
+        })
         .collect())
 }
 
@@ -158,7 +200,14 @@ pub fn prepare_batch(
         .filter_map(|i| i.as_ref().ok().map(|i| i.resampled))
         .collect();
     let batch = if xs.len() >= 2 {
-        embed_resampled(embedder, &station.robot, &xs).ok()
+        embed_resampled(embedder, &station.robot, &xs)
+            .ok()
+            .map(|mut es| {
+                for (e, x) in es.iter_mut().zip(&xs) {
+                    e.place = station.place_of(x);
+                }
+                es
+            })
     } else {
         None
     };
@@ -178,10 +227,31 @@ pub fn prepare_batch(
 
 /// Decide a prepared plan claiming class `claimed` against `bank`, with the `k` nearest
 /// classes. The plan geometry is computed from the pen path only when the bank can use it.
-pub fn decide(bank: &ClassBank, prepared: &Prepared, claimed: &str, k: usize) -> PlanCheck {
+/// At an anchored `station` the place rule decides instead of the plan geometry (a plan
+/// prepared without its place signature is never in place).
+pub fn decide(
+    bank: &ClassBank,
+    station: &Station,
+    prepared: &Prepared,
+    claimed: &str,
+    k: usize,
+) -> PlanCheck {
     match prepared {
         Prepared::Invalid(inv) => PlanCheck::Invalid(*inv),
         Prepared::Workcell(v) => PlanCheck::Workcell(*v),
+        Prepared::Embedded(e) if station.cell.anchored => {
+            let none = PlaceSignature {
+                tools: Vec::new(),
+                points: Vec::new(),
+            };
+            PlanCheck::Decided(bank.decide_in_place(
+                &e.embedding,
+                e.place.as_ref().unwrap_or(&none),
+                &station.cell.place,
+                claimed,
+                k,
+            ))
+        }
         Prepared::Embedded(e) => {
             let geometry = bank.geometry_calibration().and_then(|_| e.geometry());
             PlanCheck::Decided(bank.decide_with_geometry(
@@ -205,6 +275,7 @@ pub fn check(
 ) -> Result<PlanCheck, EmbedError> {
     Ok(decide(
         bank,
+        station,
         &prepare(embedder, station, waypoints)?,
         claimed,
         k,
@@ -224,7 +295,12 @@ pub fn embed_plan(
         Err(inv) => return Ok(Err(inv)),
     };
     let (embedding, path) = embedder.embed_with_pen_path(&station.robot, &x)?;
-    Ok(Ok(Embedded { embedding, path }))
+    let place = station.place_of(&x);
+    Ok(Ok(Embedded {
+        embedding,
+        path,
+        place,
+    }))
 }
 
 /// What an enrollment adds to a class: per example its embedding, its kept plan and (only
@@ -237,6 +313,8 @@ pub struct Enrollment {
     pub geometry: Vec<PlanGeometry>,
     /// The resampled plans, kept so that the class survives a new model.
     pub examples: Vec<Example>,
+    /// One place signature per example at an anchored station, else none.
+    pub place: Vec<PlaceSignature>,
 }
 
 /// An enrollment's examples could not be embedded.
@@ -280,10 +358,12 @@ pub fn enrollment(
         .iter()
         .map(|x| Example::from_resampled(x, joints))
         .collect();
+    let place = xs.iter().filter_map(|x| station.place_of(x)).collect();
     Ok(Enrollment {
         embeddings,
         geometry,
         examples,
+        place,
     })
 }
 

@@ -124,6 +124,10 @@ pub enum WorkcellKind {
     /// Pen up, but the pen tip is below the canvas plane or above the hover height (plus
     /// margin).
     HoverHeight = 4,
+    /// The tool tip enters one of the cell's keep-out boxes (`[cell] keep-out`).
+    KeepOut = 5,
+    /// The tool tip leaves the cell's allowed region (`[cell] allowed`).
+    OutsideCell = 6,
 }
 
 /// The first waypoint that broke a workcell rule.
@@ -172,6 +176,10 @@ pub enum GeometryFeature {
     DirectionX = 11,
     /// Net drawing direction, y.
     DirectionY = 12,
+    /// Where the plan happens in the cell: its tool path in the robot's base frame against
+    /// the enrolled examples' (anchored deployments only; the score is the place excess in
+    /// metres, `guardian_robot::place`). Not a descriptor feature: not in [`Self::ALL`].
+    Place = 13,
 }
 
 /// Number of [`GeometryFeature`]s.
@@ -209,6 +217,7 @@ impl GeometryFeature {
             Self::EndY => "end-y",
             Self::DirectionX => "direction-x",
             Self::DirectionY => "direction-y",
+            Self::Place => "place",
         }
     }
 }
@@ -225,11 +234,15 @@ mod tests {
             assert_eq!(decode_code::<GeometryFeature>(*f as u32), Some(*f));
         }
         assert_eq!(decode_code::<GeometryFeature>(0), None);
-        assert_eq!(decode_code::<GeometryFeature>(13), None);
-        for v in 1..=4 {
+        assert_eq!(
+            decode_code::<GeometryFeature>(13),
+            Some(GeometryFeature::Place)
+        );
+        assert_eq!(decode_code::<GeometryFeature>(14), None);
+        for v in 1..=6 {
             assert_eq!(decode_code::<WorkcellKind>(v).map(|k| k as u32), Some(v));
         }
-        assert_eq!(decode_code::<WorkcellKind>(5), None);
+        assert_eq!(decode_code::<WorkcellKind>(7), None);
         assert!(Workcell::default().validate().is_ok());
         let bad = Workcell {
             margin: f64::NAN,

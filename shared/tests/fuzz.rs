@@ -174,8 +174,8 @@ proptest! {
         prop_assert_eq!(decode_code::<VerdictCode>(v).map(|o| o as u32), (v <= 2).then_some(v));
         prop_assert_eq!(decode_code::<ReasonCode>(v).map(|o| o as u32), (v <= 6).then_some(v));
         prop_assert_eq!(decode_code::<LimitKind>(v).map(|o| o as u32), (1..=3).contains(&v).then_some(v));
-        prop_assert_eq!(decode_code::<WorkcellKind>(v).map(|o| o as u32), (1..=4).contains(&v).then_some(v));
-        prop_assert_eq!(decode_code::<GeometryFeature>(v).map(|o| o as u32), (1..=12).contains(&v).then_some(v));
+        prop_assert_eq!(decode_code::<WorkcellKind>(v).map(|o| o as u32), (1..=6).contains(&v).then_some(v));
+        prop_assert_eq!(decode_code::<GeometryFeature>(v).map(|o| o as u32), (1..=13).contains(&v).then_some(v));
         let r = ResponseHeader { invalid_kind: v, ..ResponseHeader::default() };
         prop_assert_eq!(r.invalid().map(|k| k as u32), (1..=6).contains(&v).then_some(v));
     }

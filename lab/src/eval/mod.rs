@@ -16,6 +16,7 @@
 //! [`report`] (the markdown + PNG report of a model).
 
 pub mod calibration;
+pub mod cell;
 pub mod kfold;
 pub mod metrics;
 pub mod outliers;

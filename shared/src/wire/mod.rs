@@ -328,7 +328,7 @@ pub struct ResponseHeader {
     pub geometry_score: f32,
     /// Geometry threshold (check), NaN when the check does not apply.
     pub geometry_threshold: f32,
-    /// The [`GeometryFeature`] behind `geometry_score` (value 1..=12), 0 when none.
+    /// The [`GeometryFeature`] behind `geometry_score` (value 1..=13; 13 is the place), 0 when none.
     pub geometry_feature: u32,
     /// A [`LimitKind`] value when an enroll was refused with [`Status::LimitExceeded`],
     /// else 0.

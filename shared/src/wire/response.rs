@@ -265,6 +265,42 @@ pub struct CheckAnswer {
 }
 
 impl CheckAnswer {
+    /// Why a no-go is one, in one line with its numbers (empty for a go): the rule and
+    /// waypoint of a workcell stop, the kind and index of an invalid plan, the feature,
+    /// score and threshold of a geometry or place stop, distance and threshold of an
+    /// outlier. What the verdict record keeps beside the reason.
+    pub fn why(&self) -> String {
+        let num = |v: Option<f32>| v.map_or("-".to_owned(), |v| format!("{v:.3}"));
+        let CheckVerdict::NoGo(no_go) = &self.verdict else {
+            return String::new();
+        };
+        match no_go {
+            NoGo::WrongTask => format!(
+                "nearer class (entry 0) by {} than the claimed one",
+                num(self.gap.map(|g| -g))
+            ),
+            NoGo::Outlier => format!(
+                "distance {} > threshold {}",
+                num(self.claimed_distance),
+                num(self.threshold)
+            ),
+            NoGo::UnknownClass => "class not enrolled".to_owned(),
+            NoGo::InvalidTrajectory(inv) => format!("{:?} at waypoint {}", inv.kind, inv.index),
+            NoGo::Workcell(v) => format!("{:?} at waypoint {}", v.kind, v.index),
+            NoGo::GeometryMismatch(GeometryFeature::Place) => format!(
+                "place: {} m beyond the enrolled runs > tolerance {} m",
+                num(self.geometry_score),
+                num(self.geometry_threshold)
+            ),
+            NoGo::GeometryMismatch(f) => format!(
+                "{}: score {} > threshold {}",
+                f.name(),
+                num(self.geometry_score),
+                num(self.geometry_threshold)
+            ),
+        }
+    }
+
     /// A no-go decided before any distance was computed (invalid trajectory, workcell).
     pub fn early_no_go(reason: NoGo) -> Self {
         Self {
