@@ -46,8 +46,8 @@ struct Args {
     /// ./guardiand-state/admin.sock.
     #[arg(long)]
     admin_socket: Option<PathBuf>,
-    /// Print JSON instead of tables.
-    #[arg(long)]
+    /// Print JSON instead of tables (before or after the subcommand).
+    #[arg(long, global = true)]
     json: bool,
     #[command(subcommand)]
     cmd: Cmd,
@@ -134,6 +134,9 @@ enum Cmd {
 }
 
 fn main() -> anyhow::Result<()> {
+    // A closed pipe (`guardianctl verdicts | head -1`) ends the program quietly, as it does
+    // any Unix tool, instead of a panic in `println!`.
+    sigpipe::reset();
     let args = Args::parse();
     let timeout = Duration::from_millis(args.timeout_ms);
     // Enroll and forget go through the admin socket only: an admin of another uid cannot

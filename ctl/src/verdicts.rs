@@ -58,6 +58,13 @@ pub fn list(path: &Path, filter: &Filter, json: bool) -> anyhow::Result<()> {
             path.display()
         );
     }
+    // A FIFO or a device would block SQLite's read: only a regular file is a record.
+    if !std::fs::metadata(path).is_ok_and(|m| m.is_file()) {
+        bail!(
+            "{} is not a regular file, so not a verdict record",
+            path.display()
+        );
+    }
     let conn = rusqlite::Connection::open_with_flags(path, OpenFlags::SQLITE_OPEN_READ_ONLY)
         .with_context(|| format!("cannot open the verdict record {}", path.display()))?;
     conn.busy_timeout(Duration::from_secs(2))?;
@@ -86,7 +93,17 @@ pub fn list(path: &Path, filter: &Filter, json: bool) -> anyhow::Result<()> {
     );
     let mut stmt = conn
         .prepare(&sql)
-        .with_context(|| format!("{} is not a verdict record", path.display()))?;
+        .map_err(|e| match e.sqlite_error_code() {
+            Some(rusqlite::ErrorCode::DatabaseBusy | rusqlite::ErrorCode::DatabaseLocked) => {
+                anyhow::anyhow!(
+                    "the verdict record {} is locked by another process (2 s waited); try again",
+                    path.display()
+                )
+            }
+            _ => {
+                anyhow::Error::new(e).context(format!("{} is not a verdict record", path.display()))
+            }
+        })?;
     let rows = stmt.query_map(params_from_iter(args), |r| {
         let nearest: String = r.get(9)?;
         Ok(serde_json::json!({
@@ -126,7 +143,7 @@ pub fn list(path: &Path, filter: &Filter, json: bool) -> anyhow::Result<()> {
             .unwrap_or("-");
         println!(
             "{:>7} {:<20} {:<24} {:<6} {:<18} {:>8} {:>9} {:<24} {}",
-            r["id"],
+            r["id"].as_i64().unwrap_or(0),
             r["time"]
                 .as_str()
                 .unwrap_or("")
@@ -148,7 +165,28 @@ pub fn list(path: &Path, filter: &Filter, json: bool) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// An RFC 3339 time, or `<ms> ms` for a time RFC 3339 cannot write (before 1970, after
+/// 9999: a row written by a clock gone wrong).
 fn rfc3339(ms: i64) -> String {
-    let t = SystemTime::UNIX_EPOCH + Duration::from_millis(u64::try_from(ms).unwrap_or(0));
-    humantime::format_rfc3339_seconds(t).to_string()
+    const LAST: u64 = 253_402_300_799_000; // 9999-12-31T23:59:59Z
+    match u64::try_from(ms) {
+        Ok(v) if v <= LAST => {
+            humantime::format_rfc3339_seconds(SystemTime::UNIX_EPOCH + Duration::from_millis(v))
+                .to_string()
+        }
+        _ => format!("{ms} ms"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::rfc3339;
+
+    #[test]
+    fn every_time_a_row_can_hold_prints() {
+        assert_eq!(rfc3339(0), "1970-01-01T00:00:00Z");
+        assert_eq!(rfc3339(253_402_300_799_000), "9999-12-31T23:59:59Z");
+        assert_eq!(rfc3339(i64::MAX), format!("{} ms", i64::MAX));
+        assert_eq!(rfc3339(-5), "-5 ms");
+    }
 }

@@ -94,10 +94,29 @@ pub struct Metrics {
     pub record_enabled: Gauge,
     fleet_position: Family<SignerLabels, Gauge>,
     fleet_peers: Gauge,
+    /// Class labels whose check series are pre-set (every verdict and reason at 0).
+    labelled: Arc<Mutex<std::collections::HashSet<String>>>,
 }
+
+/// Every `(verdict, reason)` pair a check can count: pre-set to 0 per class label, so
+/// `rate()` sees the first no-go of a reason (a series that starts at 1 has no increase).
+const CHECK_OUTCOMES: [(&str, &str); 7] = [
+    ("go", "none"),
+    ("no-go", "wrong-task"),
+    ("no-go", "outlier"),
+    ("no-go", "unknown-class"),
+    ("no-go", "invalid-trajectory"),
+    ("no-go", "workcell"),
+    ("no-go", "geometry-mismatch"),
+];
 
 impl Default for Metrics {
     fn default() -> Self {
+        let record_dropped = Family::<DropLabels, Counter>::default();
+        // Pre-set to 0, so the first drop is an increase.
+        for cause in ["queue-full", "record-off"] {
+            drop(record_dropped.get_or_create(&DropLabels { cause }));
+        }
         Self {
             checks: Family::default(),
             // 25 us .. ~105 ms in factors of 2 (a check's service time is ~100-400 us).
@@ -108,11 +127,12 @@ impl Default for Metrics {
             bank_version: Gauge::default(),
             model: Arc::default(),
             admin: Family::default(),
-            record_dropped: Family::default(),
+            record_dropped,
             record_written: Counter::default(),
             record_enabled: Gauge::default(),
             fleet_position: Family::default(),
             fleet_peers: Gauge::default(),
+            labelled: Arc::default(),
         }
     }
 }
@@ -179,6 +199,18 @@ impl Metrics {
     /// Count one answered check and its service time; `class` is its bounded label.
     pub fn count_check(&self, response: &ResponseHeader, class: String, took: Duration) {
         let (verdict, reason) = verdict_labels(response);
+        if let Ok(mut labelled) = self.labelled.lock()
+            && !labelled.contains(&class)
+        {
+            for (verdict, reason) in CHECK_OUTCOMES {
+                drop(self.checks.get_or_create(&CheckLabels {
+                    verdict,
+                    reason,
+                    class: class.clone(),
+                }));
+            }
+            labelled.insert(class.clone());
+        }
         self.checks
             .get_or_create(&CheckLabels {
                 verdict,
@@ -452,6 +484,10 @@ mod tests {
             "guardian_model_info{version=\"abc\"} 1",
             "guardian_admin_operations_total{op=\"enroll\",status=\"ok\"} 1",
             "guardian_record_dropped_total{cause=\"queue-full\"} 1",
+            // Pre-set to 0: the first of each is an increase `rate()` sees.
+            "guardian_record_dropped_total{cause=\"record-off\"} 0",
+            "guardian_checks_total{verdict=\"no-go\",reason=\"geometry-mismatch\",class=\"task0\"} 0",
+            "guardian_checks_total{verdict=\"go\",reason=\"none\",class=\"task0\"} 0",
             "# EOF",
         ] {
             assert!(text.contains(needle), "{needle} missing in\n{text}");

@@ -105,20 +105,32 @@ pub fn now_ms() -> i64 {
 pub struct Record {
     tx: Option<SyncSender<Entry>>,
     on: Arc<AtomicBool>,
+    /// Turned off by the config: nothing is lost, so nothing is counted as dropped.
+    disabled: bool,
     metrics: Metrics,
     writer: Option<std::thread::JoinHandle<()>>,
 }
 
 impl Record {
-    /// No record (`[record] enabled = false`).
+    /// No record because it failed: every verdict submitted counts as dropped
+    /// (`record-off`).
     pub fn off(metrics: Metrics) -> Self {
         metrics.record_enabled.set(0);
         Self {
             tx: None,
             on: Arc::new(AtomicBool::new(false)),
+            disabled: false,
             metrics,
             writer: None,
         }
+    }
+
+    /// No record because the config says so (`[record] enabled = false`): nothing is
+    /// counted as dropped.
+    pub fn disabled(metrics: Metrics) -> Self {
+        let mut record = Self::off(metrics);
+        record.disabled = true;
+        record
     }
 
     /// Open (or create) the record and start its writer. A record that cannot be opened
@@ -145,6 +157,7 @@ impl Record {
             Ok(handle) => Self {
                 tx: Some(tx),
                 on,
+                disabled: false,
                 metrics,
                 writer: Some(handle),
             },
@@ -164,7 +177,9 @@ impl Record {
     /// (counted).
     pub fn submit(&self, entry: Entry) {
         let Some(tx) = self.tx.as_ref().filter(|_| self.is_on()) else {
-            self.metrics.dropped("record-off");
+            if !self.disabled {
+                self.metrics.dropped("record-off");
+            }
             return;
         };
         match tx.try_send(entry) {
@@ -525,6 +540,19 @@ mod tests {
         assert!(nearest.contains("\"other\""), "{nearest}");
         assert!(client.ends_with("2a"));
         assert_eq!(metrics.record_written.get(), TRIM_EVERY + 40);
+    }
+
+    /// A record turned off by the config loses nothing, so it counts no drop.
+    #[test]
+    fn a_record_disabled_by_config_counts_no_drop() {
+        let metrics = Metrics::default();
+        let record = Record::disabled(metrics.clone());
+        assert!(!record.is_on());
+        record.submit(entry("task", true));
+        assert_eq!(metrics.record_enabled.get(), 0);
+        let mut text = String::new();
+        prometheus_client::encoding::text::encode(&mut text, &metrics.registry()).unwrap();
+        assert!(!text.contains("cause=\"record-off\"} 1"), "{text}");
     }
 
     /// A record that cannot be opened is off; submitting to it counts a drop.

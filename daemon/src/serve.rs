@@ -261,7 +261,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     let record = if config.record.enabled {
         Record::open(config.record_settings(), metrics.clone())
     } else {
-        Record::off(metrics.clone())
+        Record::disabled(metrics.clone())
     };
     let http_stop = Arc::new(AtomicBool::new(false));
     let mut http_threads = Vec::new();
