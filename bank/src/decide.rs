@@ -67,6 +67,21 @@ pub struct Decision {
 }
 
 impl Decision {
+    /// The claimed class is not enrolled: no numbers, the `nearest` classes.
+    fn unknown_class(nearest: Vec<Neighbour>) -> Self {
+        Self {
+            outcome: Outcome::UnknownClass,
+            claimed_distance: None,
+            threshold: None,
+            margin: None,
+            gap: None,
+            nearest,
+            geometry_score: None,
+            geometry_threshold: None,
+            geometry_feature: None,
+        }
+    }
+
     /// The decision as the wire carries it: the one conversion from the bank's decision to
     /// the response (the client's `Verdict::from_response` is the one conversion back; a
     /// test in `daemon/tests/verdict.rs` holds the two together). The nearest classes
@@ -148,17 +163,7 @@ impl ClassBank {
             })
             .collect();
         let Some(class) = self.classes.get(claimed) else {
-            return Decision {
-                outcome: Outcome::UnknownClass,
-                claimed_distance: None,
-                threshold: None,
-                margin: None,
-                gap: None,
-                nearest,
-                geometry_score: None,
-                geometry_threshold: None,
-                geometry_feature: None,
-            };
+            return Decision::unknown_class(nearest);
         };
         let d = distance(query, &class.prototype);
         let threshold = class.threshold.unwrap_or(self.default_threshold);
@@ -300,17 +305,7 @@ impl ClassBank {
             self.classes.get(claimed),
             self.place_score(plan, claimed, rule),
         ) else {
-            return Decision {
-                outcome: Outcome::UnknownClass,
-                claimed_distance: None,
-                threshold: None,
-                margin: None,
-                gap: None,
-                nearest,
-                geometry_score: None,
-                geometry_threshold: None,
-                geometry_feature: None,
-            };
+            return Decision::unknown_class(nearest);
         };
         let d = distance(query, &class.prototype);
         let threshold = class.threshold.unwrap_or(self.default_threshold) * rule.shape;

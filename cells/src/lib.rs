@@ -480,7 +480,7 @@ impl Cell {
             let mut w = [0.0f32; SLOTS];
             let limits = self.robot.q_min().iter().zip(self.robot.q_max());
             for ((w, q), (lo, hi)) in w.iter_mut().zip(&state.q).zip(limits).take(joints) {
-                *w = f32_within(*q, *lo, *hi);
+                *w = guardian_robot::kinematics::f32_within(*q, *lo, *hi);
             }
             w[TOOL] = f32::from(u8::from(p.tool));
             out.push(w);
@@ -536,18 +536,6 @@ fn bezier(
             tool,
         });
     }
-}
-
-/// `v` as f32 without leaving `[lo, hi]`.
-fn f32_within(v: f64, lo: f64, hi: f64) -> f32 {
-    let mut x = v as f32;
-    while f64::from(x) > hi {
-        x = x.next_down();
-    }
-    while f64::from(x) < lo {
-        x = x.next_up();
-    }
-    x
 }
 
 #[cfg(test)]

@@ -47,17 +47,5 @@ fn main() -> anyhow::Result<()> {
     })
     .context("cannot connect to guardiand (is it running on systemd/guardiand-cell.toml?)")?;
     let report = cases::run_cases(&client, args.keep)?;
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
-    } else {
-        print!("{}", report.table());
-    }
-    if !report.all_as_expected() {
-        anyhow::bail!(
-            "{} of {} cases not as expected",
-            report.rows.len() - report.as_expected(),
-            report.rows.len()
-        );
-    }
-    Ok(())
+    demo::finish(&report, args.json)
 }

@@ -588,6 +588,24 @@ pub fn forget_all(client: &Client, names: &[String]) -> Result<(), DemoError> {
     Ok(())
 }
 
+/// Print `report` (JSON or the table) and fail if a case was not as expected: how both
+/// demos end.
+pub fn finish(report: &Report, json: bool) -> anyhow::Result<()> {
+    if json {
+        println!("{}", serde_json::to_string_pretty(report)?);
+    } else {
+        print!("{}", report.table());
+    }
+    if !report.all_as_expected() {
+        anyhow::bail!(
+            "{} of {} cases not as expected",
+            report.rows.len() - report.as_expected(),
+            report.rows.len()
+        );
+    }
+    Ok(())
+}
+
 /// The verdict with its reason detail, as one line.
 pub fn verdict_text(v: &Verdict) -> String {
     v.decision.to_string()

@@ -62,17 +62,5 @@ fn main() -> anyhow::Result<()> {
             keep: args.keep,
         },
     )?;
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
-    } else {
-        print!("{}", report.table());
-    }
-    if !report.all_as_expected() {
-        anyhow::bail!(
-            "{} of {} cases not as expected",
-            report.rows.len() - report.as_expected(),
-            report.rows.len()
-        );
-    }
-    Ok(())
+    cases::finish(&report, args.json)
 }

@@ -73,26 +73,8 @@ fn every_demo_case_is_as_expected_against_the_shipped_defaults() {
     // The verdict record (issue 43): `guardianctl verdicts --no-go` lists the demo's
     // stops, its wrong-task one with the class it really is.
     let record = s.state_dir().join("verdicts.sqlite");
-    let start = std::time::Instant::now();
-    let rows = loop {
-        let out = std::process::Command::new(harness::ctl_bin())
-            .args(["--json", "verdicts", "--no-go", "--record"])
-            .arg(&record)
-            .output()
-            .expect("run guardianctl");
-        let rows: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).unwrap_or_default();
-        let no_go = report.rows.iter().filter(|r| r.got != Outcome::Go).count();
-        if rows.len() >= no_go {
-            break rows;
-        }
-        assert!(
-            start.elapsed() < harness::PATIENCE,
-            "{} no-go rows recorded, {no_go} expected: {}",
-            rows.len(),
-            String::from_utf8_lossy(&out.stderr)
-        );
-        std::thread::sleep(std::time::Duration::from_millis(50));
-    };
+    let no_go = report.rows.iter().filter(|r| r.got != Outcome::Go).count();
+    let rows = harness::recorded_no_go(&record, no_go);
     assert!(
         rows.iter().any(|r| r["reason"] == "wrong-task"
             && r["claimed"] == "demo-latin-13"

@@ -348,7 +348,11 @@ impl PathSolver {
             let mut w = [0.0f32; guardian_shared::trajectory::SLOTS];
             let mut stored: JointVector = [0.0f64; guardian_robot::kinematics::MAX_JOINTS];
             for j in 0..self.robot.joints() {
-                w[j] = to_f32_within(q[j], self.robot.q_min()[j], self.robot.q_max()[j]);
+                w[j] = guardian_robot::kinematics::f32_within(
+                    q[j],
+                    self.robot.q_min()[j],
+                    self.robot.q_max()[j],
+                );
                 stored[j] = f64::from(w[j]);
             }
             w[TOOL] = if point.pen_down { 1.0 } else { 0.0 };
@@ -385,18 +389,6 @@ impl PathSolver {
         let dense = self.solve(&path)?;
         Ok((path, dense))
     }
-}
-
-/// Round to f32 without leaving [lo, hi] (a value clamped to a limit may round outside).
-fn to_f32_within(v: f64, lo: f64, hi: f64) -> f32 {
-    let mut x = v as f32;
-    while f64::from(x) > hi {
-        x = x.next_down();
-    }
-    while f64::from(x) < lo {
-        x = x.next_up();
-    }
-    x
 }
 
 #[cfg(test)]
@@ -466,9 +458,9 @@ mod tests {
     #[test]
     fn f32_rounding_stays_inside_limits() {
         let hi = -0.0698f64;
-        let x = to_f32_within(hi, -3.0718, hi);
+        let x = guardian_robot::kinematics::f32_within(hi, -3.0718, hi);
         assert!(f64::from(x) <= hi);
         let lo = -1.7628f64;
-        assert!(f64::from(to_f32_within(lo, lo, 1.7628)) >= lo);
+        assert!(f64::from(guardian_robot::kinematics::f32_within(lo, lo, 1.7628)) >= lo);
     }
 }

@@ -157,6 +157,31 @@ pub fn ctl_bin() -> &'static Path {
     })
 }
 
+/// The no-go rows of the verdict record at `record` as `guardianctl --json verdicts
+/// --no-go` lists them, once there are at least `at_least` (the record is written behind
+/// the answers); panics after [`PATIENCE`].
+pub fn recorded_no_go(record: &Path, at_least: usize) -> Vec<serde_json::Value> {
+    let start = Instant::now();
+    loop {
+        let out = Command::new(ctl_bin())
+            .args(["--json", "verdicts", "--no-go", "--record"])
+            .arg(record)
+            .output()
+            .expect("run guardianctl");
+        let rows: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).unwrap_or_default();
+        if rows.len() >= at_least {
+            return rows;
+        }
+        assert!(
+            start.elapsed() < PATIENCE,
+            "{} no-go rows recorded, {at_least} expected: {}",
+            rows.len(),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
 /// Locate or build `guardiand` for the current profile (see [`bin`]).
 pub fn guardiand_bin() -> anyhow::Result<PathBuf> {
     built_bin("guardiand", "GUARDIAND_BIN")

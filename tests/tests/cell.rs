@@ -90,25 +90,7 @@ fn an_anchored_cell_tells_neighbouring_bins_apart_and_keeps_the_tool_out_of_its_
     assert!(bank.starts_with(b"guardian-class-bank 5 "));
     // The verdict record keeps why: the place excess, the rule and its waypoint.
     let record = s.state_dir().join("verdicts.sqlite");
-    let start = std::time::Instant::now();
-    let rows = loop {
-        let out = std::process::Command::new(harness::ctl_bin())
-            .args(["--json", "verdicts", "--no-go", "--record"])
-            .arg(&record)
-            .output()
-            .expect("run guardianctl");
-        let rows: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).unwrap_or_default();
-        if rows.len() >= 2 {
-            break rows;
-        }
-        assert!(
-            start.elapsed() < harness::PATIENCE,
-            "{} no-go rows recorded: {}",
-            rows.len(),
-            String::from_utf8_lossy(&out.stderr)
-        );
-        std::thread::sleep(std::time::Duration::from_millis(50));
-    };
+    let rows = harness::recorded_no_go(&record, 2);
     let message = |r: &serde_json::Value| r["message"].as_str().unwrap_or("").to_owned();
     assert!(
         rows.iter()

@@ -64,6 +64,19 @@ pub type JointVector = [f64; MAX_JOINTS];
 /// joints zero.
 pub type Jacobian = SMatrix<f64, 6, MAX_JOINTS>;
 
+/// `v` rounded to `f32` without leaving `[lo, hi]` (a value clamped to a joint limit may
+/// round outside it): how solved joints are stored in a plan.
+pub fn f32_within(v: f64, lo: f64, hi: f64) -> f32 {
+    let mut x = v as f32;
+    while f64::from(x) > hi {
+        x = x.next_down();
+    }
+    while f64::from(x) < lo {
+        x = x.next_up();
+    }
+    x
+}
+
 /// A joint vector from the first `q.len()` (at most [`MAX_JOINTS`]) values.
 pub fn joint_vector(q: &[f64]) -> JointVector {
     let mut v = [0.0; MAX_JOINTS];
