@@ -399,48 +399,41 @@ pub fn to_prometheus_text(openmetrics: &str) -> String {
 /// asks for it (`Accept: application/openmetrics-text`, as Prometheus does), the
 /// Prometheus text format 0.0.4 otherwise ([`to_prometheus_text`]). Every other request is
 /// answered 404 (GET/HEAD) or 405.
-pub fn serve_metrics(server: tiny_http::Server, registry: Registry, stop: Arc<AtomicBool>) {
-    let openmetrics = tiny_http::Header::from_bytes(
-        &b"Content-Type"[..],
-        &b"application/openmetrics-text; version=1.0.0; charset=utf-8"[..],
-    )
-    .ok();
-    let text = tiny_http::Header::from_bytes(
-        &b"Content-Type"[..],
-        &b"text/plain; version=0.0.4; charset=utf-8"[..],
-    )
-    .ok();
-    crate::http::serve(server, &stop, "metrics", |request| {
-        let path = request.url().split('?').next().unwrap_or("");
-        match (request.method(), path) {
-            (tiny_http::Method::Get, "/metrics") => {
-                let wants_openmetrics = request.headers().iter().any(|h| {
-                    h.field.equiv("Accept")
-                        && h.value.as_str().contains("application/openmetrics-text")
-                });
+pub fn serve_metrics(server: crate::http::Listener, registry: Registry, stop: Arc<AtomicBool>) {
+    use crate::http::Response;
+    crate::http::serve(server, &stop, "metrics", move |request| {
+        match (request.method.as_str(), request.path.as_str()) {
+            ("GET", "/metrics") => {
+                let wants_openmetrics = request
+                    .header("accept")
+                    .is_some_and(|a| a.contains("application/openmetrics-text"));
                 let mut body = String::new();
                 match prometheus_client::encoding::text::encode(&mut body, &registry) {
                     Ok(()) => {
-                        let (body, kind) = if wants_openmetrics {
-                            (body, &openmetrics)
+                        let (body, content_type) = if wants_openmetrics {
+                            (
+                                body,
+                                "application/openmetrics-text; version=1.0.0; charset=utf-8",
+                            )
                         } else {
-                            (to_prometheus_text(&body), &text)
+                            (
+                                to_prometheus_text(&body),
+                                "text/plain; version=0.0.4; charset=utf-8",
+                            )
                         };
-                        let mut r = tiny_http::Response::from_string(body);
-                        if let Some(h) = kind {
-                            r.add_header(h.clone());
+                        Response {
+                            status: 200,
+                            content_type,
+                            body: body.into_bytes(),
                         }
-                        r
                     }
-                    Err(_) => tiny_http::Response::from_string("cannot encode the metrics\n")
-                        .with_status_code(500),
+                    Err(_) => Response::text(500, "cannot encode the metrics\n"),
                 }
             }
-            (tiny_http::Method::Get | tiny_http::Method::Head, _) => {
-                tiny_http::Response::from_string("not found: this port serves /metrics only\n")
-                    .with_status_code(404)
+            ("GET" | "HEAD", _) => {
+                Response::text(404, "not found: this port serves /metrics only\n")
             }
-            _ => tiny_http::Response::from_string("method not allowed\n").with_status_code(405),
+            _ => Response::text(405, "method not allowed\n"),
         }
     });
 }

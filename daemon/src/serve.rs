@@ -725,17 +725,14 @@ fn start_metrics(
         tracing::info!("metrics off ([metrics] address is empty)");
         return None;
     }
-    let server = match tiny_http::Server::http(address) {
+    let server = match crate::http::Listener::bind(address) {
         Ok(s) => s,
         Err(e) => {
             tracing::error!(address, error = %e, "cannot serve /metrics; serving checks without it");
             return None;
         }
     };
-    let bound = server
-        .server_addr()
-        .to_ip()
-        .map_or_else(|| address.to_owned(), |a| a.to_string());
+    let bound = server.address();
     tracing::info!(address = %bound, "metrics served at http://{bound}/metrics");
     let registry = metrics.registry();
     let stop = stop.clone();

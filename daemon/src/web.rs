@@ -41,17 +41,14 @@ pub fn start(
     stop: &Arc<AtomicBool>,
 ) -> Option<std::thread::JoinHandle<()>> {
     let address = config.web.address.as_deref()?.trim().to_owned();
-    let server = match tiny_http::Server::http(&address) {
+    let server = match crate::http::Listener::bind(&address) {
         Ok(s) => s,
         Err(e) => {
             tracing::error!(address, error = %e, "cannot serve the page; serving checks without it");
             return None;
         }
     };
-    let bound = server
-        .server_addr()
-        .to_ip()
-        .map_or_else(|| address.clone(), |a| a.to_string());
+    let bound = server.address();
     tracing::info!(address = %bound, "page served at http://{bound}/");
     let page = Page {
         record: config.record_path(),
@@ -123,17 +120,10 @@ fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<Row> {
 }
 
 impl Page {
-    fn serve(self, server: tiny_http::Server, stop: &AtomicBool) {
-        let html =
-            tiny_http::Header::from_bytes(&b"Content-Type"[..], &b"text/html; charset=utf-8"[..])
-                .ok();
-        crate::http::serve(server, stop, "page", |request| {
-            let get = matches!(
-                request.method(),
-                tiny_http::Method::Get | tiny_http::Method::Head
-            );
-            let path = request.url().split('?').next().unwrap_or("").to_owned();
-            let (code, body) = if !get {
+    fn serve(self, server: crate::http::Listener, stop: &AtomicBool) {
+        crate::http::serve(server, stop, "page", move |request| {
+            let path = request.path.as_str();
+            let (code, body) = if !request.is_get() {
                 (405, "read-only: GET only\n".to_owned())
             } else if path == "/" {
                 self.front()
@@ -145,11 +135,9 @@ impl Page {
             } else {
                 (404, "not found\n".to_owned())
             };
-            let mut response = tiny_http::Response::from_string(body).with_status_code(code);
-            if code == 200
-                && let Some(h) = &html
-            {
-                response.add_header(h.clone());
+            let mut response = crate::http::Response::text(code, body);
+            if code == 200 {
+                response.content_type = "text/html; charset=utf-8";
             }
             response
         });
