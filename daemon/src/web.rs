@@ -29,6 +29,8 @@ const EXAMPLES_DRAWN: usize = 5;
 struct Page {
     record: PathBuf,
     bank: PathBuf,
+    /// The bank served while the state directory holds none (the shipped default bank).
+    default_bank: Option<PathBuf>,
     robot: Robot,
     service: String,
 }
@@ -53,6 +55,7 @@ pub fn start(
     let page = Page {
         record: config.record_path(),
         bank: config.bank_path(),
+        default_bank: config.default_bank_path(),
         robot,
         service: config.service_name.clone(),
     };
@@ -143,10 +146,14 @@ impl Page {
         });
     }
 
+    /// The bank the daemon serves: the state directory's, or, while there is none, the
+    /// default bank it started from.
     fn bank(&self) -> Result<ClassBank, String> {
-        ClassBank::load_with_journal(&self.bank)
-            .map(|(b, _)| b)
-            .map_err(|e| e.to_string())
+        match &self.default_bank {
+            Some(default) if !self.bank.exists() => ClassBank::load(default),
+            _ => ClassBank::load_with_journal(&self.bank).map(|(b, _)| b),
+        }
+        .map_err(|e| e.to_string())
     }
 
     /// Status, classes, recent verdicts.
@@ -519,6 +526,27 @@ fn esc(s: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_fresh_daemon_shows_the_default_bank_it_serves() {
+        let dir = tempfile::tempdir().unwrap();
+        let default = dir.path().join("default.gcb");
+        let mut b = ClassBank::new(2, "m", 0.5);
+        b.enroll("Greek/character01", &[vec![1.0, 0.0]]).unwrap();
+        b.save(&default).unwrap();
+        let page = Page {
+            record: dir.path().join("state/verdicts.sqlite"),
+            bank: dir.path().join("state/bank.gcb"),
+            default_bank: Some(default),
+            robot: guardian_robot::kinematics::default_panda().clone(),
+            service: "s".into(),
+        };
+        let (code, html) = page.front();
+        assert_eq!(code, 200);
+        assert!(!html.contains("<th>bank</th>"), "{html}");
+        assert!(html.contains("<th>classes</th><td>1</td>"), "{html}");
+        assert!(html.contains("Greek/character01"), "{html}");
+    }
 
     #[test]
     fn utc_dates_and_escaping() {
