@@ -11,6 +11,7 @@
 //! | [`FamilyKind::Pallet`] | one pick, a 3 × 3 pallet pattern in two layers: the place, in 3-D |
 //! | [`FamilyKind::Routes`] | one pick, one place, an obstacle between: the route around it |
 //! | [`FamilyKind::Approaches`] | one insertion point: the direction it is approached from |
+//! | [`FamilyKind::Wipe`] | wiping or dispensing: which rectangle is swept, and along which axis |
 //! | [`FamilyKind::Mixed`] | each task its own pick, place and route |
 //!
 //! A task is a pick, a place, a route (via points at transfer height) and the direction
@@ -52,17 +53,21 @@ pub enum FamilyKind {
     Routes,
     /// One insertion point, five approach directions.
     Approaches,
+    /// Wiping or dispensing: three rectangles `spacing` apart (at least 10 cm), each swept
+    /// along x or along y.
+    Wipe,
     /// Twenty-four tasks, each its own pick, place and route.
     Mixed,
 }
 
 impl FamilyKind {
     /// Every kind.
-    pub const ALL: [Self; 5] = [
+    pub const ALL: [Self; 6] = [
         Self::Bins,
         Self::Pallet,
         Self::Routes,
         Self::Approaches,
+        Self::Wipe,
         Self::Mixed,
     ];
 
@@ -73,6 +78,7 @@ impl FamilyKind {
             Self::Pallet => "pallet",
             Self::Routes => "routes",
             Self::Approaches => "approaches",
+            Self::Wipe => "wipe",
             Self::Mixed => "mixed",
         }
     }
@@ -92,6 +98,20 @@ pub struct Task {
     pub via: Vec<Vector3<f64>>,
     /// Unit direction of the last move onto the place (straight down: `[0, 0, -1]`).
     pub approach: Vector3<f64>,
+    /// A wiping (or dispensing) task instead of a pick-and-place: the tool on while it
+    /// sweeps a rectangle centred on `place`.
+    pub wipe: Option<Wipe>,
+}
+
+/// A wiping or dispensing pattern: a rectangle swept in parallel passes, the tool on.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Wipe {
+    /// The rectangle's sides along base x and y (m).
+    pub size: [f64; 2],
+    /// Parallel passes.
+    pub passes: usize,
+    /// The passes run along base x (else along y).
+    pub along_x: bool,
 }
 
 /// A family: its kind, seed and tasks; neighbouring tasks are next to each other in
@@ -134,6 +154,7 @@ impl Family {
             place,
             via,
             approach,
+            wipe: None,
         };
         let tasks = match kind {
             FamilyKind::Bins => (0..3)
@@ -190,6 +211,25 @@ impl Family {
                     .map(|(n, d)| task(format!("insert-{n}"), pick, place, vec![], *d))
                     .collect()
             }
+            FamilyKind::Wipe => (0..3)
+                .flat_map(|r| [true, false].map(move |x| (r, x)))
+                .map(|(r, along_x)| {
+                    let centre = grid(0.0, (r as f64 - 1.0) * spacing.max(0.1), 0.0);
+                    let mut t = task(
+                        format!("wipe-{r}{}", if along_x { "x" } else { "y" }),
+                        centre,
+                        centre,
+                        vec![],
+                        if along_x { Vector3::x() } else { Vector3::y() },
+                    );
+                    t.wipe = Some(Wipe {
+                        size: [0.08, 0.06],
+                        passes: 4,
+                        along_x,
+                    });
+                    t
+                })
+                .collect(),
             FamilyKind::Mixed => (0..24)
                 .map(|i| {
                     let p = pick
@@ -392,6 +432,9 @@ impl Cell {
                 rng.random_range(-v.start..=v.start),
                 rng.random_range(-v.start..=v.start),
             );
+        if let Some(w) = &task.wipe {
+            return wipe_path(task.place, w, start, &mut rng, v, fault);
+        }
         let pick = task.pick + disc(&mut rng, v.part);
         let yaw = rng.random_range(-v.yaw..=v.yaw);
         let mut place = task.place + disc(&mut rng, v.place);
@@ -489,6 +532,67 @@ impl Cell {
     }
 }
 
+/// The Cartesian path of a wiping run: from `start` to above the rectangle's first corner,
+/// down, the tool on along parallel passes, the tool off, up. The rectangle lies within
+/// the run's place variation of `centre` (3 cm away with [`Fault::ShiftedPlace`]).
+fn wipe_path(
+    centre: Vector3<f64>,
+    w: &Wipe,
+    start: Vector3<f64>,
+    rng: &mut StdRng,
+    v: &Variation,
+    fault: Option<Fault>,
+) -> Vec<PathPoint> {
+    let mut centre = centre
+        + Vector3::new(
+            rng.random_range(-v.place..=v.place),
+            rng.random_range(-v.place..=v.place),
+            0.0,
+        );
+    if fault == Some(Fault::ShiftedPlace) {
+        let a: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+        centre += Vector3::new(0.03 * a.cos(), 0.03 * a.sin(), 0.0);
+    }
+    let hover = 0.06 + rng.random_range(-v.heights..=v.heights);
+    let retreat = 0.07 + rng.random_range(-v.heights..=v.heights);
+    let (main, across) = if w.along_x {
+        (
+            Vector3::new(w.size[0], 0.0, 0.0),
+            Vector3::new(0.0, w.size[1], 0.0),
+        )
+    } else {
+        (
+            Vector3::new(0.0, w.size[1], 0.0),
+            Vector3::new(w.size[0], 0.0, 0.0),
+        )
+    };
+    let corner = centre - 0.5 * (main + across);
+    let up = |p: Vector3<f64>, h: f64| p + Vector3::new(0.0, 0.0, h);
+    let mut out = vec![PathPoint {
+        position: start,
+        yaw: 0.0,
+        tool: false,
+    }];
+    if fault != Some(Fault::MissedApproach) {
+        line(&mut out, up(corner, hover), 0.0, false);
+    }
+    line(&mut out, corner, 0.0, false);
+    out.last_mut().expect("a point").tool = true;
+    let mut at = corner;
+    let step = across / (w.passes.max(2) - 1) as f64;
+    for k in 0..w.passes.max(2) {
+        let dir = if k % 2 == 0 { main } else { -main };
+        at += dir;
+        line(&mut out, at, 0.0, true);
+        if k + 1 < w.passes.max(2) {
+            at += step;
+            line(&mut out, at, 0.0, true);
+        }
+    }
+    line(&mut out, up(at, retreat), 0.0, false);
+    out
+}
+
 /// The tool frame at `position`: tool z straight down, turned by `yaw` about the vertical.
 fn target(position: Vector3<f64>, yaw: f64) -> Frame {
     let down = Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0));
@@ -562,6 +666,16 @@ mod tests {
                     let off = tool.iter().rposition(|&t| t).unwrap();
                     assert!(tool[on..=off].iter().all(|&t| t), "one grasp");
                     let at = |k: usize| cell.robot().pen_tip_position(&joints_of(&plan[k]));
+                    if let Some(w) = &task.wipe {
+                        // The tool is on only inside the rectangle, on the table.
+                        for k in on..=off {
+                            let d = at(k) - task.place;
+                            assert!(d.x.abs() <= 0.5 * w.size[0] + v.place + 1e-3, "{d:?}");
+                            assert!(d.y.abs() <= 0.5 * w.size[1] + v.place + 1e-3, "{d:?}");
+                            assert!(d.z.abs() < 1e-3, "{d:?}");
+                        }
+                        continue;
+                    }
                     let grasp = at(on);
                     let release = at(off);
                     assert!(
