@@ -37,6 +37,8 @@ pub struct Request {
     pub method: String,
     /// The path, without `?query`.
     pub path: String,
+    /// The query, without `?` (empty for none).
+    pub query: String,
     /// Header names (lower case) and values.
     pub headers: Vec<(String, String)>,
 }
@@ -48,6 +50,15 @@ impl Request {
             .iter()
             .find(|(n, _)| n == name)
             .map(|(_, v)| v.as_str())
+    }
+
+    /// The value of `key` in the query (`a=1&b=2`), as sent.
+    pub fn param(&self, key: &str) -> Option<&str> {
+        self.query
+            .split('&')
+            .filter_map(|kv| kv.split_once('=').or(Some((kv, ""))))
+            .find(|(k, _)| *k == key)
+            .map(|(_, v)| v)
     }
 
     /// `GET` or `HEAD`.
@@ -230,9 +241,11 @@ fn read_request(mut stream: &TcpStream) -> Result<Request, u16> {
         .filter_map(|l| l.split_once(':'))
         .map(|(n, v)| (n.trim().to_ascii_lowercase(), v.trim().to_owned()))
         .collect();
+    let (path, query) = target.split_once('?').unwrap_or((target, ""));
     Ok(Request {
         method: method.to_owned(),
-        path: target.split('?').next().unwrap_or("").to_owned(),
+        path: path.to_owned(),
+        query: query.to_owned(),
         headers,
     })
 }
@@ -282,6 +295,20 @@ fn respond(mut stream: &TcpStream, response: &Response, head_only: bool) -> bool
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn query_parameters_are_found_by_key() {
+        let r = Request {
+            method: "GET".into(),
+            path: "/".into(),
+            query: "no-go&before=142&x=".into(),
+            headers: Vec::new(),
+        };
+        assert_eq!(r.param("no-go"), Some(""));
+        assert_eq!(r.param("before"), Some("142"));
+        assert_eq!(r.param("x"), Some(""));
+        assert_eq!(r.param("y"), None);
+    }
 
     #[test]
     fn hosts_name_the_listener_by_address() {

@@ -25,6 +25,14 @@ const RECENT: usize = 50;
 /// How many enrolled examples of a class a verdict page draws.
 const EXAMPLES_DRAWN: usize = 5;
 
+/// Which verdicts the front page lists: only no-go (`?no-go`), and those before a verdict
+/// id (`?before=ID`, the "older" link: [`RECENT`] a page).
+#[derive(Debug, Clone, Copy, Default)]
+struct Listing {
+    no_go: bool,
+    before: Option<i64>,
+}
+
 /// What the page reads.
 struct Page {
     record: PathBuf,
@@ -129,7 +137,10 @@ impl Page {
             let (code, body) = if !request.is_get() {
                 (405, "read-only: GET only\n".to_owned())
             } else if path == "/" {
-                self.front()
+                self.front(&Listing {
+                    no_go: request.param("no-go").is_some(),
+                    before: request.param("before").and_then(|b| b.parse().ok()),
+                })
             } else if let Some(id) = path
                 .strip_prefix("/verdict/")
                 .and_then(|i| i.parse::<i64>().ok())
@@ -157,7 +168,7 @@ impl Page {
     }
 
     /// Status, classes, recent verdicts.
-    fn front(&self) -> (u16, String) {
+    fn front(&self, listing: &Listing) -> (u16, String) {
         let mut out = head("guardian");
         let _ = write!(out, "<h1>guardian: {}</h1>", esc(&self.service));
         let bank = self.bank();
@@ -217,15 +228,30 @@ impl Page {
         }
         out.push_str("</table>");
 
-        out.push_str("<h2>Recent verdicts</h2><table id=\"verdicts\"><tr><th>time (UTC)</th><th>claimed</th><th>verdict</th><th>reason</th><th>distance</th><th>threshold</th><th>nearest</th></tr>");
-        let recent = self.with_record(|c| {
-            let mut s = c.prepare(&format!(
-                "SELECT {COLUMNS} FROM verdicts ORDER BY id DESC LIMIT {RECENT}"
-            ))?;
-            let rows = s.query_map([], row)?;
-            rows.collect::<rusqlite::Result<Vec<_>>>()
+        out.push_str(if listing.no_go {
+            "<h2>Recent no-go verdicts</h2><p><a href=\"/\">all verdicts</a></p>"
+        } else {
+            "<h2>Recent verdicts</h2><p><a href=\"/?no-go\">only no-go</a></p>"
         });
-        for r in recent.unwrap_or_default() {
+        out.push_str("<table id=\"verdicts\"><tr><th>time (UTC)</th><th>claimed</th><th>verdict</th><th>reason</th><th>distance</th><th>threshold</th><th>nearest</th></tr>");
+        let recent = self
+            .with_record(|c| {
+                let filter = if listing.no_go {
+                    " AND verdict = 'no-go'"
+                } else {
+                    ""
+                };
+                let mut s = c.prepare(&format!(
+                    "SELECT {COLUMNS} FROM verdicts WHERE id < ?1{filter} ORDER BY id DESC LIMIT {RECENT}"
+                ))?;
+                let rows = s.query_map([listing.before.unwrap_or(i64::MAX)], row)?;
+                rows.collect::<rusqlite::Result<Vec<_>>>()
+            })
+            .unwrap_or_default();
+        let older = (recent.len() == RECENT)
+            .then(|| recent.last().map(|r| r.id))
+            .flatten();
+        for r in recent {
             let verdict = if r.verdict == "no-go" {
                 format!("<a href=\"/verdict/{}\">no-go</a>", r.id)
             } else {
@@ -244,6 +270,13 @@ impl Page {
             );
         }
         out.push_str("</table>");
+        if let Some(id) = older {
+            let _ = write!(
+                out,
+                "<p><a id=\"older\" href=\"/?{}before={id}\">older</a></p>",
+                if listing.no_go { "no-go&" } else { "" }
+            );
+        }
 
         out.push_str("<h2>Classes</h2><table id=\"classes\"><tr><th>class</th><th>examples</th><th>threshold</th></tr>");
         if let Ok(b) = &bank {
@@ -541,11 +574,62 @@ mod tests {
             robot: guardian_robot::kinematics::default_panda().clone(),
             service: "s".into(),
         };
-        let (code, html) = page.front();
+        let (code, html) = page.front(&Listing::default());
         assert_eq!(code, 200);
         assert!(!html.contains("<th>bank</th>"), "{html}");
         assert!(html.contains("<th>classes</th><td>1</td>"), "{html}");
         assert!(html.contains("Greek/character01"), "{html}");
+    }
+
+    /// The index lists only no-go verdicts on `?no-go`, and pages back with `?before=`.
+    #[test]
+    fn the_index_filters_no_go_and_pages() {
+        let dir = tempfile::tempdir().unwrap();
+        let record = dir.path().join("verdicts.sqlite");
+        let conn = rusqlite::Connection::open(&record).unwrap();
+        conn.execute_batch(crate::record::SCHEMA).unwrap();
+        // 240 verdicts, every other one a no-go: 120 no-go.
+        for i in 0..240i64 {
+            let verdict = if i % 2 == 0 { "go" } else { "no-go" };
+            conn.execute(
+                "INSERT INTO verdicts (time_ms, service, client, claimed, status, verdict, reason, message, distance, threshold, margin, gap, nearest, model, bank_version)
+                 VALUES (?1, 's', 'c', 'task', 'ok', ?2, 'outlier', '', NULL, NULL, NULL, NULL, '[]', 'm', 1)",
+                rusqlite::params![i, verdict],
+            )
+            .unwrap();
+        }
+        drop(conn);
+        let page = Page {
+            record,
+            bank: dir.path().join("bank.gcb"),
+            default_bank: None,
+            robot: guardian_robot::kinematics::default_panda().clone(),
+            service: "s".into(),
+        };
+        let rows =
+            |html: &str, class: &str| html.matches(&format!("<tr class=\"{class}\">")).count();
+        let (_, all) = page.front(&Listing::default());
+        assert_eq!((rows(&all, "go"), rows(&all, "no-go")), (25, 25));
+        let (_, no_go) = page.front(&Listing {
+            no_go: true,
+            before: None,
+        });
+        assert_eq!((rows(&no_go, "go"), rows(&no_go, "no-go")), (0, RECENT));
+        // The newest no-go is id 240; the page's last is 142: older ones follow it.
+        assert!(no_go.contains("href=\"/?no-go&before=142\""), "{no_go}");
+        let (_, older) = page.front(&Listing {
+            no_go: true,
+            before: Some(142),
+        });
+        assert_eq!(rows(&older, "no-go"), RECENT);
+        assert!(older.contains("/verdict/140\"") && !older.contains("/verdict/142\""));
+        // The last page has no "older" link.
+        let (_, last) = page.front(&Listing {
+            no_go: true,
+            before: Some(42),
+        });
+        assert_eq!(rows(&last, "no-go"), 20);
+        assert!(!last.contains("id=\"older\""));
     }
 
     #[test]
