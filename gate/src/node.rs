@@ -328,6 +328,7 @@ impl Gate<'_> {
             Ok(p) => p,
             Err(e) => {
                 let detail = format!("guardian: INVALID_JOINTS: {e}");
+                tracing::info!(goal = %id_hex, verdict = "no-go", reason = "invalid-joints", "{detail}");
                 self.publish_verdict(
                     &id_hex,
                     &claim,
@@ -361,7 +362,18 @@ impl Gate<'_> {
             return;
         }
         self.counts.go.set(self.counts.go.get() + 1);
-        self.forward(handle, goal).await;
+        // The screen said go; if the controller then fails the goal, the verdicts topic says
+        // so too (a second verdict for the goal), so no one reads a lost goal as executed.
+        if let Some((reason, detail)) = self.forward(handle, goal).await {
+            tracing::warn!(goal = %id_hex, reason, "{detail}");
+            self.publish_verdict(
+                &id_hex,
+                &claim,
+                &Outcome::failed(reason, detail),
+                &sha,
+                waypoints,
+            );
+        }
     }
 
     /// Accept, then abort with `code` and `detail`: the only way FollowJointTrajectory
@@ -400,24 +412,27 @@ impl Gate<'_> {
         }
     }
 
-    /// Send the goal unchanged to the controller and relay its answers.
-    async fn forward(&self, handle: ros2_client::action::NewGoalHandle<Goal>, goal: Goal) {
+    /// Send the goal unchanged to the controller and relay its answers. When the controller
+    /// never takes the goal (sending failed, its answer was lost or late), MoveIt hears
+    /// aborted and the reason and detail are returned.
+    async fn forward(
+        &self,
+        handle: ros2_client::action::NewGoalHandle<Goal>,
+        goal: Goal,
+    ) -> Option<(&'static str, String)> {
         // The gate chooses the controller goal's id when it sends it, so a goal the
         // controller has not answered in time can still be cancelled by id.
         let (request, ctrl_id) = match self.controller.send_goal(goal) {
             Ok(sent) => sent,
             Err(e) => {
                 self.counts.errors.set(self.counts.errors.get() + 1);
-                self.refuse(
-                    handle,
-                    error_code::INVALID_GOAL,
-                    format!(
-                        "guardian gate: sending the goal to {} failed: {e:?}",
-                        self.config.controller
-                    ),
-                )
-                .await;
-                return;
+                let detail = format!(
+                    "guardian gate: sending the goal to {} failed: {e:?}",
+                    self.config.controller
+                );
+                self.refuse(handle, error_code::INVALID_GOAL, detail.clone())
+                    .await;
+                return Some(("controller-unreachable", detail));
             }
         };
         let answer = self
@@ -432,34 +447,28 @@ impl Gate<'_> {
             futures::future::Either::Left((Ok(r), _)) => r,
             futures::future::Either::Left((Err(e), _)) => {
                 self.counts.errors.set(self.counts.errors.get() + 1);
-                self.refuse(
-                    handle,
-                    error_code::INVALID_GOAL,
-                    format!(
-                        "guardian gate: the goal's answer from {} was lost: {e:?}",
-                        self.config.controller
-                    ),
-                )
-                .await;
+                let detail = format!(
+                    "guardian gate: the goal's answer from {} was lost: {e:?}",
+                    self.config.controller
+                );
+                self.refuse(handle, error_code::INVALID_GOAL, detail.clone())
+                    .await;
                 self.cancel_late(ctrl_id, None).await;
-                return;
+                return Some(("controller-lost", detail));
             }
             futures::future::Either::Right((_, answer)) => {
                 // MoveIt hears "aborted"; the controller may still accept the goal later:
                 // it is cancelled now, and again if a late acceptance comes.
                 self.counts.errors.set(self.counts.errors.get() + 1);
-                self.refuse(
-                    handle,
-                    error_code::INVALID_GOAL,
-                    format!(
-                        "guardian gate: controller {} did not answer within {:?}; the goal is cancelled at the controller",
-                        self.config.controller,
-                        self.config.controller_timeout()
-                    ),
-                )
-                .await;
+                let detail = format!(
+                    "guardian gate: controller {} did not answer within {:?}; the goal is cancelled at the controller",
+                    self.config.controller,
+                    self.config.controller_timeout()
+                );
+                self.refuse(handle, error_code::INVALID_GOAL, detail.clone())
+                    .await;
                 self.cancel_late(ctrl_id, Some(answer)).await;
-                return;
+                return Some(("controller-timeout", detail));
             }
         };
         if !response.accepted {
@@ -467,7 +476,13 @@ impl Gate<'_> {
             if let Err(e) = self.server.reject_goal(handle).await {
                 tracing::warn!("rejecting a goal: {e:?}");
             }
-            return;
+            return Some((
+                "controller-rejected",
+                format!(
+                    "guardian gate: controller {} rejected the goal",
+                    self.config.controller
+                ),
+            ));
         }
         let ours = handle.goal_id();
         self.forwarded.set(Some((ours, ctrl_id)));
@@ -476,12 +491,12 @@ impl Gate<'_> {
                 Ok(x) => x,
                 Err(e) => {
                     tracing::warn!("starting a goal: {e:?}");
-                    return;
+                    return None;
                 }
             },
             Err(e) => {
                 tracing::warn!("accepting a goal: {e:?}");
-                return;
+                return None;
             }
         };
         let fb = executing.clone();
@@ -525,6 +540,7 @@ impl Gate<'_> {
         {
             tracing::warn!("relaying the result: {e:?}");
         }
+        None
     }
 
     /// Cancel controller goal `ctrl_id`, which MoveIt was told is aborted: at once and, if

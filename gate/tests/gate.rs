@@ -526,7 +526,19 @@ fn gate_screens_forwards_relays_and_fails_closed() {
         let res = r.result.unwrap();
         assert_eq!(res.error_code, error_code::INVALID_GOAL);
         assert!(res.error_string.contains("did not answer"), "{res:?}");
-        assert_eq!(next_verdict().await.verdict, "go");
+        let screened = next_verdict().await;
+        assert_eq!(screened.verdict, "go");
+        // The verdicts topic then says the goal was not executed: an error for the same goal.
+        let failed = next_verdict().await;
+        assert_eq!(
+            (
+                failed.verdict.as_str(),
+                failed.reason.as_str(),
+                failed.goal_id.as_str()
+            ),
+            ("error", "controller-timeout", screened.goal_id.as_str()),
+            "{failed:?}"
+        );
         let deadline = Instant::now() + PATIENCE;
         while seen.cancels.load(Ordering::SeqCst) < 2 {
             assert!(
