@@ -67,6 +67,29 @@ pub struct Decision {
 }
 
 impl Decision {
+    /// A decision on an enrolled class: distance `d` to it, its `threshold`, the distance
+    /// to the nearest other class that competed (if any), the `nearest` classes; no
+    /// geometry numbers yet.
+    fn measured(
+        outcome: Outcome,
+        d: f32,
+        threshold: f32,
+        other: Option<f32>,
+        nearest: Vec<Neighbour>,
+    ) -> Self {
+        Self {
+            outcome,
+            claimed_distance: Some(d),
+            threshold: Some(threshold),
+            margin: Some(threshold - d),
+            gap: other.map(|o| o - d),
+            nearest,
+            geometry_score: None,
+            geometry_threshold: None,
+            geometry_feature: None,
+        }
+    }
+
     /// The claimed class is not enrolled: no numbers, the `nearest` classes.
     fn unknown_class(nearest: Vec<Neighbour>) -> Self {
         Self {
@@ -177,17 +200,7 @@ impl ClassBank {
             _ if is_outlier(d, threshold) => Outcome::Outlier,
             _ => Outcome::Go,
         };
-        Decision {
-            outcome,
-            claimed_distance: Some(d),
-            threshold: Some(threshold),
-            margin: Some(threshold - d),
-            gap: other.map(|o| o.0 - d),
-            nearest,
-            geometry_score: None,
-            geometry_threshold: None,
-            geometry_feature: None,
-        }
+        Decision::measured(outcome, d, threshold, other.map(|o| o.0), nearest)
     }
 
     /// Geometry score of `g` against class `name` and the deciding feature, with the
@@ -258,28 +271,27 @@ impl ClassBank {
     ) -> Vec<Neighbour> {
         self.ranked_with_place(query, plan, rule)
             .into_iter()
-            .map(|(n, _)| n)
+            .map(|(n, _, _)| n)
             .collect()
     }
 
-    /// [`ClassBank::ranked_in_place`], each class with whether it is in the plan's place
-    /// (every class's place scored once).
+    /// [`ClassBank::ranked_in_place`], each class with its place score and whether it is
+    /// in the plan's place (every class's place scored once).
     fn ranked_with_place(
         &self,
         query: &[f32],
         plan: &PlaceSignature,
         rule: &PlaceRule,
-    ) -> Vec<(Neighbour, bool)> {
+    ) -> Vec<(Neighbour, Option<PlaceScore>, bool)> {
         let (mut inside, outside): (Vec<_>, Vec<_>) = self
             .ranked(query)
             .into_iter()
             .map(|n| {
-                let here = self
-                    .place_score(plan, &n.name, rule)
-                    .is_some_and(|s| !rule.is_other_place(s.excess));
-                (n, here)
+                let score = self.place_score(plan, &n.name, rule);
+                let here = score.is_some_and(|s| !rule.is_other_place(s.excess));
+                (n, score, here)
             })
-            .partition(|(_, here)| *here);
+            .partition(|(_, _, here)| *here);
         inside.extend(outside);
         inside
     }
@@ -300,11 +312,13 @@ impl ClassBank {
         k: usize,
     ) -> Decision {
         let ranked = self.ranked_with_place(query, plan, rule);
-        let nearest: Vec<Neighbour> = ranked.iter().take(k).map(|(n, _)| n.clone()).collect();
-        let (Some(class), Some(score)) = (
-            self.classes.get(claimed),
-            self.place_score(plan, claimed, rule),
-        ) else {
+        let nearest: Vec<Neighbour> = ranked.iter().take(k).map(|(n, ..)| n.clone()).collect();
+        // The claimed class's place score, from the ranking (scored once).
+        let claimed_score = ranked
+            .iter()
+            .find(|(n, ..)| n.name == claimed)
+            .and_then(|(_, s, _)| *s);
+        let (Some(class), Some(score)) = (self.classes.get(claimed), claimed_score) else {
             return Decision::unknown_class(nearest);
         };
         let d = distance(query, &class.prototype);
@@ -312,8 +326,8 @@ impl ClassBank {
         // The nearest other class in the plan's place (ranked puts those first).
         let other = ranked
             .iter()
-            .find(|(n, here)| *here && n.name != claimed)
-            .map(|(n, _)| n);
+            .find(|(n, _, here)| *here && n.name != claimed)
+            .map(|(n, ..)| n);
         let outcome = match other {
             Some(o) if is_wrong_task(d, o.distance, self.wrong_task_tolerance) => {
                 Outcome::WrongTask {
@@ -328,15 +342,10 @@ impl ClassBank {
             _ => Outcome::Go,
         };
         Decision {
-            outcome,
-            claimed_distance: Some(d),
-            threshold: Some(threshold),
-            margin: Some(threshold - d),
-            gap: other.map(|o| o.distance - d),
-            nearest,
             geometry_score: Some(score.excess),
             geometry_threshold: Some(rule.tolerance),
             geometry_feature: Some(GeometryFeature::Place),
+            ..Decision::measured(outcome, d, threshold, other.map(|o| o.distance), nearest)
         }
     }
 }

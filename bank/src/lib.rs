@@ -467,19 +467,7 @@ impl ClassBank {
                 examples: examples.len(),
             });
         }
-        let joints = self.robot_joints();
-        for (index, x) in examples.iter().enumerate() {
-            if x.joints() != joints {
-                return Err(EnrollError::ExampleJoints {
-                    index,
-                    expected: joints,
-                    got: x.joints(),
-                });
-            }
-            if !x.is_finite() {
-                return Err(EnrollError::NonFinite { index });
-            }
-        }
+        self.check_examples(examples)?;
         if !geometry.is_empty() && geometry.len() != embeddings.len() {
             return Err(EnrollError::GeometryCount {
                 embeddings: embeddings.len(),
@@ -531,6 +519,25 @@ impl ClassBank {
         Ok(&self.classes[name])
     }
 
+    /// Every example a plan of the bank's robot and finite (the error names the first that
+    /// is not, by its position).
+    fn check_examples(&self, examples: &[Example]) -> Result<(), EnrollError> {
+        let joints = self.robot_joints();
+        for (index, x) in examples.iter().enumerate() {
+            if x.joints() != joints {
+                return Err(EnrollError::ExampleJoints {
+                    index,
+                    expected: joints,
+                    got: x.joints(),
+                });
+            }
+            if !x.is_finite() {
+                return Err(EnrollError::NonFinite { index });
+            }
+        }
+        Ok(())
+    }
+
     /// Every vector of the bank's dimension and finite (the error names the first that is
     /// not, by its position).
     fn check_embeddings<'a>(
@@ -572,19 +579,7 @@ impl ClassBank {
         if let Some(index) = class.place.iter().position(|p| !p.is_valid()) {
             return Err(EnrollError::NonFinite { index });
         }
-        let joints = self.robot_joints();
-        for (index, x) in class.examples.iter().enumerate() {
-            if x.joints() != joints {
-                return Err(EnrollError::ExampleJoints {
-                    index,
-                    expected: joints,
-                    got: x.joints(),
-                });
-            }
-            if !x.is_finite() {
-                return Err(EnrollError::NonFinite { index });
-            }
-        }
+        self.check_examples(&class.examples)?;
         if class.threshold.is_some_and(|t| !t.is_finite() || t < 0.0) {
             return Err(EnrollError::NonFinite { index: 0 });
         }

@@ -94,8 +94,6 @@ pub struct Metrics {
     pub record_enabled: Gauge,
     fleet_position: Family<SignerLabels, Gauge>,
     fleet_peers: Gauge,
-    /// Class labels whose check series are pre-set (every verdict and reason at 0).
-    labelled: Arc<Mutex<std::collections::HashSet<String>>>,
 }
 
 /// Every `(verdict, reason)` pair a check can count: pre-set to 0 per class label, so
@@ -132,7 +130,6 @@ impl Default for Metrics {
             record_enabled: Gauge::default(),
             fleet_position: Family::default(),
             fleet_peers: Gauge::default(),
-            labelled: Arc::default(),
         }
     }
 }
@@ -199,25 +196,22 @@ impl Metrics {
     /// Count one answered check and its service time; `class` is its bounded label.
     pub fn count_check(&self, response: &ResponseHeader, class: String, took: Duration) {
         let (verdict, reason) = verdict_labels(response);
-        if let Ok(mut labelled) = self.labelled.lock()
-            && !labelled.contains(&class)
-        {
+        let labels = CheckLabels {
+            verdict,
+            reason,
+            class,
+        };
+        // A class label's first check: its other outcomes start at 0 beside it.
+        if self.checks.get(&labels).is_none() {
             for (verdict, reason) in CHECK_OUTCOMES {
                 drop(self.checks.get_or_create(&CheckLabels {
                     verdict,
                     reason,
-                    class: class.clone(),
+                    class: labels.class.clone(),
                 }));
             }
-            labelled.insert(class.clone());
         }
-        self.checks
-            .get_or_create(&CheckLabels {
-                verdict,
-                reason,
-                class,
-            })
-            .inc();
+        self.checks.get_or_create(&labels).inc();
         self.check_seconds.observe(took.as_secs_f64());
     }
 

@@ -588,6 +588,44 @@ pub fn forget_all(client: &Client, names: &[String]) -> Result<(), DemoError> {
     Ok(())
 }
 
+/// What both demos (drawings, cell) take on the command line besides their own options:
+/// the daemon to reach, and how to report.
+#[derive(Debug, clap::Args)]
+pub struct Session {
+    /// Request-response service name of the daemon.
+    #[arg(long, default_value = guardian_shared::wire::DEFAULT_SERVICE_NAME)]
+    pub service: String,
+    /// Per-request timeout in milliseconds.
+    #[arg(long, default_value_t = 2000)]
+    pub timeout_ms: u64,
+    /// iceoryx2 root path (must match the daemon's config).
+    #[arg(long)]
+    pub iceoryx2_root_path: Option<PathBuf>,
+    /// iceoryx2 prefix (must match the daemon's config).
+    #[arg(long)]
+    pub iceoryx2_prefix: Option<String>,
+    /// Print JSON instead of the table.
+    #[arg(long)]
+    pub json: bool,
+    /// Keep the demo classes enrolled afterwards.
+    #[arg(long)]
+    pub keep: bool,
+}
+
+impl Session {
+    /// Connect to the daemon; `hint` says how to start it.
+    pub fn connect(&self, hint: &str) -> anyhow::Result<Client> {
+        use anyhow::Context as _;
+        Client::connect(guardian_client::ClientConfig {
+            service_name: self.service.clone(),
+            timeout: std::time::Duration::from_millis(self.timeout_ms),
+            iceoryx2_root_path: self.iceoryx2_root_path.clone(),
+            iceoryx2_prefix: self.iceoryx2_prefix.clone(),
+        })
+        .with_context(|| format!("cannot connect to guardiand (is it running? {hint})"))
+    }
+}
+
 /// Print `report` (JSON or the table) and fail if a case was not as expected: how both
 /// demos end.
 pub fn finish(report: &Report, json: bool) -> anyhow::Result<()> {

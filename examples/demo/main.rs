@@ -10,9 +10,7 @@ mod cases;
 
 use std::path::PathBuf;
 
-use anyhow::Context as _;
 use clap::Parser;
-use guardian_client::Client;
 
 use cases::{Options, run_cases};
 
@@ -25,42 +23,21 @@ struct Args {
     /// Omniglot stroke root of the official files (the demo draws Latin).
     #[arg(long, default_value = "../shared/omniglot/strokes")]
     strokes: PathBuf,
-    /// Request-response service name of the daemon.
-    #[arg(long, default_value = guardian_shared::wire::DEFAULT_SERVICE_NAME)]
-    service: String,
-    /// Per-request timeout in milliseconds.
-    #[arg(long, default_value_t = 2000)]
-    timeout_ms: u64,
-    /// iceoryx2 root path (must match the daemon's config).
-    #[arg(long)]
-    iceoryx2_root_path: Option<PathBuf>,
-    /// iceoryx2 prefix (must match the daemon's config).
-    #[arg(long)]
-    iceoryx2_prefix: Option<String>,
-    /// Print JSON instead of the table.
-    #[arg(long)]
-    json: bool,
-    /// Keep the demo classes enrolled afterwards.
-    #[arg(long)]
-    keep: bool,
+    /// The daemon, and how to report.
+    #[command(flatten)]
+    session: cases::Session,
 }
 
 /// Connect, run the cases, print; an error if any case is not as expected.
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let client = Client::connect(guardian_client::ClientConfig {
-        service_name: args.service.clone(),
-        timeout: std::time::Duration::from_millis(args.timeout_ms),
-        iceoryx2_root_path: args.iceoryx2_root_path.clone(),
-        iceoryx2_prefix: args.iceoryx2_prefix.clone(),
-    })
-    .context("cannot connect to guardiand (is it running? see README)")?;
+    let client = args.session.connect("see README")?;
     let report = run_cases(
         &client,
         &Options {
             strokes: args.strokes.clone(),
-            keep: args.keep,
+            keep: args.session.keep,
         },
     )?;
-    cases::finish(&report, args.json)
+    cases::finish(&report, args.session.json)
 }
