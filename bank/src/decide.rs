@@ -1,7 +1,7 @@
 //! The decision rule (see the module docs of [`crate::bank`]), written once: nearest-class
 //! search, [`is_wrong_task`] and [`is_outlier`], [`ClassBank::decide`] and the geometry step.
 
-use guardian_shared::wire::{CheckAnswer, CheckVerdict, NoGo};
+use guardian_shared::verdict::{self, Decision, NoGoReason, Verdict};
 use guardian_shared::workcell::GeometryFeature;
 
 use super::distance::{Distances, distance};
@@ -21,115 +21,45 @@ pub fn is_outlier(claimed: f32, threshold: f32) -> bool {
     claimed.is_nan() || claimed > threshold
 }
 
-/// The decision of [`ClassBank::decide`].
-#[derive(Debug, Clone, PartialEq)]
-pub enum Outcome {
-    /// The trajectory is the class it claims to be.
-    Go,
-    /// Another class is nearer than the claimed one.
-    WrongTask {
-        /// The nearest class.
-        nearest: String,
-    },
-    /// The claimed class is nearest but farther than its threshold.
-    Outlier,
-    /// The embedding fits the claimed class, but the plan draws in another place, size,
-    /// stroke count or direction than every enrolled example.
-    GeometryMismatch {
-        /// The feature farthest from the enrolled examples (relative to its spread).
-        feature: GeometryFeature,
-    },
-    /// The claimed class is not enrolled.
-    UnknownClass,
+/// A verdict on an enrolled class: distance `d` to it, its `threshold`, the distance to the
+/// nearest other class that competed (if any), the `nearest` classes; no geometry numbers
+/// yet.
+fn measured(
+    bank: &ClassBank,
+    claimed: &str,
+    outcome: Decision,
+    d: f32,
+    threshold: f32,
+    other: Option<f32>,
+    nearest: Vec<Neighbour>,
+) -> Verdict {
+    Verdict {
+        claimed_distance: Some(d),
+        threshold: Some(threshold),
+        margin: Some(threshold - d),
+        gap: other.map(|o| o - d),
+        ..bare(bank, claimed, nearest, outcome)
+    }
 }
 
-/// A decision with the numbers behind it.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Decision {
-    /// Go or why not.
-    pub outcome: Outcome,
-    /// Distance to the claimed prototype (`None` if the class is unknown).
-    pub claimed_distance: Option<f32>,
-    /// Threshold used for the claimed class.
-    pub threshold: Option<f32>,
-    /// `threshold - claimed_distance`.
-    pub margin: Option<f32>,
-    /// Distance to the nearest other class minus `claimed_distance`.
-    pub gap: Option<f32>,
-    /// The k nearest classes, nearest first.
-    pub nearest: Vec<Neighbour>,
-    /// Geometry score against the claimed class (`None`: check not applicable).
-    pub geometry_score: Option<f32>,
-    /// Geometry threshold (`None`: check not applicable).
-    pub geometry_threshold: Option<f32>,
-    /// The feature behind `geometry_score`.
-    pub geometry_feature: Option<GeometryFeature>,
+/// `decision` without numbers (as for a class not enrolled), with the `nearest` classes.
+fn bare(bank: &ClassBank, claimed: &str, nearest: Vec<Neighbour>, decision: Decision) -> Verdict {
+    Verdict {
+        nearest: nearest
+            .into_iter()
+            .map(|n| verdict::Neighbour {
+                threshold: bank.threshold(&n.name).unwrap_or(f32::NAN),
+                class: n.name,
+                distance: n.distance,
+            })
+            .collect(),
+        ..Verdict::new(decision, claimed, &bank.model_version, bank.generation())
+    }
 }
 
-impl Decision {
-    /// A decision on an enrolled class: distance `d` to it, its `threshold`, the distance
-    /// to the nearest other class that competed (if any), the `nearest` classes; no
-    /// geometry numbers yet.
-    fn measured(
-        outcome: Outcome,
-        d: f32,
-        threshold: f32,
-        other: Option<f32>,
-        nearest: Vec<Neighbour>,
-    ) -> Self {
-        Self {
-            outcome,
-            claimed_distance: Some(d),
-            threshold: Some(threshold),
-            margin: Some(threshold - d),
-            gap: other.map(|o| o - d),
-            nearest,
-            geometry_score: None,
-            geometry_threshold: None,
-            geometry_feature: None,
-        }
-    }
-
-    /// The claimed class is not enrolled: no numbers, the `nearest` classes.
-    fn unknown_class(nearest: Vec<Neighbour>) -> Self {
-        Self {
-            outcome: Outcome::UnknownClass,
-            claimed_distance: None,
-            threshold: None,
-            margin: None,
-            gap: None,
-            nearest,
-            geometry_score: None,
-            geometry_threshold: None,
-            geometry_feature: None,
-        }
-    }
-
-    /// The decision as the wire carries it: the one conversion from the bank's decision to
-    /// the response (the client's `Verdict::from_response` is the one conversion back; a
-    /// test in `daemon/tests/verdict.rs` holds the two together). The nearest classes
-    /// travel as the response's entries, not in the header.
-    pub fn answer(&self) -> CheckAnswer {
-        let verdict = match &self.outcome {
-            Outcome::Go => CheckVerdict::Go,
-            Outcome::WrongTask { .. } => CheckVerdict::NoGo(NoGo::WrongTask),
-            Outcome::Outlier => CheckVerdict::NoGo(NoGo::Outlier),
-            Outcome::GeometryMismatch { feature } => {
-                CheckVerdict::NoGo(NoGo::GeometryMismatch(*feature))
-            }
-            Outcome::UnknownClass => CheckVerdict::NoGo(NoGo::UnknownClass),
-        };
-        CheckAnswer {
-            verdict,
-            claimed_distance: self.claimed_distance,
-            threshold: self.threshold,
-            margin: self.margin,
-            gap: self.gap,
-            geometry_score: self.geometry_score,
-            geometry_threshold: self.geometry_threshold,
-            geometry_feature: self.geometry_feature,
-        }
-    }
+/// No-go for `reason`.
+fn no_go(reason: NoGoReason) -> Decision {
+    Decision::NoGo { reason }
 }
 
 impl ClassBank {
@@ -173,7 +103,7 @@ impl ClassBank {
     }
 
     /// Apply the decision rule (see the module docs) to `query` claiming class `claimed`.
-    pub fn decide(&self, query: &[f32], claimed: &str, k: usize) -> Decision {
+    pub fn decide(&self, query: &[f32], claimed: &str, k: usize) -> Verdict {
         // The k nearest, and at least two: the nearest class other than the claimed one is
         // among the first two.
         let ranked = self.ranked_refs(query, k.max(1) + 1);
@@ -186,21 +116,29 @@ impl ClassBank {
             })
             .collect();
         let Some(class) = self.classes.get(claimed) else {
-            return Decision::unknown_class(nearest);
+            return bare(self, claimed, nearest, no_go(NoGoReason::UnknownClass));
         };
         let d = distance(query, &class.prototype);
         let threshold = class.threshold.unwrap_or(self.default_threshold);
         let other = ranked.iter().find(|n| n.1 != claimed);
         let outcome = match other {
             Some(&(od, name)) if is_wrong_task(d, od, self.wrong_task_tolerance) => {
-                Outcome::WrongTask {
+                no_go(NoGoReason::WrongTask {
                     nearest: name.to_owned(),
-                }
+                })
             }
-            _ if is_outlier(d, threshold) => Outcome::Outlier,
-            _ => Outcome::Go,
+            _ if is_outlier(d, threshold) => no_go(NoGoReason::Outlier),
+            _ => Decision::Go,
         };
-        Decision::measured(outcome, d, threshold, other.map(|o| o.0), nearest)
+        measured(
+            self,
+            claimed,
+            outcome,
+            d,
+            threshold,
+            other.map(|o| o.0),
+            nearest,
+        )
     }
 
     /// Geometry score of `g` against class `name` and the deciding feature, with the
@@ -226,14 +164,18 @@ impl ClassBank {
         geometry: Option<&PlanGeometry>,
         claimed: &str,
         k: usize,
-    ) -> Decision {
+    ) -> Verdict {
         let mut d = self.decide(query, claimed, k);
         if let Some((s, f, t)) = geometry.and_then(|g| self.geometry_score(g, claimed)) {
             d.geometry_score = Some(s);
             d.geometry_threshold = Some(t);
             d.geometry_feature = Some(f);
-            if d.outcome == Outcome::Go && geometry::is_geometry_no_go(s, t) {
-                d.outcome = Outcome::GeometryMismatch { feature: f };
+            if d.is_go() && geometry::is_geometry_no_go(s, t) {
+                d.decision = no_go(NoGoReason::GeometryMismatch {
+                    feature: f,
+                    score: s,
+                    threshold: t,
+                });
             }
         }
         d
@@ -299,7 +241,7 @@ impl ClassBank {
     /// The decision rule of an anchored deployment (see the crate docs): a plan must be its
     /// claimed class in shape and in place. Only classes in the plan's place compete for
     /// wrong task; then a plan in another place than its class's examples is a
-    /// [`Outcome::GeometryMismatch`] on [`GeometryFeature::Place`] (before the outlier step:
+    /// [`NoGoReason::GeometryMismatch`] on [`GeometryFeature::Place`] (before the outlier step:
     /// the place is the plainer reason), with the
     /// place excess (m) as the geometry score and the rule's tolerance as its threshold.
     /// The nearest classes are those of [`ClassBank::ranked_in_place`].
@@ -310,7 +252,7 @@ impl ClassBank {
         rule: &PlaceRule,
         claimed: &str,
         k: usize,
-    ) -> Decision {
+    ) -> Verdict {
         let ranked = self.ranked_with_place(query, plan, rule);
         let nearest: Vec<Neighbour> = ranked.iter().take(k).map(|(n, ..)| n.clone()).collect();
         // The claimed class's place score, from the ranking (scored once).
@@ -319,7 +261,7 @@ impl ClassBank {
             .find(|(n, ..)| n.name == claimed)
             .and_then(|(_, s, _)| *s);
         let (Some(class), Some(score)) = (self.classes.get(claimed), claimed_score) else {
-            return Decision::unknown_class(nearest);
+            return bare(self, claimed, nearest, no_go(NoGoReason::UnknownClass));
         };
         let d = distance(query, &class.prototype);
         let threshold = class.threshold.unwrap_or(self.default_threshold) * rule.shape;
@@ -330,22 +272,25 @@ impl ClassBank {
             .map(|(n, ..)| n);
         let outcome = match other {
             Some(o) if is_wrong_task(d, o.distance, self.wrong_task_tolerance) => {
-                Outcome::WrongTask {
+                no_go(NoGoReason::WrongTask {
                     nearest: o.name.clone(),
-                }
+                })
             }
             // Another place is the plain, physical reason: said before the shape's.
-            _ if rule.is_other_place(score.excess) => Outcome::GeometryMismatch {
+            _ if rule.is_other_place(score.excess) => no_go(NoGoReason::GeometryMismatch {
                 feature: GeometryFeature::Place,
-            },
-            _ if is_outlier(d, threshold) => Outcome::Outlier,
-            _ => Outcome::Go,
+                score: score.excess,
+                threshold: rule.tolerance,
+            }),
+            _ if is_outlier(d, threshold) => no_go(NoGoReason::Outlier),
+            _ => Decision::Go,
         };
-        Decision {
+        let other = other.map(|o| o.distance);
+        Verdict {
             geometry_score: Some(score.excess),
             geometry_threshold: Some(rule.tolerance),
             geometry_feature: Some(GeometryFeature::Place),
-            ..Decision::measured(outcome, d, threshold, other.map(|o| o.distance), nearest)
+            ..measured(self, claimed, outcome, d, threshold, other, nearest)
         }
     }
 }
@@ -398,8 +343,8 @@ mod tests {
         let q = [1.0, 0.005];
         // Genuine: go, although two other classes have the same shape.
         let d = b.decide_in_place(&q, &to_bin(1, 0.01), &rule, "bin1", 3);
-        assert_eq!(d.outcome, Outcome::Go, "{d:?}");
-        assert_eq!(d.nearest[0].name, "bin1");
+        assert_eq!(d.decision, Decision::Go, "{d:?}");
+        assert_eq!(d.nearest[0].class, "bin1");
         assert_eq!(d.geometry_feature, Some(GeometryFeature::Place));
         assert!(d.geometry_score.unwrap() <= rule.tolerance);
         assert_eq!(
@@ -408,27 +353,34 @@ mod tests {
         );
         // The same motion to the neighbouring bin: no-go on the place, with its excess.
         let d = b.decide_in_place(&q, &to_bin(2, 0.0), &rule, "bin1", 3);
-        assert_eq!(
-            d.outcome,
-            Outcome::GeometryMismatch {
-                feature: GeometryFeature::Place
-            }
+        assert!(
+            matches!(
+                d.reason(),
+                Some(NoGoReason::GeometryMismatch {
+                    feature: GeometryFeature::Place,
+                    ..
+                })
+            ),
+            "{d:?}"
         );
         assert!(d.geometry_score.unwrap() > 0.03, "{d:?}");
-        // The answer on the wire says so.
-        let a = d.answer();
+        // Its reason carries the excess and the tolerance.
         assert_eq!(
-            a.verdict,
-            CheckVerdict::NoGo(NoGo::GeometryMismatch(GeometryFeature::Place))
+            d.reason(),
+            Some(&NoGoReason::GeometryMismatch {
+                feature: GeometryFeature::Place,
+                score: d.geometry_score.unwrap(),
+                threshold: rule.tolerance,
+            })
         );
         // Not enrolled; enrolled without place signatures: never a go.
         let d = b.decide_in_place(&q, &to_bin(1, 0.0), &rule, "nope", 3);
-        assert_eq!(d.outcome, Outcome::UnknownClass);
+        assert_eq!(d.reason(), Some(&NoGoReason::UnknownClass));
         let mut b = b;
         b.enroll("unplaced", &[vec![1.0, 0.005]]).unwrap();
         let d = b.decide_in_place(&q, &to_bin(1, 0.0), &rule, "unplaced", 3);
         assert!(
-            matches!(d.outcome, Outcome::GeometryMismatch { .. }),
+            matches!(d.reason(), Some(NoGoReason::GeometryMismatch { .. })),
             "{d:?}"
         );
     }

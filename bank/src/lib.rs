@@ -4,21 +4,21 @@
 //! The daemon serves from it and the lab builds the shipped default bank and evaluates with
 //! it, so serving and evaluation share one decision rule ([`ClassBank::decide`]):
 //!
-//! 1. the claimed class is not enrolled → [`Outcome::UnknownClass`];
+//! 1. the claimed class is not enrolled → [`NoGoReason::UnknownClass`](guardian_shared::verdict::NoGoReason::UnknownClass);
 //! 2. another class is nearer than the claimed one by more than the bank's wrong-task
-//!    tolerance (0 unless calibrated) → [`Outcome::WrongTask`];
-//! 3. the distance to the claimed prototype exceeds the class threshold → [`Outcome::Outlier`];
+//!    tolerance (0 unless calibrated) → [`NoGoReason::WrongTask`](guardian_shared::verdict::NoGoReason::WrongTask);
+//! 3. the distance to the claimed prototype exceeds the class threshold → [`NoGoReason::Outlier`](guardian_shared::verdict::NoGoReason::Outlier);
 //! 4. the plan's geometry (position, size, strokes, direction; `guardian_robot::geometry`) is
 //!    farther from the class's enrolled examples than the calibrated geometry threshold →
-//!    [`Outcome::GeometryMismatch`] (only [`ClassBank::decide_with_geometry`], only for
+//!    [`NoGoReason::GeometryMismatch`](guardian_shared::verdict::NoGoReason::GeometryMismatch) (only [`ClassBank::decide_with_geometry`], only for
 //!    classes whose every example has a descriptor, only in a bank with a geometry
 //!    calibration);
-//! 5. otherwise [`Outcome::Go`].
+//! 5. otherwise [`Decision::Go`](guardian_shared::verdict::Decision::Go).
 //!
 //! An **anchored** deployment (a cell whose tasks are where they happen) decides with
 //! [`ClassBank::decide_in_place`]: only classes whose enrolled examples share the plan's
 //! place ([`guardian_robot::place`]) compete in step 2; then, before step 3, a plan in
-//! another place than its claimed class's examples is a [`Outcome::GeometryMismatch`] on
+//! another place than its claimed class's examples is a [`NoGoReason::GeometryMismatch`](guardian_shared::verdict::NoGoReason::GeometryMismatch) on
 //! the feature `place`, its score the place excess in metres; step 3 uses the class
 //! threshold times the rule's `shape` factor; there is no step 4.
 //!
@@ -77,7 +77,7 @@ pub use calibrate::{
     Calibration, GenuineScore, GeometryCalibration, MIN_CLASS_CALIBRATION, calibrate,
     calibrate_geometry, class_spread, threshold_allowing,
 };
-pub use decide::{Decision, Outcome, is_outlier, is_wrong_task};
+pub use decide::{is_outlier, is_wrong_task};
 pub use distance::distance;
 pub use examples::Example;
 pub use file::{LoadBankError, SaveBankError, remove_stale_temporaries};
@@ -289,7 +289,7 @@ impl ClassBank {
         self.calibration.as_ref()
     }
     /// How much nearer (Euclidean) another class must be than the claimed one for a
-    /// [`Outcome::WrongTask`]; 0 = any strictly nearer class.
+    /// [`NoGoReason::WrongTask`](guardian_shared::verdict::NoGoReason::WrongTask); 0 = any strictly nearer class.
     pub fn wrong_task_tolerance(&self) -> f32 {
         self.wrong_task_tolerance
     }
@@ -613,6 +613,7 @@ fn mean(rows: &[Vec<f32>], dim: usize) -> Vec<f32> {
 mod tests {
     use super::file::hex;
     use super::*;
+    use guardian_shared::verdict::{Decision, NoGoReason};
     use guardian_shared::workcell::{GEOMETRY_FEATURES, GeometryFeature};
     use sha2::{Digest, Sha256};
     use std::fs;
@@ -664,17 +665,17 @@ mod tests {
             let d = b.decide(q, name, 3);
             assert_eq!(
                 s.normalised(&cal) > 1.0,
-                d.outcome != Outcome::Go,
+                !d.is_go(),
                 "{name}: {s:?} -> {:?}",
-                d.outcome
+                d.decision
             );
-            no_go += usize::from(d.outcome != Outcome::Go);
-            wrong += usize::from(matches!(d.outcome, Outcome::WrongTask { .. }));
+            no_go += usize::from(!d.is_go());
+            wrong += usize::from(matches!(d.reason(), Some(NoGoReason::WrongTask { .. })));
             let tol = b.wrong_task_tolerance();
             assert_eq!(
                 s.nearest_other
                     .is_some_and(|o| is_wrong_task(s.claimed, o, tol)),
-                matches!(d.outcome, Outcome::WrongTask { .. })
+                matches!(d.reason(), Some(NoGoReason::WrongTask { .. }))
             );
         }
         assert!(
@@ -745,27 +746,27 @@ mod tests {
     fn decision_rule_covers_every_outcome() {
         let mut b = bank();
         let d = b.decide(&[0.0, 1.5], "a", 5);
-        assert_eq!(d.outcome, Outcome::Go);
+        assert_eq!(d.decision, Decision::Go);
         assert_eq!(d.claimed_distance, Some(0.5));
         assert_eq!(d.margin, Some(0.5));
         assert!((d.gap.unwrap() - (10.0f32.hypot(1.5) - 0.5)).abs() < 1e-5);
-        assert_eq!(d.nearest[0].name, "a");
+        assert_eq!(d.nearest[0].class, "a");
         let d = b.decide(&[0.0, 1.5], "b", 1);
         assert_eq!(
-            d.outcome,
-            Outcome::WrongTask {
+            d.reason(),
+            Some(&NoGoReason::WrongTask {
                 nearest: "a".into()
-            }
+            })
         );
         assert_eq!(d.nearest.len(), 1);
         assert!(d.gap.unwrap() < 0.0);
         let d = b.decide(&[0.0, 3.0], "a", 5);
-        assert_eq!(d.outcome, Outcome::Outlier);
+        assert_eq!(d.reason(), Some(&NoGoReason::Outlier));
         assert!(d.margin.unwrap() < 0.0);
         assert!(b.set_class_threshold("a", Some(2.5), None));
-        assert_eq!(b.decide(&[0.0, 3.0], "a", 5).outcome, Outcome::Go);
+        assert!(b.decide(&[0.0, 3.0], "a", 5).is_go());
         let d = b.decide(&[0.0, 3.0], "zzz", 5);
-        assert_eq!(d.outcome, Outcome::UnknownClass);
+        assert_eq!(d.reason(), Some(&NoGoReason::UnknownClass));
         assert_eq!(d.nearest.len(), 2);
         // A single class: no gap, decided by threshold only.
         b.forget("b");
@@ -891,7 +892,7 @@ mod tests {
         b.enroll("b", &[vec![10.0, 10.0]]).unwrap();
         let pa = b.class("a").unwrap().prototype.clone();
         let q = [pa[0] + 0.1, pa[1]];
-        assert_eq!(b.decide(&q, "a", 2).outcome, Outcome::Go);
+        assert!(b.decide(&q, "a", 2).is_go());
         let bytes = b.to_bytes().unwrap();
         assert_eq!(ClassBank::from_bytes(&bytes).unwrap(), b);
         // Leave-one-out spread of three collinear points 0, 1, 2.
@@ -935,7 +936,7 @@ mod tests {
         // Even with a geometry calibration, a class without descriptors is not checked.
         b.set_geometry_calibration(Some(geo_cal(1.0)));
         let d = b.decide_with_geometry(&[0.6, 0.6], Some(&geo(5.0)), "a", 1);
-        assert_eq!(d.outcome, Outcome::Go);
+        assert_eq!(d.decision, Decision::Go);
         assert_eq!(d.geometry_score, None);
         // Saved again, it is a format-2 file.
         let bytes = b.to_bytes().unwrap();
@@ -957,19 +958,23 @@ mod tests {
         b.set_geometry_calibration(Some(geo_cal(2.0)));
         // 0.03 from the nearest example = 2 spreads: inside; 0.05 = 4 spreads: mismatch.
         let d = b.decide_with_geometry(&[0.0, 0.1], Some(&geo(0.025)), "a", 2);
-        assert_eq!(d.outcome, Outcome::Go);
+        assert_eq!(d.decision, Decision::Go);
         assert!((d.geometry_score.unwrap() - 1.5).abs() < 1e-4);
         let d = b.decide_with_geometry(&[0.0, 0.1], Some(&geo(0.05)), "a", 2);
-        assert_eq!(
-            d.outcome,
-            Outcome::GeometryMismatch {
-                feature: GeometryFeature::CentreX
-            }
+        assert!(
+            matches!(
+                d.reason(),
+                Some(NoGoReason::GeometryMismatch {
+                    feature: GeometryFeature::CentreX,
+                    ..
+                })
+            ),
+            "{d:?}"
         );
         assert_eq!(d.geometry_threshold, Some(2.0));
         // The embedding decision comes first.
         let d = b.decide_with_geometry(&[5.0, 5.0], Some(&geo(0.05)), "a", 2);
-        assert!(matches!(d.outcome, Outcome::WrongTask { .. }));
+        assert!(matches!(d.reason(), Some(NoGoReason::WrongTask { .. })));
         // Round trip through the file format, atomically saved.
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("bank.gcb");

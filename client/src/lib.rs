@@ -54,8 +54,8 @@ pub use guardian_shared::trajectory::{
     InvalidKind, MAX_JOINTS, MAX_WAYPOINTS, MIN_WAYPOINTS, Waypoint, waypoint,
 };
 use guardian_shared::wire::{
-    self, CheckVerdict, ClassEntry, ClassNameError, Failure, MAX_CHANNELS, MAX_EXAMPLES, NoGo, Op,
-    ProtocolError, RequestHeader, ResponseHeader,
+    self, ClassEntry, ClassNameError, Failure, MAX_CHANNELS, MAX_EXAMPLES, Op, ProtocolError,
+    RequestHeader, ResponseHeader,
 };
 pub use guardian_shared::wire::{DEFAULT_ADMIN_SOCKET, Limit, LimitKind};
 pub use guardian_shared::workcell::{GeometryFeature, WorkcellKind};
@@ -137,223 +137,24 @@ impl Trajectory {
     }
 }
 
-/// Go, or no-go with the reason.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-#[serde(rename_all = "kebab-case", tag = "decision")]
-pub enum Decision {
-    /// The trajectory is the task it claims to be.
-    Go,
-    /// It is not.
-    NoGo {
-        /// Why.
-        reason: NoGoReason,
-    },
-}
+pub use guardian_shared::verdict::{Decision, Neighbour, NoGoReason, Verdict};
 
-/// Why a check answered no-go.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-#[serde(rename_all = "kebab-case", tag = "reason")]
-#[non_exhaustive]
-pub enum NoGoReason {
-    /// Another enrolled class is nearer than the claimed one.
-    WrongTask {
-        /// The nearest class.
-        nearest: String,
-    },
-    /// The claimed class is nearest but farther than its threshold.
-    Outlier,
-    /// The claimed class is not enrolled.
-    UnknownClass,
-    /// The trajectory failed validation.
-    InvalidTrajectory {
-        /// What is wrong.
-        kind: InvalidKind,
-        /// Waypoint index, or the offending count for count/shape errors.
-        index: u32,
-    },
-    /// The plan breaks a workcell rule (decided before any model runs).
-    Workcell {
-        /// Which rule.
-        kind: WorkcellKind,
-        /// The first offending waypoint.
-        index: u32,
-    },
-    /// The embedding fits the claimed class, but where, how large or in which direction
-    /// the plan draws differs from every enrolled example.
-    GeometryMismatch {
-        /// The feature farthest from the enrolled examples (relative to its spread).
-        feature: GeometryFeature,
-        /// The plan's geometry score.
-        score: f32,
-        /// The class's geometry threshold.
-        threshold: f32,
-    },
-}
-
-/// One line, as `guardianctl` and the demo (`examples/demo`) print it: `GO`, or `NO-GO` and the
-/// reason.
-impl std::fmt::Display for Decision {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Self::Go => write!(f, "GO"),
-            Self::NoGo { reason } => write!(f, "NO-GO {reason}"),
-        }
+/// The verdict a check response carries (header and entries, as any transport delivers
+/// them) for a check that claimed `claimed_class` ([`wire::decode_check`], the one
+/// conversion from the wire; the daemon's [`wire::encode_check`] is the one conversion to
+/// it). A daemon error status, or a response that does not answer that check, is an error.
+pub fn verdict_of_response(
+    r: &ResponseHeader,
+    entries: &[ClassEntry],
+    claimed_class: &str,
+) -> Result<Verdict, CheckError> {
+    status_ok(r)?;
+    if r.op != Op::Check as u32 || wire::decode_text(&r.class_name) != claimed_class {
+        return Err(CheckError::Protocol {
+            detail: "response does not echo the request's op and class".into(),
+        });
     }
-}
-
-/// The reason with its detail, e.g. `wrong task (nearest character07)`.
-impl std::fmt::Display for NoGoReason {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Self::WrongTask { nearest } => write!(f, "wrong task (nearest {nearest})"),
-            Self::Outlier => write!(f, "outlier"),
-            Self::UnknownClass => write!(f, "unknown class"),
-            Self::InvalidTrajectory { kind, index } => write!(f, "invalid: {kind:?} at {index}"),
-            Self::Workcell { kind, index } => write!(f, "workcell: {kind:?} at waypoint {index}"),
-            // The place excess is in metres: said in centimetres. Not a number: the plan's
-            // tool changes (grasps, releases) are not those of any enrolled run.
-            Self::GeometryMismatch {
-                feature: GeometryFeature::Place,
-                score,
-                ..
-            } if !score.is_finite() => write!(
-                f,
-                "place: its grasps and releases are not those of any enrolled run"
-            ),
-            Self::GeometryMismatch {
-                feature: GeometryFeature::Place,
-                score,
-                threshold,
-            } => write!(
-                f,
-                "place: {:.1} cm beyond the enrolled runs (tolerance {:.1} cm)",
-                score * 100.0,
-                threshold * 100.0
-            ),
-            Self::GeometryMismatch {
-                feature,
-                score,
-                threshold,
-            } => write!(
-                f,
-                "geometry: {} (score {score:.2} > {threshold:.2})",
-                feature.name()
-            ),
-        }
-    }
-}
-
-/// A class and its distance.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Neighbour {
-    /// Class name.
-    pub class: String,
-    /// Euclidean embedding distance to the class prototype.
-    pub distance: f32,
-    /// The class's decision threshold.
-    pub threshold: f32,
-}
-
-/// The answer to [`Client::check`].
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Verdict {
-    /// Go or no-go with its reason.
-    pub decision: Decision,
-    /// The class the trajectory claimed.
-    pub claimed_class: String,
-    /// Distance to the claimed class prototype (none if unknown class or invalid input).
-    pub claimed_distance: Option<f32>,
-    /// Threshold used for the claimed class.
-    pub threshold: Option<f32>,
-    /// `threshold - claimed_distance` (positive = inside the class).
-    pub margin: Option<f32>,
-    /// Distance to the nearest other class minus `claimed_distance` (positive = the claimed
-    /// class is the nearest).
-    pub gap: Option<f32>,
-    /// The k nearest classes, nearest first.
-    pub nearest: Vec<Neighbour>,
-    /// Geometry score against the claimed class (none when the check does not apply).
-    pub geometry_score: Option<f32>,
-    /// The claimed class's geometry threshold (none when the check does not apply).
-    pub geometry_threshold: Option<f32>,
-    /// Model version that answered.
-    pub model_version: String,
-    /// Class bank version that answered.
-    pub bank_version: u64,
-}
-
-impl Verdict {
-    /// Whether the answer is `Go`.
-    pub fn is_go(&self) -> bool {
-        self.decision == Decision::Go
-    }
-
-    /// The verdict a check response carries (header and entries, as any transport delivers
-    /// them) for a check that claimed `claimed_class`: the one conversion from the wire
-    /// back to a verdict (the daemon's `Decision::answer` is the one conversion to it).
-    /// A daemon error status, or a response that does not answer that check, is an error.
-    pub fn from_response(
-        r: &ResponseHeader,
-        entries: &[ClassEntry],
-        claimed_class: &str,
-    ) -> Result<Self, CheckError> {
-        status_ok(r)?;
-        if r.op != Op::Check as u32 || wire::decode_text(&r.class_name) != claimed_class {
-            return Err(CheckError::Protocol {
-                detail: "response does not echo the request's op and class".into(),
-            });
-        }
-        let nearest = neighbours(entries);
-        let answer = wire::decode_check(r).map_err(protocol)?;
-        let decision = match answer.verdict {
-            CheckVerdict::Go => Decision::Go,
-            CheckVerdict::NoGo(no_go) => Decision::NoGo {
-                reason: match no_go {
-                    NoGo::WrongTask => NoGoReason::WrongTask {
-                        nearest: nearest.first().map(|n| n.class.clone()).ok_or_else(|| {
-                            CheckError::Protocol {
-                                detail: "wrong-task verdict without a nearest class".into(),
-                            }
-                        })?,
-                    },
-                    NoGo::Outlier => NoGoReason::Outlier,
-                    NoGo::UnknownClass => NoGoReason::UnknownClass,
-                    NoGo::InvalidTrajectory(inv) => NoGoReason::InvalidTrajectory {
-                        kind: inv.kind,
-                        index: inv.index,
-                    },
-                    NoGo::Workcell(v) => NoGoReason::Workcell {
-                        kind: v.kind,
-                        index: v.index,
-                    },
-                    NoGo::GeometryMismatch(feature) => NoGoReason::GeometryMismatch {
-                        feature,
-                        score: answer.geometry_score.unwrap_or(f32::NAN),
-                        threshold: answer.geometry_threshold.unwrap_or(f32::NAN),
-                    },
-                    _ => {
-                        return Err(CheckError::Protocol {
-                            detail: format!("no-go with unknown reason {}", r.reason),
-                        });
-                    }
-                },
-            },
-        };
-        let state = wire::decode_state(r);
-        Ok(Verdict {
-            decision,
-            claimed_class: claimed_class.to_owned(),
-            claimed_distance: answer.claimed_distance,
-            threshold: answer.threshold,
-            margin: answer.margin,
-            gap: answer.gap,
-            geometry_score: answer.geometry_score,
-            geometry_threshold: answer.geometry_threshold,
-            nearest,
-            model_version: state.model_version.into_owned(),
-            bank_version: state.bank_version,
-        })
-    }
+    wire::decode_check(r, entries, claimed_class).map_err(protocol)
 }
 
 /// The answer to [`Client::identify`].
@@ -860,7 +661,7 @@ impl Client {
     ) -> Result<Verdict, CheckError> {
         let h = Self::single(Op::Check, trajectory, Some(claimed_class))?;
         let (r, entries) = self.call(h, trajectory.as_flat())?;
-        Verdict::from_response(&r, &entries, claimed_class)
+        verdict_of_response(&r, &entries, claimed_class)
     }
 
     /// The nearest enrolled classes to `trajectory`.
@@ -902,7 +703,7 @@ pub(crate) fn ranking(r: &ResponseHeader, entries: &[ClassEntry]) -> Result<Rank
     status_ok(r)?;
     let state = wire::decode_state(r);
     Ok(Ranking {
-        nearest: neighbours(entries),
+        nearest: wire::neighbours(entries),
         model_version: state.model_version.into_owned(),
         bank_version: state.bank_version,
     })
@@ -1040,17 +841,6 @@ pub(crate) fn status_ok(r: &ResponseHeader) -> Result<(), CheckError> {
             detail: format!("unknown status {}", r.status),
         },
     })
-}
-
-fn neighbours(entries: &[ClassEntry]) -> Vec<Neighbour> {
-    entries
-        .iter()
-        .map(|e| Neighbour {
-            class: wire::decode_text(&e.name),
-            distance: e.distance,
-            threshold: e.threshold,
-        })
-        .collect()
 }
 
 /// The whole class list, read a page of at most [`wire::MAX_RESPONSE_ENTRIES`] at a time

@@ -144,7 +144,7 @@ impl RemoteClient {
             &[trajectory.len()],
         )?;
         let (r, entries) = self.call(h, trajectory.as_flat())?;
-        Verdict::from_response(&r, &entries, claimed_class)
+        crate::verdict_of_response(&r, &entries, claimed_class)
     }
 
     /// The nearest enrolled classes to `trajectory`. As [`crate::Client::identify`].

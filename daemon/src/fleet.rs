@@ -17,7 +17,7 @@ use guardian_fleet::record::{Change, Record, Unsigned};
 use guardian_fleet::remote::{Gate, now_ms, seal_response};
 use guardian_fleet::store::{Offer, STORE_FILE, Store, StoreError, Undo};
 use guardian_fleet::{SigningKey, VerifyingKey};
-use guardian_shared::wire::{ClassEntry, Op, VerdictCode, admin, encode_text};
+use guardian_shared::wire::{ClassEntry, admin, encode_text};
 
 use crate::record::RemoteCheck;
 use crate::screen::{ChangeLog, Screen};
@@ -353,8 +353,8 @@ impl Member {
         };
         let span = tracing::debug_span!("remote", id = h.request_id, op = h.op);
         let _enter = span.enter();
-        let (r, entries) = screen.handle_remote(&h, &payload);
-        let frame = admin::encode_response(&r, &entries);
+        let answer = screen.handle_remote(&h, &payload);
+        let frame = admin::encode_response(&answer.response, &answer.entries);
         let envelope = seal_response(
             &self.key,
             &self.config.name,
@@ -363,12 +363,12 @@ impl Member {
             &frame[4..],
         );
         call.reply(envelope);
-        if h.op == Op::Check as u32 {
-            let no_go = r.verdict == VerdictCode::NoGo as u32;
+        if let Some(check) = answer.check {
+            let no_go = matches!(&check, Ok(v) if !v.is_go());
             checked(RemoteCheck {
                 request: h,
-                response: r,
-                entries,
+                response: answer.response,
+                check,
                 plan: no_go.then_some(payload),
                 client: format!("remote:{}", hex(&opened.caller[..8])),
                 took: started.elapsed(),

@@ -8,7 +8,8 @@ use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use guardian_shared::wire::{ReasonCode, ResponseHeader, Status, VerdictCode, decode_code};
+use guardian_shared::verdict::Verdict;
+use guardian_shared::wire::{Failure, Status, decode_code};
 use prometheus_client::collector::Collector;
 use prometheus_client::encoding::{DescriptorEncoder, EncodeLabelSet, EncodeMetric};
 use prometheus_client::metrics::counter::Counter;
@@ -194,8 +195,8 @@ impl Metrics {
     }
 
     /// Count one answered check and its service time; `class` is its bounded label.
-    pub fn count_check(&self, response: &ResponseHeader, class: String, took: Duration) {
-        let (verdict, reason) = verdict_labels(response);
+    pub fn count_check(&self, check: &Result<Verdict, Failure>, class: String, took: Duration) {
+        let (verdict, reason) = verdict_labels(check);
         let labels = CheckLabels {
             verdict,
             reason,
@@ -264,29 +265,13 @@ impl Metrics {
 }
 
 /// The `verdict` and `reason` labels of a check's answer.
-pub fn verdict_labels(r: &ResponseHeader) -> (&'static str, &'static str) {
-    if r.status != Status::Ok as u32 {
-        return ("error", status_name(r.status));
-    }
-    let verdict = match decode_code::<VerdictCode>(r.verdict) {
-        Some(VerdictCode::Go) => "go",
-        Some(VerdictCode::NoGo) => "no-go",
-        _ => "none",
-    };
-    (verdict, reason_name(r.reason))
-}
-
-/// A reason code's name (kebab-case, as `guardianctl` and the record write it).
-pub fn reason_name(reason: u32) -> &'static str {
-    match decode_code::<ReasonCode>(reason) {
-        Some(ReasonCode::None) => "none",
-        Some(ReasonCode::WrongTask) => "wrong-task",
-        Some(ReasonCode::Outlier) => "outlier",
-        Some(ReasonCode::UnknownClass) => "unknown-class",
-        Some(ReasonCode::InvalidTrajectory) => "invalid-trajectory",
-        Some(ReasonCode::Workcell) => "workcell",
-        Some(ReasonCode::GeometryMismatch) => "geometry-mismatch",
-        _ => "other",
+pub fn verdict_labels(check: &Result<Verdict, Failure>) -> (&'static str, &'static str) {
+    match check {
+        Err(f) => ("error", status_name(f.status() as u32)),
+        Ok(v) => match v.reason() {
+            None => ("go", "none"),
+            Some(r) => ("no-go", r.name()),
+        },
     }
 }
 
@@ -339,9 +324,9 @@ impl ClassLabels {
         }
     }
 
-    /// The label of a check that claimed `class` and was answered `reason`.
-    pub fn label(&mut self, class: &str, reason: u32) -> String {
-        if reason == ReasonCode::UnknownClass as u32 {
+    /// The label of a check that claimed `class` (`unknown`: answered unknown class).
+    pub fn label(&mut self, class: &str, unknown: bool) -> String {
+        if unknown {
             return UNKNOWN_CLASS_LABEL.to_owned();
         }
         if self.labelled.contains(class) {
@@ -435,29 +420,26 @@ pub fn serve_metrics(server: crate::http::Listener, registry: Registry, stop: Ar
 #[cfg(test)]
 mod tests {
     use super::*;
+    use guardian_shared::verdict::NoGoReason;
 
     #[test]
     fn class_labels_are_bounded_and_unknown_classes_share_one() {
         let mut l = ClassLabels::new(2);
-        assert_eq!(l.label("a", ReasonCode::None as u32), "a");
-        assert_eq!(l.label("b", ReasonCode::WrongTask as u32), "b");
-        assert_eq!(l.label("c", ReasonCode::None as u32), OTHER_CLASS_LABEL);
-        assert_eq!(l.label("a", ReasonCode::None as u32), "a");
-        assert_eq!(
-            l.label("zzz", ReasonCode::UnknownClass as u32),
-            UNKNOWN_CLASS_LABEL
-        );
+        assert_eq!(l.label("a", false), "a");
+        assert_eq!(l.label("b", false), "b");
+        assert_eq!(l.label("c", false), OTHER_CLASS_LABEL);
+        assert_eq!(l.label("a", false), "a");
+        assert_eq!(l.label("zzz", true), UNKNOWN_CLASS_LABEL);
     }
 
     #[test]
     fn exposition_names_every_family() {
         let m = Metrics::default();
-        let r = ResponseHeader {
-            verdict: VerdictCode::NoGo as u32,
-            reason: ReasonCode::WrongTask as u32,
-            ..Default::default()
+        let wrong = NoGoReason::WrongTask {
+            nearest: "task1".into(),
         };
-        m.count_check(&r, "task0".into(), Duration::from_micros(300));
+        let v = Verdict::early("task0", wrong, "abc", 7);
+        m.count_check(&Ok(v), "task0".into(), Duration::from_micros(300));
         m.set_state(3, 7, "abc");
         m.count_admin(guardian_shared::wire::Op::Enroll as u32, 0);
         m.dropped("queue-full");

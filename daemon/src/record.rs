@@ -17,12 +17,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError, sync_channel};
 use std::time::{Duration, Instant, SystemTime};
 
-use guardian_shared::wire::{
-    ClassEntry, RequestHeader, ResponseHeader, Status, VerdictCode, decode_text,
-};
+use guardian_shared::verdict::Verdict;
+use guardian_shared::wire::{Failure, RequestHeader, ResponseHeader, decode_text};
 use rusqlite::{Connection, OpenFlags, params};
 
-use crate::metrics::{Metrics, reason_name, status_name};
+use crate::metrics::{Metrics, status_name};
 
 /// File name of the record in the state directory (config `[record] path` unset).
 pub const RECORD_FILE: &str = "verdicts.sqlite";
@@ -75,7 +74,7 @@ pub struct RecordSettings {
     pub queue: usize,
 }
 
-/// One check's outcome, as the serving loop hands it over (decoded by the writer).
+/// One check's outcome, as the serving loop hands it over.
 #[derive(Debug)]
 pub struct Entry {
     /// Unix time, milliseconds.
@@ -85,10 +84,10 @@ pub struct Entry {
     pub client: String,
     /// The request's header (claimed class, plan shape).
     pub request: RequestHeader,
-    /// The answer's header (verdict, reason, distances, versions).
+    /// The answer's header (the daemon's model and bank version when the check failed).
     pub response: ResponseHeader,
-    /// The nearest classes sent with the answer.
-    pub nearest: Vec<ClassEntry>,
+    /// The verdict, or the failure the check was answered with.
+    pub check: Result<Verdict, Failure>,
     /// The plan of a no-go verdict, as sent.
     pub plan: Option<Vec<f32>>,
 }
@@ -338,49 +337,59 @@ impl Writer {
                 "INSERT INTO plans (verdict_id, channels, waypoints, vals) VALUES (?1, ?2, ?3, ?4)",
             )?;
             for e in batch {
-                let r = &e.response;
-                let ok = r.status == Status::Ok as u32;
-                let verdict_name =
-                    match guardian_shared::wire::decode_code::<VerdictCode>(r.verdict) {
-                        Some(VerdictCode::Go) => "go",
-                        Some(VerdictCode::NoGo) => "no-go",
-                        _ => "error",
-                    };
-                let nearest: Vec<serde_json::Value> = e
-                    .nearest
-                    .iter()
-                    .map(|n| {
-                        serde_json::json!({
-                            "class": decode_text(&n.name),
-                            "distance": finite(n.distance),
-                        })
-                    })
-                    .collect();
-                // A failure's message, or why a no-go is one (its rule, feature and numbers).
-                let message = if ok {
-                    guardian_shared::wire::decode_check(r)
-                        .map(|a| a.why())
-                        .unwrap_or_default()
-                } else {
-                    decode_text(&r.message)
-                };
-                verdict.execute(params![
-                    e.time_ms,
-                    self.settings.service,
-                    e.client,
-                    decode_text(&e.request.class_name),
-                    status_name(r.status),
-                    verdict_name,
-                    reason_name(r.reason),
-                    message,
-                    finite(r.claimed_distance),
-                    finite(r.threshold),
-                    finite(r.margin),
-                    finite(r.gap),
-                    serde_json::Value::Array(nearest).to_string(),
-                    decode_text(&r.model_version),
-                    i64::try_from(r.bank_version).unwrap_or(i64::MAX),
-                ])?;
+                let claimed = decode_text(&e.request.class_name);
+                match &e.check {
+                    Ok(v) => {
+                        let nearest: Vec<serde_json::Value> = v
+                            .nearest
+                            .iter()
+                            .map(|n| {
+                                serde_json::json!({
+                                    "class": n.class,
+                                    "distance": finite(n.distance),
+                                })
+                            })
+                            .collect();
+                        verdict.execute(params![
+                            e.time_ms,
+                            self.settings.service,
+                            e.client,
+                            claimed,
+                            "ok",
+                            if v.is_go() { "go" } else { "no-go" },
+                            v.reason().map_or("none", |r| r.name()),
+                            // Why a no-go is one (its rule, feature and numbers).
+                            v.why(),
+                            v.claimed_distance.and_then(finite),
+                            v.threshold.and_then(finite),
+                            v.margin.and_then(finite),
+                            v.gap.and_then(finite),
+                            serde_json::Value::Array(nearest).to_string(),
+                            v.model_version,
+                            i64::try_from(v.bank_version).unwrap_or(i64::MAX),
+                        ])?;
+                    }
+                    Err(f) => {
+                        let r = &e.response;
+                        verdict.execute(params![
+                            e.time_ms,
+                            self.settings.service,
+                            e.client,
+                            claimed,
+                            status_name(f.status() as u32),
+                            "error",
+                            "none",
+                            f.message(),
+                            None::<f64>,
+                            None::<f64>,
+                            None::<f64>,
+                            None::<f64>,
+                            "[]",
+                            decode_text(&r.model_version),
+                            i64::try_from(r.bank_version).unwrap_or(i64::MAX),
+                        ])?;
+                    }
+                }
                 if let Some(values) = &e.plan {
                     let id = tx.last_insert_rowid();
                     let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
@@ -434,10 +443,10 @@ fn finite(v: f32) -> Option<f64> {
 pub struct RemoteCheck {
     /// The request's header.
     pub request: guardian_shared::wire::RequestHeader,
-    /// The answer.
+    /// The answer's header.
     pub response: guardian_shared::wire::ResponseHeader,
-    /// The answer's entries (nearest classes).
-    pub entries: Vec<guardian_shared::wire::ClassEntry>,
+    /// The verdict, or the failure the check was answered with.
+    pub check: Result<Verdict, Failure>,
     /// The plan of a no-go.
     pub plan: Option<Vec<f32>>,
     /// `remote:` and the first 8 bytes of the caller's public key in hex.
@@ -449,40 +458,47 @@ pub struct RemoteCheck {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use guardian_shared::wire::{Op, ReasonCode, encode_class_name, encode_text};
+    use guardian_shared::verdict::{Decision, Neighbour, NoGoReason};
+    use guardian_shared::wire::{Op, encode_class_name};
 
     fn entry(claimed: &str, no_go: bool) -> Entry {
         let mut request = RequestHeader::new(1, Op::Check);
         request.class_name = encode_class_name(claimed).unwrap();
         request.channels = 8;
-        let mut response = ResponseHeader::answering(&request);
-        response.verdict = if no_go {
-            VerdictCode::NoGo as u32
+        let response = ResponseHeader::answering(&request);
+        let decision = if no_go {
+            Decision::NoGo {
+                reason: NoGoReason::WrongTask {
+                    nearest: "other".into(),
+                },
+            }
         } else {
-            VerdictCode::Go as u32
+            Decision::Go
         };
-        response.reason = if no_go {
-            ReasonCode::WrongTask as u32
-        } else {
-            0
+        let verdict = Verdict {
+            decision,
+            claimed_class: claimed.into(),
+            claimed_distance: Some(1.25),
+            threshold: Some(0.9),
+            margin: Some(-0.35),
+            gap: Some(-0.75),
+            nearest: vec![Neighbour {
+                class: "other".into(),
+                distance: 0.5,
+                threshold: 0.9,
+            }],
+            geometry_score: None,
+            geometry_threshold: None,
+            geometry_feature: None,
+            model_version: "m".into(),
+            bank_version: 4,
         };
-        response.claimed_distance = 1.25;
-        response.threshold = 0.9;
-        response.margin = -0.35;
-        response.bank_version = 4;
-        let nearest = vec![ClassEntry {
-            name: encode_text("other"),
-            distance: 0.5,
-            threshold: 0.9,
-            examples: 5,
-            calibrated: 1,
-        }];
         Entry {
             time_ms: now_ms(),
             client: format!("{:032x}", 42u128),
             request,
             response,
-            nearest,
+            check: Ok(verdict),
             plan: no_go.then(|| vec![0.5; 8 * 3]),
         }
     }

@@ -9,12 +9,13 @@ use std::time::Duration;
 
 use guardian_bank::{BankLimits, Class, ClassBank, journal_path};
 use guardian_models::embedder::{EmbedError, Embedder};
-use guardian_screen::check::{self, EnrollmentError, PlanCheck, Prepared, Station};
+use guardian_screen::check::{self, EnrollmentError, Prepared, Station};
 use guardian_shared::trajectory::{InvalidTrajectory, Waypoint};
+use guardian_shared::verdict::Verdict;
 use guardian_shared::wire::{
-    CheckAnswer, ClassEntry, DaemonState, Failure, Limit, MAX_RESPONSE_ENTRIES, NoGo, Op, Request,
-    RequestHeader, ResponseHeader, RobotInfo, decode_code, encode_check, encode_failure,
-    encode_state, encode_text,
+    ClassEntry, DaemonState, Failure, Limit, MAX_RESPONSE_ENTRIES, Op, Request, RequestHeader,
+    ResponseHeader, RobotInfo, decode_code, encode_check, encode_failure, encode_state,
+    encode_text,
 };
 
 use crate::stats::Stats;
@@ -67,6 +68,18 @@ pub const DEFAULT_LIMITS: BankLimits = BankLimits {
     max_examples_per_class: 64,
     max_bytes: 256 << 20,
 };
+
+/// One answered request: the response and its entries as sent, and for a check the verdict
+/// or the failure it was answered with, typed (what the record and the metrics observe).
+#[derive(Debug, Clone)]
+pub struct Answer {
+    /// The response header.
+    pub response: ResponseHeader,
+    /// The response's entries.
+    pub entries: Vec<ClassEntry>,
+    /// A check's verdict, or why it has none (`None` for every other op).
+    pub check: Option<Result<Verdict, Failure>>,
+}
 
 /// A prepared check plan handed from a batch to its answer.
 type PreparedPlan = Result<Prepared, EmbedError>;
@@ -184,10 +197,7 @@ impl Screen {
     /// then answered in order exactly as by [`Screen::handle`], each check decided against
     /// the bank as it stands at its turn (errors are reported per request, never turned
     /// into a verdict).
-    pub fn handle_batch(
-        &mut self,
-        items: &[(RequestHeader, &[f32])],
-    ) -> Vec<(ResponseHeader, Vec<ClassEntry>)> {
+    pub fn handle_batch(&mut self, items: &[(RequestHeader, &[f32])]) -> Vec<Answer> {
         let requests: Vec<_> = items
             .iter()
             .map(|(h, p)| self.decode(h, p, false))
@@ -205,22 +215,14 @@ impl Screen {
     }
 
     /// Answer one planner request. Never panics on input; errors become error statuses.
-    pub fn handle(
-        &mut self,
-        h: &RequestHeader,
-        payload: &[f32],
-    ) -> (ResponseHeader, Vec<ClassEntry>) {
+    pub fn handle(&mut self, h: &RequestHeader, payload: &[f32]) -> Answer {
         let request = self.decode(h, payload, false);
         self.answer(h, request, None)
     }
 
     /// Answer one request from the admin endpoint (a caller whose credentials were
     /// checked): every op, enroll and forget included, whatever the admin separation.
-    pub fn handle_admin(
-        &mut self,
-        h: &RequestHeader,
-        payload: &[f32],
-    ) -> (ResponseHeader, Vec<ClassEntry>) {
+    pub fn handle_admin(&mut self, h: &RequestHeader, payload: &[f32]) -> Answer {
         self.handle_admin_logged(h, payload, None)
     }
 
@@ -231,7 +233,7 @@ impl Screen {
         h: &RequestHeader,
         payload: &[f32],
         log: Option<&mut dyn ChangeLog>,
-    ) -> (ResponseHeader, Vec<ClassEntry>) {
+    ) -> Answer {
         let request = self.decode(h, payload, true);
         self.answer_logged(h, request, None, log)
     }
@@ -239,11 +241,7 @@ impl Screen {
     /// Answer one request from a remote caller (authenticated by the fleet transport): check,
     /// identify and status only; every other op is refused with `NotPermitted` from its
     /// header alone, whatever the admin separation.
-    pub fn handle_remote(
-        &mut self,
-        h: &RequestHeader,
-        payload: &[f32],
-    ) -> (ResponseHeader, Vec<ClassEntry>) {
+    pub fn handle_remote(&mut self, h: &RequestHeader, payload: &[f32]) -> Answer {
         let request = if matches!(
             decode_code::<Op>(h.op),
             Some(Op::Check | Op::Identify | Op::Status)
@@ -377,7 +375,7 @@ impl Screen {
         h: &RequestHeader,
         request: Result<Request<'_>, Failure>,
         prepared: Option<PreparedPlan>,
-    ) -> (ResponseHeader, Vec<ClassEntry>) {
+    ) -> Answer {
         self.answer_logged(h, request, prepared, None)
     }
 
@@ -388,19 +386,25 @@ impl Screen {
         request: Result<Request<'_>, Failure>,
         prepared: Option<PreparedPlan>,
         log: Option<&mut dyn ChangeLog>,
-    ) -> (ResponseHeader, Vec<ClassEntry>) {
+    ) -> Answer {
         let mut r = ResponseHeader::answering(h);
+        let mut verdict = None;
         let result = match request {
             Err(f) => Err(f),
             Ok(Request::Check {
                 claimed,
                 trajectory,
-            }) => self
-                .check(claimed, trajectory, prepared)
-                .map(|(answer, entries)| {
-                    encode_check(&mut r, &answer);
-                    entries
-                }),
+            }) => self.check(claimed, trajectory, prepared).map(|v| {
+                encode_check(&mut r, &v);
+                // With WrongTask the nearest class is the overall nearest, so it is entries[0].
+                let entries = v
+                    .nearest
+                    .iter()
+                    .map(|n| self.entry(&n.class, n.distance))
+                    .collect();
+                verdict = Some(v);
+                entries
+            }),
             Ok(Request::Identify { trajectory }) => self.identify(&trajectory),
             Ok(Request::Enroll { class, examples }) => self.enroll(class, &examples, log),
             Ok(Request::Forget { class }) => self.forget(class, log),
@@ -422,11 +426,12 @@ impl Screen {
                 Ok(e)
             }
         });
-        let entries = match result {
-            Ok(e) => e,
+        let (entries, check) = match result {
+            Ok(e) => (e, verdict.map(Ok)),
             Err(failure) => {
                 encode_failure(&mut r, &failure);
-                Vec::new()
+                let check = (decode_code::<Op>(h.op) == Some(Op::Check)).then_some(Err(failure));
+                (Vec::new(), check)
             }
         };
         self.stats.count(r.status != 0, r.verdict);
@@ -454,7 +459,11 @@ impl Screen {
                 },
             },
         );
-        (r, entries)
+        Answer {
+            response: r,
+            entries,
+            check,
+        }
     }
 
     fn check(
@@ -462,11 +471,18 @@ impl Screen {
         claimed: &str,
         trajectory: Result<Vec<Waypoint>, InvalidTrajectory>,
         prepared: Option<PreparedPlan>,
-    ) -> Result<(CheckAnswer, Vec<ClassEntry>), Failure> {
-        let early = |no_go| Ok((CheckAnswer::early_no_go(no_go), Vec::new()));
+    ) -> Result<Verdict, Failure> {
         let t = match trajectory {
             Ok(t) => t,
-            Err(inv) => return early(NoGo::InvalidTrajectory(inv)),
+            Err(inv) => {
+                return Ok(check::decide(
+                    &self.bank,
+                    &self.station,
+                    &Prepared::Invalid(inv),
+                    claimed,
+                    self.k,
+                ));
+            }
         };
         let prepared = prepared
             .unwrap_or_else(|| check::prepare(&self.embedder, &self.station, &t))
@@ -474,19 +490,13 @@ impl Screen {
                 tracing::error!(error = %e, "embedding failed");
                 embedding_failed(&e)
             })?;
-        match check::decide(&self.bank, &self.station, &prepared, claimed, self.k) {
-            PlanCheck::Invalid(inv) => early(NoGo::InvalidTrajectory(inv)),
-            // Workcell rules first: absolute, no model involved.
-            PlanCheck::Workcell(v) => early(NoGo::Workcell(v)),
-            // With WrongTask the nearest class is the overall nearest, so it is entries[0].
-            PlanCheck::Decided(d) => Ok((
-                d.answer(),
-                d.nearest
-                    .iter()
-                    .map(|n| self.entry(&n.name, n.distance))
-                    .collect(),
-            )),
-        }
+        Ok(check::decide(
+            &self.bank,
+            &self.station,
+            &prepared,
+            claimed,
+            self.k,
+        ))
     }
 
     fn identify(&self, t: &[Waypoint]) -> Result<Vec<ClassEntry>, Failure> {
@@ -805,12 +815,20 @@ mod tests {
         let batched = screen.handle_batch(&items);
         assert_eq!(batched.len(), reqs.len());
         let mut go = 0;
-        for ((h, p), (rb, eb)) in reqs.iter().zip(&batched) {
-            let (r1, e1) = screen.handle(h, p);
+        for ((h, p), b) in reqs.iter().zip(&batched) {
+            let (rb, eb) = (&b.response, &b.entries);
+            let single = screen.handle(h, p);
+            let (r1, e1) = (single.response, single.entries);
             assert_eq!(
                 (rb.status, rb.verdict, rb.reason),
                 (r1.status, r1.verdict, r1.reason)
             );
+            let decision = |c: &Option<Result<Verdict, Failure>>| {
+                c.as_ref()
+                    .and_then(|c| c.as_ref().ok())
+                    .map(|v| v.decision.clone())
+            };
+            assert_eq!(decision(&b.check), decision(&single.check));
             go += usize::from(rb.verdict == VerdictCode::Go as u32);
             let close = |a: f32, b: f32| (a.is_nan() && b.is_nan()) || (a - b).abs() <= 1e-5;
             assert!(close(rb.claimed_distance, r1.claimed_distance));
@@ -821,8 +839,11 @@ mod tests {
             }
         }
         assert!(go >= 1, "some checks should pass");
-        assert_eq!(batched[2].0.reason, ReasonCode::InvalidTrajectory as u32);
-        assert_eq!(batched[4].0.reason, ReasonCode::UnknownClass as u32);
+        assert_eq!(
+            batched[2].response.reason,
+            ReasonCode::InvalidTrajectory as u32
+        );
+        assert_eq!(batched[4].response.reason, ReasonCode::UnknownClass as u32);
     }
 
     /// A remote caller may check, identify and ask status, never enroll or forget; a
@@ -840,23 +861,24 @@ mod tests {
         let path = dir.path().join("bank.gcb");
         let mut screen = Screen::new(embedder, station, bank, path.clone(), 3);
         let (mut h, p) = request(Op::Enroll, "task0", &task(0, 1));
-        let (r, _) = screen.handle_remote(&h, &p);
+        let r = screen.handle_remote(&h, &p).response;
         assert_eq!(r.status, guardian_shared::wire::Status::NotPermitted as u32);
         h.op = Op::Forget as u32;
-        let (r, _) = screen.handle_remote(&h, &[]);
+        let r = screen.handle_remote(&h, &[]).response;
         assert_eq!(r.status, guardian_shared::wire::Status::NotPermitted as u32);
         assert!(screen.bank().is_empty());
         // Enrolled by the admin path, the class is what a record would carry.
         let (h, p) = request(Op::Enroll, "task0", &task(0, 1));
-        assert_eq!(screen.handle_admin(&h, &p).0.status, 0);
+        assert_eq!(screen.handle_admin(&h, &p).response.status, 0);
         let class = screen.bank().class("task0").cloned().unwrap();
         // Applied elsewhere under another name: served and persisted.
         screen
             .apply_replicated("copy", Some(class.clone()))
             .unwrap();
         let (h, p) = request(Op::Check, "copy", &task(0, 1));
-        let (r, _) = screen.handle_remote(&h, &p);
-        assert_eq!(r.status, 0);
+        let a = screen.handle_remote(&h, &p);
+        assert_eq!(a.response.status, 0);
+        assert!(matches!(a.check, Some(Ok(_))));
         let (loaded, _) = ClassBank::load_with_journal(&path).unwrap();
         assert_eq!(loaded.class("copy"), Some(&class));
         // A class of the wrong dimension is refused; nothing changes.
@@ -873,7 +895,8 @@ mod tests {
         // Status carries the entries set by the fleet member.
         screen.set_status_entries(vec![screen.entry("task0", f32::NAN)]);
         let h = RequestHeader::new(8, Op::Status);
-        let (r, entries) = screen.handle_remote(&h, &[]);
-        assert_eq!((r.status, entries.len()), (0, 1));
+        let a = screen.handle_remote(&h, &[]);
+        assert_eq!((a.response.status, a.entries.len()), (0, 1));
+        assert!(a.check.is_none());
     }
 }

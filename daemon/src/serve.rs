@@ -8,9 +8,10 @@ use iceoryx2::port::listener::ListenerWaitError;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::request_response::PortFactory as RpcFactory;
 
+use guardian_shared::verdict::{NoGoReason, Verdict};
 use guardian_shared::wire::{
-    ClassEntry, MAX_RESPONSE_ENTRIES, Op, RequestHeader, ResponseHeader, VerdictCode,
-    request_event_name, response_event_name,
+    ClassEntry, Failure, MAX_RESPONSE_ENTRIES, RequestHeader, ResponseHeader, request_event_name,
+    response_event_name,
 };
 
 use crate::admin::{AdminEndpoint, AdminPolicy, WakerFactory};
@@ -18,7 +19,7 @@ use crate::config::{Config, ServingMode};
 use crate::metrics::{ClassLabels, Metrics};
 use crate::notify::SdNotify;
 use crate::record::{Entry, Record, RemoteCheck};
-use crate::screen::Screen;
+use crate::screen::{Answer, Screen};
 use crate::state::{LoadStateError, load_bank, load_model};
 use crate::wakers::{ClientWakers, Woken};
 
@@ -443,7 +444,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         let changed = serve_admin(&admin, &mut screen, &mut fleet, &obs.metrics)
             + fleet.as_mut().map_or(0, |m| {
                 m.poll(&mut screen, &mut |a: RemoteCheck| {
-                    obs.checked(a.request, a.response, a.entries, a.plan, a.client, a.took)
+                    obs.checked(a.request, a.response, a.check, a.plan, a.client, a.took)
                 })
             });
         let served = served + changed;
@@ -614,8 +615,8 @@ fn serve_admin(
         if let Some(m) = fleet.as_mut() {
             m.after_admin(screen);
         }
-        metrics.count_admin(job.header.op, answer.0.status);
-        job.answer(answer);
+        metrics.count_admin(job.header.op, answer.response.status);
+        job.answer((answer.response, answer.entries));
         n += 1;
     }
     n
@@ -669,20 +670,21 @@ impl Observe {
         &mut self,
         request: RequestHeader,
         response: ResponseHeader,
-        nearest: Vec<ClassEntry>,
+        check: Result<Verdict, Failure>,
         plan: Option<Vec<f32>>,
         client: String,
         took: Duration,
     ) {
         let claimed = guardian_shared::wire::decode_text(&request.class_name);
-        let label = self.labels.label(&claimed, response.reason);
-        self.metrics.count_check(&response, label, took);
+        let unknown = matches!(&check, Ok(v) if v.reason() == Some(&NoGoReason::UnknownClass));
+        let label = self.labels.label(&claimed, unknown);
+        self.metrics.count_check(&check, label, took);
         self.record.submit(Entry {
             time_ms: crate::record::now_ms(),
             client,
             request,
             response,
-            nearest,
+            check,
             plan,
         });
     }
@@ -820,14 +822,17 @@ fn drain(
         };
         let size = batch.len();
         answered.clear();
-        for (request, (response, entries)) in batch.drain(..).zip(answers) {
+        for (request, answer) in batch.drain(..).zip(answers) {
+            let Answer {
+                response,
+                entries,
+                check,
+            } = answer;
             let header = *request.user_header();
             let origin = request.origin().value();
-            let check = header.op == Op::Check as u32;
             // A no-go's plan is kept (copied before the request's memory is released).
-            let plan =
-                (check && response.verdict == VerdictCode::NoGo as u32 && obs.record.is_on())
-                    .then(|| request.payload().to_vec());
+            let plan = (matches!(&check, Some(Ok(v)) if !v.is_go()) && obs.record.is_on())
+                .then(|| request.payload().to_vec());
             let span = tracing::debug_span!("request", id = header.request_id, op = header.op);
             let _enter = span.enter();
             let sent = request
@@ -849,11 +854,11 @@ fn drain(
             }
             let elapsed = start.elapsed();
             screen.record_latency(elapsed);
-            if check {
+            if let Some(check) = check {
                 obs.checked(
                     header,
                     response,
-                    entries,
+                    check,
                     plan,
                     format!("{origin:032x}"),
                     elapsed,

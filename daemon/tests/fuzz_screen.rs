@@ -129,10 +129,20 @@ proptest! {
         with_screen(|s| {
             // Judged against the bank before the request (an enroll may add the class).
             let bank = s.bank().clone();
-            let (r, entries) = s.handle(&h, &payload);
+            let answer = s.handle(&h, &payload);
+            let r = answer.response;
             assert_sound(&bank, &h, &payload, &r)?;
             if r.status != Status::Ok as u32 {
-                prop_assert!(entries.is_empty());
+                prop_assert!(answer.entries.is_empty());
+            }
+            // What the observers receive is what the wire says.
+            match &answer.check {
+                Some(Ok(v)) => {
+                    prop_assert_eq!(r.status, Status::Ok as u32);
+                    prop_assert_eq!(v.is_go(), r.verdict == VerdictCode::Go as u32);
+                }
+                Some(Err(f)) => prop_assert_eq!(r.status, f.status() as u32),
+                None => prop_assert_ne!(h.op, Op::Check as u32),
             }
             Ok(())
         })?;
@@ -151,7 +161,8 @@ proptest! {
             // An enroll or forget inside the batch changes the bank for the requests after
             // it; judge against the bank before and after, Go must be genuine in one.
             let after = s.bank().clone();
-            for ((h, p), (r, _)) in batch.iter().zip(&answers) {
+            for ((h, p), a) in batch.iter().zip(&answers) {
+                let r = &a.response;
                 if assert_sound(&before, h, p, r).is_err() {
                     assert_sound(&after, h, p, r)?;
                 }
@@ -184,7 +195,7 @@ fn overflowing_sizes_are_bad_requests() {
             for examples in [1, 3, MAX_EXAMPLES as u32] {
                 h.examples = examples;
                 for payload in [&[][..], &[0.0f32; 24][..]] {
-                    let (r, _) = s.handle(&h, payload);
+                    let r = s.handle(&h, payload).response;
                     assert_ne!(r.verdict, VerdictCode::Go as u32);
                     if op == Op::Enroll as u32 || op == Op::Identify as u32 {
                         assert_ne!(r.status, Status::Ok as u32, "op {op} {h:?}");
@@ -201,5 +212,5 @@ fn overflowing_sizes_are_bad_requests() {
     h.waypoints[0] = t.len() as u32;
     h.class_name = encode_class_name("task1").unwrap();
     let p: Vec<f32> = guardian_shared::trajectory::to_flat(&t, PANDA_JOINTS);
-    assert_eq!(s.handle(&h, &p).0.verdict, VerdictCode::Go as u32);
+    assert_eq!(s.handle(&h, &p).response.verdict, VerdictCode::Go as u32);
 }

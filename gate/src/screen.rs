@@ -7,9 +7,7 @@ use std::sync::mpsc;
 use std::time::Duration;
 
 use futures::channel::oneshot;
-use guardian_client::{
-    CheckError, Client, ClientConfig, DaemonStatus, Decision, NoGoReason, Trajectory,
-};
+use guardian_client::{CheckError, Client, ClientConfig, DaemonStatus, Decision, Trajectory};
 
 use crate::config::GuardiandConfig;
 use crate::plan::Plan;
@@ -244,19 +242,11 @@ fn screen_one(c: &Client, plan: &Plan, claim: Option<&str>) -> Outcome {
                     ),
                 ),
                 Decision::NoGo { reason } => {
-                    let code = match reason {
-                        NoGoReason::WrongTask { .. } => "wrong-task",
-                        NoGoReason::Outlier => "outlier",
-                        NoGoReason::UnknownClass => "unknown-class",
-                        NoGoReason::InvalidTrajectory { .. } => "invalid-trajectory",
-                        NoGoReason::Workcell { .. } => "workcell",
-                        NoGoReason::GeometryMismatch { .. } => "geometry",
-                        _ => "no-go",
-                    };
                     (
                         false,
                         "no-go",
-                        code,
+                        // The reason's name as the record and the metrics write it.
+                        reason.name(),
                         format!(
                             "guardian no-go: {reason}; {mode} task {class:?}, nearest class {:?}, distance {distance:.3}, threshold {threshold:.3}",
                             nearest

@@ -410,29 +410,20 @@ impl From<gc::Verdict> for Verdict {
         let (mut reason, mut nearest_class, mut kind, mut index, mut feature) =
             (None, None, None, None, None);
         if let gc::Decision::NoGo { reason: r } = &v.decision {
-            reason = Some(match r {
-                R::WrongTask { nearest } => {
-                    nearest_class = Some(nearest.clone());
-                    "wrong-task"
-                }
-                R::Outlier => "outlier",
-                R::UnknownClass => "unknown-class",
+            reason = Some(r.name());
+            match r {
+                R::WrongTask { nearest } => nearest_class = Some(nearest.clone()),
                 R::InvalidTrajectory { kind: k, index: i } => {
                     kind = Some(invalid_kind_name(*k));
                     index = Some(*i);
-                    "invalid-trajectory"
                 }
                 R::Workcell { kind: k, index: i } => {
                     kind = Some(format!("{k:?}"));
                     index = Some(*i);
-                    "workcell"
                 }
-                R::GeometryMismatch { feature: f, .. } => {
-                    feature = Some(f.name().to_owned());
-                    "geometry-mismatch"
-                }
-                _ => "other",
-            });
+                R::GeometryMismatch { feature: f, .. } => feature = Some(f.name().to_owned()),
+                _ => {}
+            }
         }
         Verdict {
             go: v.is_go(),

@@ -24,7 +24,7 @@
 use guardian_shared::trajectory::{InvalidTrajectory, Resampled, STEPS, Waypoint};
 use guardian_shared::workcell::{Workcell, WorkcellViolation};
 
-use guardian_bank::{ClassBank, Decision, Example};
+use guardian_bank::{ClassBank, Example};
 use guardian_models::embedder::{EmbedError, Embedder, Embedding};
 use guardian_robot::cell::Cell;
 use guardian_robot::geometry::PlanGeometry;
@@ -32,6 +32,7 @@ use guardian_robot::kinematics::Robot;
 use guardian_robot::pen::PenPoint;
 use guardian_robot::place::PlaceSignature;
 use guardian_robot::workcell::{self, Inspection};
+use guardian_shared::verdict::{NoGoReason, Verdict};
 
 /// The robot served and the workcell it works in: what a check needs of the physical
 /// world, resolved once.
@@ -120,17 +121,6 @@ impl Embedded {
     pub fn geometry(&self) -> Option<PlanGeometry> {
         workcell::plan_geometry_of_path(&self.path)
     }
-}
-
-/// The outcome of one check.
-#[derive(Debug, Clone, PartialEq)]
-pub enum PlanCheck {
-    /// The trajectory failed validation.
-    Invalid(InvalidTrajectory),
-    /// The plan breaks a workcell rule.
-    Workcell(WorkcellViolation),
-    /// The bank's decision (embedding and, where it applies, geometry).
-    Decided(Decision),
 }
 
 /// Inspect `waypoints` against `station`'s robot and rules: the early outcome, or the
@@ -226,40 +216,40 @@ pub fn prepare_batch(
 }
 
 /// Decide a prepared plan claiming class `claimed` against `bank`, with the `k` nearest
-/// classes. The plan geometry is computed from the pen path only when the bank can use it.
-/// At an anchored `station` the place rule decides instead of the plan geometry (a plan
-/// prepared without its place signature is never in place).
+/// classes: the verdict the daemon sends. A plan stopped before the embedding (invalid,
+/// workcell rule: absolute, no model involved) is a no-go without numbers. The plan
+/// geometry is computed from the pen path only when the bank can use it. At an anchored
+/// `station` the place rule decides instead of the plan geometry (a plan prepared without
+/// its place signature is never in place).
 pub fn decide(
     bank: &ClassBank,
     station: &Station,
     prepared: &Prepared,
     claimed: &str,
     k: usize,
-) -> PlanCheck {
+) -> Verdict {
+    let early = |reason: NoGoReason| {
+        Verdict::early(claimed, reason, bank.model_version(), bank.generation())
+    };
     match prepared {
-        Prepared::Invalid(inv) => PlanCheck::Invalid(*inv),
-        Prepared::Workcell(v) => PlanCheck::Workcell(*v),
+        Prepared::Invalid(inv) => early((*inv).into()),
+        Prepared::Workcell(v) => early((*v).into()),
         Prepared::Embedded(e) if station.cell.anchored => {
             let none = PlaceSignature {
                 tools: Vec::new(),
                 points: Vec::new(),
             };
-            PlanCheck::Decided(bank.decide_in_place(
+            bank.decide_in_place(
                 &e.embedding,
                 e.place.as_ref().unwrap_or(&none),
                 &station.cell.place,
                 claimed,
                 k,
-            ))
+            )
         }
         Prepared::Embedded(e) => {
             let geometry = bank.geometry_calibration().and_then(|_| e.geometry());
-            PlanCheck::Decided(bank.decide_with_geometry(
-                &e.embedding,
-                geometry.as_ref(),
-                claimed,
-                k,
-            ))
+            bank.decide_with_geometry(&e.embedding, geometry.as_ref(), claimed, k)
         }
     }
 }
@@ -272,7 +262,7 @@ pub fn check(
     waypoints: &[Waypoint],
     claimed: &str,
     k: usize,
-) -> Result<PlanCheck, EmbedError> {
+) -> Result<Verdict, EmbedError> {
     Ok(decide(
         bank,
         station,

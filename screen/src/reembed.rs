@@ -154,10 +154,18 @@ mod tests {
         }
         assert_eq!(new.default_threshold(), 1.3);
         assert_eq!(new.wrong_task_tolerance(), 0.1);
-        // Decisions under B: the fresh bank's.
+        // Decisions under B: the fresh bank's (the banks' generations differ).
         for d in 0..4 {
             let q = b_model.embed(panda(), &plan(1, 20 + d)).unwrap();
-            assert_eq!(new.decide(&q, "task1", 3), fresh.decide(&q, "task1", 3));
+            let (v, f) = (new.decide(&q, "task1", 3), fresh.decide(&q, "task1", 3));
+            assert_eq!(v.bank_version, new.generation());
+            assert_eq!(
+                guardian_shared::verdict::Verdict {
+                    bank_version: f.bank_version,
+                    ..v
+                },
+                f
+            );
         }
         // Re-embedding with the first model again gives back the original classes.
         let mut ref_a = ClassBank::new(128, a.version(), 0.5);

@@ -9,5 +9,6 @@
 
 pub mod ipc;
 pub mod trajectory;
+pub mod verdict;
 pub mod wire;
 pub mod workcell;

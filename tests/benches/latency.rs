@@ -449,7 +449,7 @@ fn in_process_screen(
             .collect::<Result<_, _>>()?;
         let refs: Vec<&[Waypoint]> = ws.iter().map(Vec::as_slice).collect();
         let (h, p) = request(Op::Enroll, class, &refs)?;
-        let (r, _) = screen.handle(&h, &p);
+        let r = screen.handle(&h, &p).response;
         if r.status != 0 {
             bail!("in-process enrolment of {class}: status {}", r.status);
         }
@@ -659,7 +659,8 @@ fn uds_server(socket: &Path, config: &Path) -> Result<()> {
             h.waypoints[0] = u32::try_from(req.waypoints.len())?;
             h.class_name = encode_class_name(&req.class)?;
             let payload: Vec<f32> = req.waypoints.iter().flatten().copied().collect();
-            let (r, entries) = screen.handle(&h, &payload);
+            let answer = screen.handle(&h, &payload);
+            let (r, entries) = (answer.response, answer.entries);
             let opt = |v: f32| if v.is_nan() { None } else { Some(v) };
             let resp = JsonResponse {
                 status: r.status,

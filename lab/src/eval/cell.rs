@@ -27,8 +27,9 @@ use guardian_cells::{Cell as Runs, Family, FamilyKind, Fault};
 use guardian_models::embedder::Embedder;
 use guardian_robot::cell::Cell;
 use guardian_robot::place::{self, PlaceRule, PlaceSignature};
-use guardian_screen::check::{self, PlanCheck, Station};
+use guardian_screen::check::{self, Station};
 use guardian_shared::trajectory::Waypoint;
+use guardian_shared::verdict::NoGoReason;
 use guardian_shared::workcell::Workcell;
 
 /// `guardian-lab cell` arguments.
@@ -205,18 +206,9 @@ pub fn measure(
             // The whole check as the daemon runs it, timed.
             let start = std::time::Instant::now();
             let prepared = check::prepare(model, station, plan)?;
-            let decision = check::decide(&bank, station, &prepared, &name, 5);
+            let verdict = check::decide(&bank, station, &prepared, &name, 5);
             let micros = start.elapsed().as_secs_f64() * 1e6;
-            Ok::<_, anyhow::Error>((
-                micros,
-                match decision {
-                    PlanCheck::Decided(d) => match d.outcome {
-                        guardian_bank::Outcome::Go => None,
-                        o => Some(format!("{o:?}")),
-                    },
-                    other => Some(format!("{other:?}")),
-                },
-            ))
+            Ok::<_, anyhow::Error>((micros, verdict.reason().map(refusal)))
         };
         for (i, task) in family.tasks.iter().enumerate() {
             let other = family.nearest_other(i);
@@ -292,14 +284,14 @@ fn excesses(
                     x.map(|s| place::score(&s, &class, &rule).map_or(f32::NAN, |s| s.excess))
                 };
                 let plan = runs.run(task, run_seed(&family, i, r))?;
-                if let PlanCheck::Decided(d) = check::decide(
+                let d = check::decide(
                     &bank,
                     &anchored,
                     &check::prepare(model, &anchored, &plan)?,
                     &class_name(&family, i),
                     1,
-                ) && let (Some(dist), Some(t)) = (d.claimed_distance, d.threshold)
-                {
+                );
+                if let (Some(dist), Some(t)) = (d.claimed_distance, d.threshold) {
                     shape.push(dist / t);
                 }
                 genuine.push(sig(plan)?);
@@ -309,6 +301,20 @@ fn excesses(
         }
     }
     Ok((genuine, wrong, shape))
+}
+
+/// A refusal's key in the report: the reason, with the nearest class of a wrong task and
+/// the feature of a geometry stop (not their numbers, so that refusals add up).
+fn refusal(reason: &NoGoReason) -> String {
+    match reason {
+        NoGoReason::WrongTask { nearest } => format!("WrongTask {{ nearest: {nearest:?} }}"),
+        NoGoReason::GeometryMismatch { feature, .. } => {
+            format!("GeometryMismatch {{ feature: {feature:?} }}")
+        }
+        NoGoReason::Outlier => "Outlier".to_owned(),
+        NoGoReason::UnknownClass => "UnknownClass".to_owned(),
+        other => format!("{other:?}"),
+    }
 }
 
 /// Run `guardian-lab cell`.

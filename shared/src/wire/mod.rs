@@ -31,8 +31,8 @@ pub mod strategy;
 
 pub use request::{Request, RequestError};
 pub use response::{
-    CheckAnswer, CheckVerdict, DaemonState, Failure, Limit, NoGo, ProtocolError, RobotInfo,
-    decode_check, decode_failure, decode_state, encode_check, encode_failure, encode_state,
+    DaemonState, Failure, Limit, ProtocolError, RobotInfo, decode_check, decode_failure,
+    decode_state, encode_check, encode_failure, encode_state, neighbours,
 };
 
 use crate::trajectory::{InvalidKind, MAX_JOINTS, MAX_WAYPOINTS};

@@ -1,17 +1,17 @@
 //! A response's meaning, typed, and the one pair of functions per part of the header that
 //! write it (the daemon) and read it (the client): the error status ([`Failure`]), the
-//! check verdict ([`CheckAnswer`]) and the daemon's state sent with every answer
+//! check verdict ([`Verdict`]) and the daemon's state sent with every answer
 //! ([`DaemonState`]).
 
 use super::decode_code;
 use std::borrow::Cow;
 
 use super::{
-    LimitKind, MESSAGE_BYTES, NAME_BYTES, ReasonCode, RequestError, RequestHeader, ResponseHeader,
-    Status, VerdictCode, decode_text, encode_text,
+    ClassEntry, LimitKind, MESSAGE_BYTES, NAME_BYTES, ReasonCode, RequestError, RequestHeader,
+    ResponseHeader, Status, VerdictCode, decode_text, encode_text,
 };
 use crate::trajectory::{InvalidKind, InvalidTrajectory};
-use crate::workcell::{GeometryFeature, WorkcellViolation};
+use crate::verdict::{Decision, Neighbour, NoGoReason, Verdict};
 
 /// A response that breaks the protocol (a value no version of it defines).
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -29,7 +29,7 @@ pub enum ProtocolError {
     /// `limit_kind` is not a [`LimitKind`] value.
     #[error("unknown limit kind {0}")]
     UnknownLimitKind(u32),
-    /// `geometry_feature` is not a [`GeometryFeature`] value.
+    /// `geometry_feature` is not a [`crate::workcell::GeometryFeature`] value.
     #[error("unknown geometry feature {0}")]
     UnknownGeometryFeature(u32),
     /// A no-go with a `reason` that is not a [`ReasonCode`] no-go value.
@@ -38,6 +38,9 @@ pub enum ProtocolError {
     /// A check answered with status ok but neither go nor no-go.
     #[error("check answered without a verdict ({0})")]
     NoVerdict(u32),
+    /// A wrong-task no-go without the nearest class (the response's first entry).
+    #[error("wrong-task verdict without a nearest class")]
+    WrongTaskWithoutNearest,
 }
 
 /// A request answered with an error status: the status, with the message the daemon wrote.
@@ -214,185 +217,116 @@ fn invalid_kind(r: &ResponseHeader) -> Result<InvalidKind, ProtocolError> {
         .ok_or(ProtocolError::UnknownInvalidKind(r.invalid_kind))
 }
 
-/// Go, or no-go and why (the wire's verdict and reason with their detail fields).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum CheckVerdict {
-    /// [`VerdictCode::Go`].
-    Go,
-    /// [`VerdictCode::NoGo`] with its reason.
-    NoGo(NoGo),
-}
-
-/// Why a check answered no-go, with the detail the reason carries on the wire.
-#[derive(Debug, Clone, Copy, PartialEq)]
-#[non_exhaustive]
-pub enum NoGo {
-    /// [`ReasonCode::WrongTask`]: the nearest class is the response's first entry.
-    WrongTask,
-    /// [`ReasonCode::Outlier`].
-    Outlier,
-    /// [`ReasonCode::UnknownClass`].
-    UnknownClass,
-    /// [`ReasonCode::InvalidTrajectory`] (`invalid_kind`, `invalid_index`).
-    InvalidTrajectory(InvalidTrajectory),
-    /// [`ReasonCode::Workcell`] (`workcell_kind`, `workcell_index`).
-    Workcell(WorkcellViolation),
-    /// [`ReasonCode::GeometryMismatch`] (`geometry_feature`, `geometry_score`,
-    /// `geometry_threshold`).
-    GeometryMismatch(GeometryFeature),
-}
-
-/// The answer to a check as the response header carries it; `None` travels as NaN (or 0
-/// for the feature).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct CheckAnswer {
-    /// Go or no-go.
-    pub verdict: CheckVerdict,
-    /// Distance to the claimed class prototype.
-    pub claimed_distance: Option<f32>,
-    /// Threshold of the claimed class.
-    pub threshold: Option<f32>,
-    /// `threshold - claimed_distance`.
-    pub margin: Option<f32>,
-    /// Distance to the nearest other class minus `claimed_distance`.
-    pub gap: Option<f32>,
-    /// Geometry score against the claimed class.
-    pub geometry_score: Option<f32>,
-    /// Geometry threshold.
-    pub geometry_threshold: Option<f32>,
-    /// The feature behind `geometry_score`.
-    pub geometry_feature: Option<GeometryFeature>,
-}
-
-impl CheckAnswer {
-    /// Why a no-go is one, in one line with its numbers (empty for a go): the rule and
-    /// waypoint of a workcell stop, the kind and index of an invalid plan, the feature,
-    /// score and threshold of a geometry or place stop, distance and threshold of an
-    /// outlier. What the verdict record keeps beside the reason.
-    pub fn why(&self) -> String {
-        let num = |v: Option<f32>| v.map_or("-".to_owned(), |v| format!("{v:.3}"));
-        let CheckVerdict::NoGo(no_go) = &self.verdict else {
-            return String::new();
-        };
-        match no_go {
-            NoGo::WrongTask => format!(
-                "nearer class (entry 0) by {} than the claimed one",
-                num(self.gap.map(|g| -g))
-            ),
-            NoGo::Outlier => format!(
-                "distance {} > threshold {}",
-                num(self.claimed_distance),
-                num(self.threshold)
-            ),
-            NoGo::UnknownClass => "class not enrolled".to_owned(),
-            NoGo::InvalidTrajectory(inv) => format!("{:?} at waypoint {}", inv.kind, inv.index),
-            NoGo::Workcell(v) => format!("{:?} at waypoint {}", v.kind, v.index),
-            NoGo::GeometryMismatch(GeometryFeature::Place) => format!(
-                "place: {} m beyond the enrolled runs > tolerance {} m",
-                num(self.geometry_score),
-                num(self.geometry_threshold)
-            ),
-            NoGo::GeometryMismatch(f) => format!(
-                "{}: score {} > threshold {}",
-                f.name(),
-                num(self.geometry_score),
-                num(self.geometry_threshold)
-            ),
-        }
-    }
-
-    /// A no-go decided before any distance was computed (invalid trajectory, workcell).
-    pub fn early_no_go(reason: NoGo) -> Self {
-        Self {
-            verdict: CheckVerdict::NoGo(reason),
-            claimed_distance: None,
-            threshold: None,
-            margin: None,
-            gap: None,
-            geometry_score: None,
-            geometry_threshold: None,
-            geometry_feature: None,
-        }
-    }
-}
-
-/// Write a check's answer into `r` (status stays ok). A workcell no-go also gets its
-/// human-readable message.
-pub fn encode_check(r: &mut ResponseHeader, a: &CheckAnswer) {
+/// Write a check's verdict into `r` (status stays ok): its decision, reason and numbers.
+/// The nearest classes travel as the response's entries (the daemon adds each class's
+/// example count and calibration), the versions as the daemon's state
+/// ([`encode_state`]). A workcell no-go also gets its human-readable message.
+pub fn encode_check(r: &mut ResponseHeader, v: &Verdict) {
     let nan = |v: Option<f32>| v.unwrap_or(f32::NAN);
-    let (verdict, reason) = match a.verdict {
-        CheckVerdict::Go => (VerdictCode::Go, ReasonCode::None),
-        CheckVerdict::NoGo(no_go) => (
+    let (verdict, reason) = match &v.decision {
+        Decision::Go => (VerdictCode::Go, ReasonCode::None),
+        Decision::NoGo { reason } => (
             VerdictCode::NoGo,
-            match no_go {
-                NoGo::WrongTask => ReasonCode::WrongTask,
-                NoGo::Outlier => ReasonCode::Outlier,
-                NoGo::UnknownClass => ReasonCode::UnknownClass,
-                NoGo::InvalidTrajectory(inv) => {
-                    r.invalid_kind = inv.kind as u32;
-                    r.invalid_index = inv.index;
+            match reason {
+                NoGoReason::WrongTask { .. } => ReasonCode::WrongTask,
+                NoGoReason::Outlier => ReasonCode::Outlier,
+                NoGoReason::UnknownClass => ReasonCode::UnknownClass,
+                NoGoReason::InvalidTrajectory { kind, index } => {
+                    r.invalid_kind = *kind as u32;
+                    r.invalid_index = *index;
                     ReasonCode::InvalidTrajectory
                 }
-                NoGo::Workcell(v) => {
-                    r.workcell_kind = v.kind as u32;
-                    r.workcell_index = v.index;
+                NoGoReason::Workcell { kind, index } => {
+                    r.workcell_kind = *kind as u32;
+                    r.workcell_index = *index;
                     r.message = encode_text(&format!(
-                        "workcell rule broken: {:?} at waypoint {}",
-                        v.kind, v.index
+                        "workcell rule broken: {kind:?} at waypoint {index}"
                     ));
                     ReasonCode::Workcell
                 }
-                NoGo::GeometryMismatch(_) => ReasonCode::GeometryMismatch,
+                NoGoReason::GeometryMismatch { .. } => ReasonCode::GeometryMismatch,
             },
         ),
     };
-    r.geometry_score = nan(a.geometry_score);
-    r.geometry_threshold = nan(a.geometry_threshold);
-    r.geometry_feature = a.geometry_feature.map_or(0, |f| f as u32);
+    r.geometry_score = nan(v.geometry_score);
+    r.geometry_threshold = nan(v.geometry_threshold);
+    r.geometry_feature = v.geometry_feature.map_or(0, |f| f as u32);
     r.verdict = verdict as u32;
     r.reason = reason as u32;
-    r.claimed_distance = nan(a.claimed_distance);
-    r.threshold = nan(a.threshold);
-    r.margin = nan(a.margin);
-    r.gap = nan(a.gap);
+    r.claimed_distance = nan(v.claimed_distance);
+    r.threshold = nan(v.threshold);
+    r.margin = nan(v.margin);
+    r.gap = nan(v.gap);
 }
 
-/// Read a check's answer from `r` (whose status is ok).
-pub fn decode_check(r: &ResponseHeader) -> Result<CheckAnswer, ProtocolError> {
+/// The nearest classes a response's entries carry.
+pub fn neighbours(entries: &[ClassEntry]) -> Vec<Neighbour> {
+    entries
+        .iter()
+        .map(|e| Neighbour {
+            class: decode_text(&e.name),
+            distance: e.distance,
+            threshold: e.threshold,
+        })
+        .collect()
+}
+
+/// Read a check's verdict from `r` (whose status is ok) and its `entries`, for a check that
+/// claimed `claimed_class`: the one conversion from the wire back to a [`Verdict`].
+pub fn decode_check(
+    r: &ResponseHeader,
+    entries: &[ClassEntry],
+    claimed_class: &str,
+) -> Result<Verdict, ProtocolError> {
     let opt = |v: f32| if v.is_nan() { None } else { Some(v) };
-    let verdict = match decode_code::<VerdictCode>(r.verdict) {
-        Some(VerdictCode::Go) => CheckVerdict::Go,
-        Some(VerdictCode::NoGo) => CheckVerdict::NoGo(match decode_code::<ReasonCode>(r.reason) {
-            Some(ReasonCode::WrongTask) => NoGo::WrongTask,
-            Some(ReasonCode::Outlier) => NoGo::Outlier,
-            Some(ReasonCode::UnknownClass) => NoGo::UnknownClass,
-            Some(ReasonCode::InvalidTrajectory) => NoGo::InvalidTrajectory(InvalidTrajectory {
-                kind: invalid_kind(r)?,
-                index: r.invalid_index,
-            }),
-            Some(ReasonCode::Workcell) => NoGo::Workcell(WorkcellViolation {
-                kind: r
-                    .workcell()
-                    .ok_or(ProtocolError::UnknownWorkcellKind(r.workcell_kind))?,
-                index: r.workcell_index,
-            }),
-            Some(ReasonCode::GeometryMismatch) => NoGo::GeometryMismatch(
-                r.geometry()
-                    .ok_or(ProtocolError::UnknownGeometryFeature(r.geometry_feature))?,
-            ),
-            _ => return Err(ProtocolError::UnknownReason(r.reason)),
-        }),
+    let nearest = neighbours(entries);
+    let decision = match decode_code::<VerdictCode>(r.verdict) {
+        Some(VerdictCode::Go) => Decision::Go,
+        Some(VerdictCode::NoGo) => Decision::NoGo {
+            reason: match decode_code::<ReasonCode>(r.reason) {
+                Some(ReasonCode::WrongTask) => NoGoReason::WrongTask {
+                    nearest: nearest
+                        .first()
+                        .map(|n| n.class.clone())
+                        .ok_or(ProtocolError::WrongTaskWithoutNearest)?,
+                },
+                Some(ReasonCode::Outlier) => NoGoReason::Outlier,
+                Some(ReasonCode::UnknownClass) => NoGoReason::UnknownClass,
+                Some(ReasonCode::InvalidTrajectory) => NoGoReason::InvalidTrajectory {
+                    kind: invalid_kind(r)?,
+                    index: r.invalid_index,
+                },
+                Some(ReasonCode::Workcell) => NoGoReason::Workcell {
+                    kind: r
+                        .workcell()
+                        .ok_or(ProtocolError::UnknownWorkcellKind(r.workcell_kind))?,
+                    index: r.workcell_index,
+                },
+                Some(ReasonCode::GeometryMismatch) => NoGoReason::GeometryMismatch {
+                    feature: r
+                        .geometry()
+                        .ok_or(ProtocolError::UnknownGeometryFeature(r.geometry_feature))?,
+                    score: r.geometry_score,
+                    threshold: r.geometry_threshold,
+                },
+                _ => return Err(ProtocolError::UnknownReason(r.reason)),
+            },
+        },
         _ => return Err(ProtocolError::NoVerdict(r.verdict)),
     };
-    Ok(CheckAnswer {
-        verdict,
+    Ok(Verdict {
+        decision,
+        claimed_class: claimed_class.to_owned(),
         claimed_distance: opt(r.claimed_distance),
         threshold: opt(r.threshold),
         margin: opt(r.margin),
         gap: opt(r.gap),
+        nearest,
         geometry_score: opt(r.geometry_score),
         geometry_threshold: opt(r.geometry_threshold),
         geometry_feature: r.geometry(),
+        model_version: decode_text(&r.model_version),
+        bank_version: r.bank_version,
     })
 }
 
@@ -545,42 +479,60 @@ mod tests {
         };
         assert_eq!(decode_failure(&r), Err(ProtocolError::UnknownStatus(99)));
 
-        let answers = [
-            CheckAnswer {
-                verdict: CheckVerdict::Go,
-                claimed_distance: Some(0.2),
-                threshold: Some(0.5),
-                margin: Some(0.3),
-                gap: None,
-                geometry_score: Some(1.0),
-                geometry_threshold: Some(2.0),
-                geometry_feature: Some(GeometryFeature::CentreX),
-            },
-            CheckAnswer::early_no_go(NoGo::Workcell(WorkcellViolation {
-                kind: decode_code::<WorkcellKind>(1).unwrap(),
-                index: 4,
-            })),
-            CheckAnswer::early_no_go(NoGo::InvalidTrajectory(InvalidTrajectory::new(
-                InvalidKind::NonFinite,
-                3,
-            ))),
+        let go = Verdict {
+            decision: Decision::Go,
+            claimed_distance: Some(0.2),
+            threshold: Some(0.5),
+            margin: Some(0.3),
+            geometry_score: Some(1.0),
+            geometry_threshold: Some(2.0),
+            geometry_feature: Some(crate::workcell::GeometryFeature::CentreX),
+            ..Verdict::early("c", NoGoReason::Outlier, "", 0)
+        };
+        let verdicts = [
+            go,
+            Verdict::early(
+                "c",
+                crate::workcell::WorkcellViolation {
+                    kind: decode_code::<WorkcellKind>(1).unwrap(),
+                    index: 4,
+                },
+                "",
+                0,
+            ),
+            Verdict::early(
+                "c",
+                InvalidTrajectory::new(InvalidKind::NonFinite, 3),
+                "",
+                0,
+            ),
         ];
-        for a in answers {
+        for v in verdicts {
             let mut r = ResponseHeader::default();
-            encode_check(&mut r, &a);
-            assert_eq!(decode_check(&r), Ok(a));
+            encode_check(&mut r, &v);
+            assert_eq!(decode_check(&r, &[], "c"), Ok(v));
         }
+        // A wrong task names its nearest class in the first entry: none is an error.
+        let mut r = ResponseHeader::default();
+        let wrong = NoGoReason::WrongTask {
+            nearest: "d".into(),
+        };
+        encode_check(&mut r, &Verdict::early("c", wrong, "", 0));
+        assert_eq!(
+            decode_check(&r, &[], "c"),
+            Err(ProtocolError::WrongTaskWithoutNearest)
+        );
         let r = ResponseHeader {
             verdict: VerdictCode::NoGo as u32,
             reason: ReasonCode::GeometryMismatch as u32,
             ..ResponseHeader::default()
         };
         assert_eq!(
-            decode_check(&r),
+            decode_check(&r, &[], "c"),
             Err(ProtocolError::UnknownGeometryFeature(0))
         );
         assert_eq!(
-            decode_check(&ResponseHeader::default()),
+            decode_check(&ResponseHeader::default(), &[], "c"),
             Err(ProtocolError::NoVerdict(0))
         );
     }
