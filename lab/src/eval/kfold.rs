@@ -21,13 +21,16 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
-use clap::Parser;
+use clap::parser::ValueSource;
+use clap::{CommandFactory, FromArgMatches, Parser};
 use guardian_models::embedder::Embedder;
 use serde::{Deserialize, Serialize};
 
-use crate::cli::{DatasetArgs, StrokesArgs};
+use crate::cli::{DatasetArgs, ScreenArgs, StrokesArgs};
 use crate::eval::calibration::CrossFitPair;
 use crate::eval::{EpisodeSpec, Pool, evaluate};
+use crate::train::Args as TrainArgs;
+use crate::train::config::{FeatureArg, LossKind, Schedule};
 use guardian_omniglot::dataset::Dataset;
 
 /// The alphabets with official, dense, real-time stroke files: the drawings closest to a
@@ -41,47 +44,39 @@ pub const DENSE_ALPHABETS: [&str; 6] = [
     "Latin",
 ];
 
-/// Options both branches of the shipped recipe train with (`models/MODEL.md`).
-pub const RECIPE_COMMON: &[&str] = &[
-    "--fault-share",
-    "1.0",
-    "--fault-variants",
-    "8",
-    "--fault-weight",
-    "1",
-    "--fault-margin",
-    "0.4",
-    "--class-augment",
-    "--embed-dim",
-    "64",
-    "--seed",
-    "1",
-    "--schedule",
-    "one-cycle",
+/// One setting of a recipe: the `train` option it sets (its clap id, the field's name) and
+/// how it sets the field.
+pub type Setting = (&'static str, fn(&mut TrainArgs));
+
+/// What both branches of the shipped recipe train with (`models/MODEL.md`, "How to
+/// retrain"): fault negatives, class augmentation, a 64-value embedding, seed 1, the
+/// one-cycle schedule.
+pub const RECIPE_COMMON: &[Setting] = &[
+    ("fault_share", |a| a.fault_share = 1.0),
+    ("fault_variants", |a| a.fault_variants = 8),
+    ("fault_weight", |a| a.fault_weight = 1.0),
+    ("fault_margin", |a| a.fault_margin = 0.4),
+    ("class_augment", |a| a.class_augment = true),
+    ("embed_dim", |a| a.embed_dim = 64),
+    ("seed", |a| a.seed = 1),
+    ("schedule", |a| a.schedule = Schedule::OneCycle),
 ];
 
 /// The sequence branch of the shipped recipe: the supervised contrastive loss (temperature
 /// 0.1) over batches of 64 classes x 4 drawings (`models/MODEL.md`, "How to retrain").
-pub const RECIPE_SEQUENCE: &[&str] = &[
-    "--channels",
-    "32,64,128",
-    "--reverse-average",
-    "--loss",
-    "supcon",
-    "--margin",
-    "0.1",
-    "--p-classes",
-    "64",
+pub const RECIPE_SEQUENCE: &[Setting] = &[
+    ("channels", |a| a.channels = vec![32, 64, 128]),
+    ("reverse_average", |a| a.reverse_average = true),
+    ("loss", |a| a.loss = LossKind::Supcon),
+    ("margin", |a| a.margin = 0.1),
+    ("p_classes", |a| a.p_classes = 64),
 ];
 
 /// The picture branch of the shipped recipe.
-pub const RECIPE_PICTURE: &[&str] = &[
-    "--features",
-    "picture",
-    "--channels",
-    "16,32,64,128",
-    "--kernel",
-    "3",
+pub const RECIPE_PICTURE: &[Setting] = &[
+    ("features", |a| a.features = FeatureArg::Picture),
+    ("channels", |a| a.channels = vec![16, 32, 64, 128]),
+    ("kernel", |a| a.kernel = 3),
 ];
 
 /// The episodes measured on every held-out alphabet: (way, shot).
@@ -257,56 +252,58 @@ fn fold_dir(out: &Path, k: usize) -> PathBuf {
     out.join(format!("fold-{k}"))
 }
 
-/// A subcommand's arguments (`train`, `bank`, `outliers`) parsed from the command line
-/// `kfold` builds, as that subcommand would parse them (a later option overrides an earlier
-/// one, so `--train-args` can change the recipe).
+/// `train`'s command line: its defaults and the options of `--train-args`.
 #[derive(Debug, Parser)]
-#[command(args_override_self = true)]
-struct Sub<A: clap::Args> {
+struct TrainCli {
     #[command(flatten)]
-    args: A,
+    args: TrainArgs,
 }
 
-type TrainCli = Sub<crate::train::Args>;
-
-/// The `train` command line of one branch of fold `k`.
-pub fn branch_command(
+/// The `train` arguments of one branch of a fold: `guardian-lab train`'s defaults with the
+/// options of `--train-args`, the fold's data and schedule, and the shipped recipe
+/// ([`RECIPE_COMMON`] and the branch's `recipe`) where `--train-args` does not set the
+/// option itself.
+pub fn branch_args(
     args: &Args,
     train: &[String],
-    branch: &[&str],
+    recipe: &[Setting],
     out: &Path,
     resume: bool,
-) -> Vec<String> {
-    let mut v: Vec<String> = vec![
-        "train".into(),
-        "--dataset".into(),
-        args.data.dataset.display().to_string(),
-        "--train-alphabets".into(),
-        train.join(","),
-        "--out".into(),
-        out.display().to_string(),
-        "--quiet".into(),
-        "--strokes".into(),
-        args.strokes
-            .strokes
-            .iter()
-            .map(|p| p.display().to_string())
-            .collect::<Vec<_>>()
-            .join(","),
-        "--steps-per-epoch".into(),
-        args.steps_per_epoch.to_string(),
-        "--epochs".into(),
-        args.epochs.to_string(),
+) -> anyhow::Result<TrainArgs> {
+    // The required options get placeholders, replaced below: every other value is train's
+    // own default or given in --train-args.
+    let required = [
+        "train",
+        "--dataset",
+        "-",
+        "--train-alphabets",
+        "-",
+        "--out",
+        "-",
     ];
-    v.extend(RECIPE_COMMON.iter().map(|s| s.to_string()));
-    v.extend(branch.iter().map(|s| s.to_string()));
-    if let Some(extra) = &args.train_args {
-        v.extend(extra.split_whitespace().map(String::from));
+    let extra: Vec<&str> = args
+        .train_args
+        .as_deref()
+        .map_or(Vec::new(), |e| e.split_whitespace().collect());
+    let matches = TrainCli::command()
+        .try_get_matches_from(required.iter().copied().chain(extra))
+        .context("--train-args")?;
+    let mut a = TrainCli::from_arg_matches(&matches)?.args;
+    let given = |id: &str| matches.value_source(id) == Some(ValueSource::CommandLine);
+    for (id, set) in RECIPE_COMMON.iter().chain(recipe) {
+        if !given(id) {
+            set(&mut a);
+        }
     }
-    if resume {
-        v.push("--resume".into());
-    }
-    v
+    a.data = args.data.clone();
+    a.train_alphabets = train.to_vec();
+    a.out = out.to_path_buf();
+    a.quiet = true;
+    a.strokes = args.strokes.clone();
+    a.steps_per_epoch = args.steps_per_epoch;
+    a.epochs = args.epochs;
+    a.resume = resume;
+    Ok(a)
 }
 
 fn finished(dir: &Path) -> bool {
@@ -319,15 +316,19 @@ fn finished(dir: &Path) -> bool {
 }
 
 /// Train (or resume, or skip) one branch.
-fn train_branch(args: &Args, train: &[String], branch: &[&str], out: &Path) -> anyhow::Result<()> {
+fn train_branch(
+    args: &Args,
+    train: &[String],
+    recipe: &[Setting],
+    out: &Path,
+) -> anyhow::Result<()> {
     if finished(out) {
         return Ok(());
     }
     let resume = out.join("state.json").exists();
-    let cmd = branch_command(args, train, branch, out, resume);
-    eprintln!("kfold: guardian-lab {}", cmd[1..].join(" "));
-    let cli = TrainCli::try_parse_from(&cmd).context("the recipe's train options")?;
-    let run = || crate::train::run(&cli.args);
+    let train_args = branch_args(args, train, recipe, out, resume)?;
+    eprintln!("kfold: train {}", out.display());
+    let run = || crate::train::run(&train_args);
     if args.threads > 0 {
         rayon::ThreadPoolBuilder::new()
             .num_threads(args.threads)
@@ -410,51 +411,42 @@ fn outlier_row(
     } else {
         "crossfit-bank.gcb"
     });
-    let data_arg = args.data.dataset.display().to_string();
+    // The calibration's settings, the same for the bank and the go / no-go figures.
+    let screen = |alphabets: Vec<String>, calib_alphabets: Vec<String>| ScreenArgs {
+        model: model.clone(),
+        alphabets,
+        calib_alphabets,
+        shots: 5,
+        target_frr: 0.01,
+        geometry_share: 0.25,
+        seed: args.seed,
+    };
     if !bank.exists() {
-        let mut cmd: Vec<String> = vec![
-            "bank".into(),
-            "--model".into(),
-            model.display().to_string(),
-            "--dataset".into(),
-            data_arg.clone(),
-            "--alphabets".into(),
-            folds[k].join(","),
-            "--shots".into(),
-            "5".into(),
-            "--target-frr".into(),
-            "0.01".into(),
-            "--geometry-share".into(),
-            "0.25".into(),
-            "--reps".into(),
-            args.calib_reps.to_string(),
-            "--seed".into(),
-            args.seed.to_string(),
-            "--out".into(),
-            bank.display().to_string(),
-        ];
-        for (j, f) in folds.iter().enumerate().filter(|(j, _)| *j != k) {
-            let alphabets: Vec<String> = f
-                .iter()
-                .filter(|a| !dense_only || args.dense.contains(a))
-                .cloned()
-                .collect();
-            if alphabets.is_empty() {
-                continue;
-            }
-            let pair = CrossFitPair {
-                model: fold_dir(&args.out, j).join("model.safetensors"),
-                alphabets,
-            };
-            cmd.push("--cross-fit".into());
-            cmd.push(format!(
-                "{}={}",
-                pair.model.display(),
-                pair.alphabets.join("+")
-            ));
-        }
-        let cli = Sub::<crate::tools::bank::Args>::try_parse_from(&cmd)?;
-        let summary = crate::tools::bank::build(&cli.args)?;
+        let cross_fit = folds
+            .iter()
+            .enumerate()
+            .filter(|(j, _)| *j != k)
+            .filter_map(|(j, f)| {
+                let alphabets: Vec<String> = f
+                    .iter()
+                    .filter(|a| !dense_only || args.dense.contains(a))
+                    .cloned()
+                    .collect();
+                (!alphabets.is_empty()).then(|| CrossFitPair {
+                    model: fold_dir(&args.out, j).join("model.safetensors"),
+                    alphabets,
+                })
+            })
+            .collect();
+        let summary = crate::tools::bank::build(&crate::tools::bank::Args {
+            // Calibrated by cross-fitting: no calibration alphabets.
+            screen: screen(folds[k].clone(), Vec::new()),
+            data: args.data.clone(),
+            reps: args.calib_reps,
+            out: bank.clone(),
+            cross_fit,
+            calibration_from: None,
+        })?;
         std::fs::write(
             bank.with_extension("json"),
             serde_json::to_vec_pretty(&summary)?,
@@ -466,46 +458,19 @@ fn outlier_row(
         .iter()
         .find(|a| *a != alphabet)
         .context("a fold of one alphabet has nothing to calibrate the baselines on")?;
-    let cmd: Vec<String> = [
-        "outliers",
-        "--model",
-        &model.display().to_string(),
-        "--dataset",
-        &data_arg,
-        "--strokes",
-        &args
-            .strokes
-            .strokes
-            .iter()
-            .map(|p| p.display().to_string())
-            .collect::<Vec<_>>()
-            .join(","),
-        "--alphabets",
-        alphabet,
-        "--calib-alphabets",
-        calib,
-        "--calibration-from",
-        &bank.display().to_string(),
-        "--shots",
-        "5",
-        "--target-frr",
-        "0.01",
-        "--geometry-share",
-        "0.25",
-        "--calib-reps",
-        &args.calib_reps.to_string(),
-        "--reps",
-        &args.reps.to_string(),
-        "--sources",
-        &args.sources.to_string(),
-        "--seed",
-        &args.seed.to_string(),
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
-    let cli = Sub::<crate::eval::outliers::Args>::try_parse_from(&cmd)?;
-    let report = crate::eval::outliers::measure(&cli.args)?;
+    let report = crate::eval::outliers::measure(&crate::eval::outliers::Args {
+        screen: screen(vec![alphabet.to_owned()], vec![calib.clone()]),
+        data: args.data.clone(),
+        strokes: args.strokes.clone(),
+        calib_reps: args.calib_reps,
+        reps: args.reps,
+        sources: args.sources,
+        siamese_model: None,
+        calibration_from: Some(bank.clone()),
+        wrong_task_tolerance: None,
+        out: None,
+        json: false,
+    })?;
     let g = report
         .methods
         .iter()
@@ -950,10 +915,10 @@ mod tests {
         assert_eq!(seen, want);
     }
 
+    /// The typed recipe is the one `models/MODEL.md` ("How to retrain") gives as command
+    /// lines, and `--train-args` still overrides it.
     #[test]
-    fn the_branch_commands_parse_as_the_recipe_says() {
-        let cli = TrainCli::try_parse_from(["kfold", "--dataset", "d", "--out", "o"]);
-        assert!(cli.is_err(), "train alphabets are required");
+    fn the_branch_arguments_are_the_documented_recipe() {
         let args = Args {
             data: DatasetArgs {
                 dataset: "d.safetensors".into(),
@@ -967,7 +932,7 @@ mod tests {
             only_folds: vec![],
             steps_per_epoch: 7,
             epochs: 3,
-            train_args: Some("--p-classes 32".into()),
+            train_args: None,
             episodes: 10,
             seed: 0,
             no_outliers: true,
@@ -981,26 +946,54 @@ mod tests {
             threads: 0,
         };
         let train = names(&["A", "B"]);
-        let pic = branch_command(&args, &train, RECIPE_PICTURE, Path::new("o/pic"), true);
-        let a = TrainCli::try_parse_from(&pic).expect("parses").args;
-        assert_eq!(a.train_alphabets, train);
+        let documented = |branch: &str, out: &str| {
+            let common = "--fault-share 1.0 --fault-variants 8 --fault-weight 1 --fault-margin 0.4 --class-augment --embed-dim 64 --seed 1";
+            let line = format!(
+                "train --dataset d.safetensors --train-alphabets A,B --out {out} --quiet \
+                 --strokes s1,s2 --schedule one-cycle --steps-per-epoch 7 --epochs 3 {branch} {common}"
+            );
+            let cli = TrainCli::try_parse_from(line.split_whitespace().filter(|w| *w != "\\"))
+                .expect("parses");
+            format!("{:?}", cli.args)
+        };
+        let seq = branch_args(&args, &train, RECIPE_SEQUENCE, Path::new("o/seq"), false).unwrap();
+        assert_eq!(
+            format!("{seq:?}"),
+            documented(
+                "--channels 32,64,128 --reverse-average --loss supcon --margin 0.1 --p-classes 64",
+                "o/seq"
+            )
+        );
+        let pic = branch_args(&args, &train, RECIPE_PICTURE, Path::new("o/pic"), true).unwrap();
+        assert!(pic.resume && pic.class_augment && pic.val_alphabets.is_empty());
+        let pic = TrainArgs {
+            resume: false,
+            ..pic
+        };
+        assert_eq!(
+            format!("{pic:?}"),
+            documented(
+                "--features picture --channels 16,32,64,128 --kernel 3",
+                "o/pic"
+            )
+        );
+        // --train-args comes last and overrides the recipe.
+        let args = Args {
+            train_args: Some("--p-classes 32 --kernel 5".into()),
+            ..args
+        };
+        let a = branch_args(&args, &train, RECIPE_PICTURE, Path::new("o/pic"), false).unwrap();
+        assert_eq!((a.p_classes, a.kernel, a.embed_dim), (32, 5, 64));
         assert_eq!(a.channels, [16, 32, 64, 128]);
-        assert_eq!((a.kernel, a.embed_dim, a.p_classes), (3, 64, 32));
-        assert_eq!((a.steps_per_epoch, a.epochs), (7, 3));
-        assert!(a.resume && a.class_augment && a.val_alphabets.is_empty());
-        assert_eq!(
-            a.strokes.strokes,
-            [PathBuf::from("s1"), PathBuf::from("s2")]
-        );
-        let seq = branch_command(&args, &train, RECIPE_SEQUENCE, Path::new("o/seq"), false);
-        let a = TrainCli::try_parse_from(&seq).expect("parses").args;
-        assert_eq!(a.channels, [32, 64, 128]);
-        assert!(a.reverse_average && !a.resume);
-        assert_eq!(a.fault_share, 1.0);
-        assert_eq!(
-            (a.loss, a.margin),
-            (crate::train::config::LossKind::Supcon, 0.1)
-        );
+        // Every setting names a train option (else --train-args could not override it).
+        let cmd = TrainCli::command();
+        for (id, _) in RECIPE_COMMON
+            .iter()
+            .chain(RECIPE_SEQUENCE)
+            .chain(RECIPE_PICTURE)
+        {
+            assert!(cmd.get_arguments().any(|a| a.get_id() == *id), "{id}");
+        }
     }
 
     #[test]
