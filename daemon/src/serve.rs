@@ -178,9 +178,42 @@ type ActiveRequest = iceoryx2::active_request::ActiveRequest<
 
 type Rpc = RpcFactory<ipc::Service, [f32], RequestHeader, [ClassEntry], ResponseHeader>;
 
-/// Load model and bank, open the services and serve until `control.shutdown` is set.
+type Server = iceoryx2::port::server::Server<
+    ipc::Service,
+    [f32],
+    RequestHeader,
+    [ClassEntry],
+    ResponseHeader,
+>;
+
+/// Load model and bank, open the services and serve until `control.shutdown` is set: the
+/// start-up (state directory, model and bank, observers, iceoryx2 ports, admin socket,
+/// fleet), then [`serve`].
 pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     let sd = SdNotify::from_env();
+    let mut screen = start_screen(&config)?;
+    let (obs, http) = start_observers(&config, &screen);
+    let iox_config = iceoryx2_config(&config)?;
+    let ports = Ports::open(&config, &iox_config)?;
+    let admin = start_admin(&config, &iox_config)?;
+    let fleet = start_fleet(&config, &mut screen, &iox_config)?;
+    serve(
+        &config,
+        &control,
+        &sd,
+        &iox_config,
+        &ports,
+        screen,
+        obs,
+        http,
+        admin,
+        fleet,
+    )
+}
+
+/// The state directory made and checked, the model and the bank loaded, the screen ready
+/// (its journal folded into the snapshot).
+fn start_screen(config: &Config) -> Result<Screen, RunError> {
     let state_dir = config.state_dir();
     // Owner-only, as the package's tmpfiles.d entry makes it: the bank holds the enrolled
     // plans. An existing directory keeps the mode its owner gave it. A new one is set to
@@ -213,7 +246,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         Ok(_) => {}
         Err(e) => tracing::warn!(error = %e, "cannot remove stale bank temporaries"),
     }
-    let (embedder, station) = load_model(&config)?;
+    let (embedder, station) = load_model(config)?;
     tracing::info!(
         model = %config.model_path().display(),
         version = embedder.version(),
@@ -222,7 +255,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         urdf_sha256 = %station.robot().urdf_sha256_hex(),
         "model loaded"
     );
-    let (bank, source) = load_bank(&config, &embedder, &station)?;
+    let (bank, source) = load_bank(config, &embedder, &station)?;
     if bank.is_empty() {
         tracing::info!(%source, "class bank is empty: enroll classes before checking");
     } else {
@@ -251,6 +284,17 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         );
     }
 
+    Ok(screen)
+}
+
+/// The HTTP listeners' threads and their stop flag.
+struct Http {
+    stop: Arc<AtomicBool>,
+    threads: Vec<std::thread::JoinHandle<()>>,
+}
+
+/// The metrics, the verdict record and the HTTP listeners (`/metrics`, the page).
+fn start_observers(config: &Config, screen: &Screen) -> (Observe, Http) {
     // Metrics and the verdict record: neither ever stops checks (a failure turns them off
     // with an error line).
     let metrics = Metrics::default();
@@ -266,123 +310,163 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     };
     let http_stop = Arc::new(AtomicBool::new(false));
     let mut http_threads = Vec::new();
-    if let Some(t) = start_metrics(&config, &metrics, &http_stop) {
+    if let Some(t) = start_metrics(config, &metrics, &http_stop) {
         http_threads.push(t);
     }
-    if let Some(t) = crate::web::start(&config, screen.station().robot().clone(), &http_stop) {
+    if let Some(t) = crate::web::start(config, screen.station().robot().clone(), &http_stop) {
         http_threads.push(t);
     }
-    let mut obs = Observe {
+    let obs = Observe {
         record,
         metrics,
         labels: ClassLabels::new(config.metrics.max_class_labels),
         published: screen.bank().generation(),
     };
 
-    let iox_config = iceoryx2_config(&config)?;
-    // Before the node: creating it opens the prefix's segments (dead-node clean-up), and a
-    // zero-byte one left by a kill would stall it (crate::recovery).
-    for file in crate::recovery::remove_unsized_segments(&iox_config) {
-        tracing::warn!(
-            file = %file.display(),
-            "removed an unsized iceoryx2 shared-memory segment (its creator was killed before sizing it)"
-        );
-    }
-    let node = NodeBuilder::new()
-        .config(&iox_config)
-        .signal_handling_mode(SignalHandlingMode::Disabled)
-        .create::<ipc::Service>()
-        .map_err(iox("create node"))?;
-    // What a crashed daemon or planner left behind: dead nodes (their ports, connections
-    // and service tags), and files of the daemon's own services whose creation a kill
-    // interrupted (which would make every open `HangsInCreation`).
-    let cleaned = node.try_cleanup_dead_nodes();
-    if cleaned.cleanups > 0 || cleaned.failed_cleanups > 0 {
-        tracing::warn!(
-            nodes = cleaned.cleanups,
-            failed = cleaned.failed_cleanups,
-            "removed resources of dead iceoryx2 nodes"
-        );
-    }
-    for (file, bytes) in
-        crate::recovery::remove_half_created_services(&iox_config, &config.service_name)
-    {
-        tracing::warn!(
-            file = %file.display(),
-            bytes,
-            "removed a half-created iceoryx2 service file (its creator was killed during start-up)"
-        );
-    }
-    let max_clients = config.max_clients;
-    let max_nodes = max_clients * 2 + 4;
-    let rpc_name = ServiceName::new(&config.service_name).map_err(iox("invalid service name"))?;
-    let rpc: Rpc = node
-        .service_builder(&rpc_name)
-        .request_response::<[f32], [ClassEntry]>()
-        .request_user_header::<RequestHeader>()
-        .response_user_header::<ResponseHeader>()
-        .max_clients(max_clients)
-        .max_servers(1)
-        .max_nodes(max_nodes)
-        .max_active_requests_per_client(4)
-        // One response per request, copied out by the client at once. iceoryx2 sizes the
-        // server's response pool as max-clients x 8 x (buffer + borrowed + loaned) chunks
-        // and, whenever a client connects or disconnects, walks one flag per chunk for
-        // each segment the pool may have — inside receive/loan, on the serving loop. With
-        // 4 + 2 + 2 slots and a growable pool (255 segments) that was 1M flags per client
-        // (50-350 ms on a loaded 2-core host, issue 39); with 1 + 1 + 1, the pool below
-        // and one static segment it is 256 (docs/performance.md, "A connecting client").
-        .max_response_buffer_size(1)
-        .max_borrowed_responses_per_pending_response(1)
-        .open_or_create()
-        .map_err(iox("open request-response service"))?;
-    let event = |name: String, what: &'static str| {
-        let n = ServiceName::new(&name).map_err(iox("invalid service name"))?;
-        node.service_builder(&n)
-            .event()
-            .max_listeners(max_clients + 2)
-            .max_notifiers(max_clients + 2)
-            .max_nodes(max_nodes)
-            .open_or_create()
-            .map_err(iox(what))
-    };
-    let wake_in = event(
-        request_event_name(&config.service_name),
-        "open request event service",
-    )?;
-    let wake_out = event(
-        response_event_name(&config.service_name),
-        "open response event service",
-    )?;
-    // The listener exists before the server port, so no request notification is lost.
-    let listener = wake_in
-        .listener_builder()
-        .create()
-        .map_err(iox("create listener"))?;
-    let notifier = wake_out
-        .notifier_builder()
-        .create()
-        .map_err(iox("create notifier"))?;
-    // Exactly one response per request: at most one response chunk per request the server
-    // may hold (max-clients x 2 x 4, iceoryx2's worst case of requests), not one per
-    // buffer + borrowed + loaned slot (its worst case when a request has several responses).
-    let per_request_slots = 3;
-    let server = rpc
-        .server_builder()
-        .max_loaned_responses_per_request(1)
-        .override_response_preallocation(move |worst| worst / per_request_slots)
-        // Every chunk preallocated at the largest answer (a page of the class list), in one
-        // static segment: iceoryx2 walks each segment a growable pool may have (255) on
-        // every client connect or leave; a static pool has one (issue 39).
-        .initial_max_slice_len(MAX_RESPONSE_ENTRIES)
-        .allocation_strategy(AllocationStrategy::Static)
-        .create()
-        .map_err(iox(
-            "create server port (is another guardiand serving this service name?)",
-        ))?;
+    (
+        obs,
+        Http {
+            stop: http_stop,
+            threads: http_threads,
+        },
+    )
+}
 
+/// The daemon's iceoryx2 node, its request-response service and server port, and the
+/// request and response events.
+struct Ports {
+    node: Node<ipc::Service>,
+    rpc: Rpc,
+    listener: iceoryx2::port::listener::Listener<ipc::Service>,
+    notifier: iceoryx2::port::notifier::Notifier<ipc::Service>,
+    server: Server,
+}
+
+impl Ports {
+    /// Clean up what crashed processes left, then open the services and create the ports.
+    fn open(config: &Config, iox_config: &iceoryx2::config::Config) -> Result<Self, RunError> {
+        // Before the node: creating it opens the prefix's segments (dead-node clean-up), and a
+        // zero-byte one left by a kill would stall it (crate::recovery).
+        for file in crate::recovery::remove_unsized_segments(iox_config) {
+            tracing::warn!(
+                file = %file.display(),
+                "removed an unsized iceoryx2 shared-memory segment (its creator was killed before sizing it)"
+            );
+        }
+        let node = NodeBuilder::new()
+            .config(iox_config)
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<ipc::Service>()
+            .map_err(iox("create node"))?;
+        // What a crashed daemon or planner left behind: dead nodes (their ports, connections
+        // and service tags), and files of the daemon's own services whose creation a kill
+        // interrupted (which would make every open `HangsInCreation`).
+        let cleaned = node.try_cleanup_dead_nodes();
+        if cleaned.cleanups > 0 || cleaned.failed_cleanups > 0 {
+            tracing::warn!(
+                nodes = cleaned.cleanups,
+                failed = cleaned.failed_cleanups,
+                "removed resources of dead iceoryx2 nodes"
+            );
+        }
+        for (file, bytes) in
+            crate::recovery::remove_half_created_services(iox_config, &config.service_name)
+        {
+            tracing::warn!(
+                file = %file.display(),
+                bytes,
+                "removed a half-created iceoryx2 service file (its creator was killed during start-up)"
+            );
+        }
+        let max_clients = config.max_clients;
+        let max_nodes = max_clients * 2 + 4;
+        let rpc_name =
+            ServiceName::new(&config.service_name).map_err(iox("invalid service name"))?;
+        let rpc: Rpc = node
+            .service_builder(&rpc_name)
+            .request_response::<[f32], [ClassEntry]>()
+            .request_user_header::<RequestHeader>()
+            .response_user_header::<ResponseHeader>()
+            .max_clients(max_clients)
+            .max_servers(1)
+            .max_nodes(max_nodes)
+            .max_active_requests_per_client(4)
+            // One response per request, copied out by the client at once. iceoryx2 sizes the
+            // server's response pool as max-clients x 8 x (buffer + borrowed + loaned) chunks
+            // and, whenever a client connects or disconnects, walks one flag per chunk for
+            // each segment the pool may have — inside receive/loan, on the serving loop. With
+            // 4 + 2 + 2 slots and a growable pool (255 segments) that was 1M flags per client
+            // (50-350 ms on a loaded 2-core host, issue 39); with 1 + 1 + 1, the pool below
+            // and one static segment it is 256 (docs/performance.md, "A connecting client").
+            .max_response_buffer_size(1)
+            .max_borrowed_responses_per_pending_response(1)
+            .open_or_create()
+            .map_err(iox("open request-response service"))?;
+        let event = |name: String, what: &'static str| {
+            let n = ServiceName::new(&name).map_err(iox("invalid service name"))?;
+            node.service_builder(&n)
+                .event()
+                .max_listeners(max_clients + 2)
+                .max_notifiers(max_clients + 2)
+                .max_nodes(max_nodes)
+                .open_or_create()
+                .map_err(iox(what))
+        };
+        let wake_in = event(
+            request_event_name(&config.service_name),
+            "open request event service",
+        )?;
+        let wake_out = event(
+            response_event_name(&config.service_name),
+            "open response event service",
+        )?;
+        // The listener exists before the server port, so no request notification is lost.
+        let listener = wake_in
+            .listener_builder()
+            .create()
+            .map_err(iox("create listener"))?;
+        let notifier = wake_out
+            .notifier_builder()
+            .create()
+            .map_err(iox("create notifier"))?;
+        // Exactly one response per request: at most one response chunk per request the server
+        // may hold (max-clients x 2 x 4, iceoryx2's worst case of requests), not one per
+        // buffer + borrowed + loaned slot (its worst case when a request has several responses).
+        let per_request_slots = 3;
+        let server = rpc
+            .server_builder()
+            .max_loaned_responses_per_request(1)
+            .override_response_preallocation(move |worst| worst / per_request_slots)
+            // Every chunk preallocated at the largest answer (a page of the class list), in one
+            // static segment: iceoryx2 walks each segment a growable pool may have (255) on
+            // every client connect or leave; a static pool has one (issue 39).
+            .initial_max_slice_len(MAX_RESPONSE_ENTRIES)
+            .allocation_strategy(AllocationStrategy::Static)
+            .create()
+            .map_err(iox(
+                "create server port (is another guardiand serving this service name?)",
+            ))?;
+
+        Ok(Self {
+            node,
+            rpc,
+            listener,
+            notifier,
+            server,
+        })
+    }
+}
+
+/// The admin socket and the locator that names it.
+struct Admin {
+    endpoint: AdminEndpoint,
+    _locator: Option<crate::locator::AdminLocator>,
+}
+
+/// Serve the admin socket (its requests wake the loop through the request event).
+fn start_admin(config: &Config, iox_config: &iceoryx2::config::Config) -> Result<Admin, RunError> {
     let admin_path = config.admin_socket();
-    let make_wake = admin_waker(&iox_config, request_event_name(&config.service_name));
+    let make_wake = admin_waker(iox_config, request_event_name(&config.service_name));
     let admin_uids = config
         .admin
         .effective_uids(rustix::process::getuid().as_raw());
@@ -394,14 +478,42 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
         },
         make_wake,
     )?;
-    let _locator = crate::locator::AdminLocator::publish_or_warn(
-        &iox_config,
+    let locator = crate::locator::AdminLocator::publish_or_warn(
+        iox_config,
         &config.service_name,
         &admin_path,
     );
     tracing::info!(socket = %admin_path.display(), separation = config.admin.separation, uids = ?admin_uids, gids = ?config.admin.gids, "admin socket ready");
-    let mut fleet = start_fleet(&config, &mut screen, &iox_config)?;
+    Ok(Admin {
+        endpoint: admin,
+        _locator: locator,
+    })
+}
 
+/// The serving loop: answer queued requests, the admin socket and the fleet; follow reload,
+/// the watchdog and client churn; sleep as the serving mode says; on shutdown answer what
+/// is queued, stop the listeners and flush the bank.
+#[allow(clippy::too_many_arguments)]
+fn serve(
+    config: &Config,
+    control: &Control,
+    sd: &SdNotify,
+    iox_config: &iceoryx2::config::Config,
+    ports: &Ports,
+    mut screen: Screen,
+    mut obs: Observe,
+    http: Http,
+    admin: Admin,
+    mut fleet: Fleet,
+) -> Result<(), RunError> {
+    let Ports {
+        node,
+        rpc,
+        listener,
+        notifier,
+        server,
+    } = ports;
+    let admin = admin.endpoint;
     let watchdog = if config.watchdog {
         sd.watchdog_timeout().map(|t| t / 2)
     } else {
@@ -427,10 +539,10 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
     let mut last_request = Instant::now();
     let mut last_sweep = Instant::now();
     let spin = Duration::from_micros(config.spin_us);
-    let mut wakers = ClientWakers::new(&config.service_name, max_clients, &iox_config);
-    let mut live_clients: Vec<u128> = Vec::with_capacity(max_clients);
+    let mut wakers = ClientWakers::new(&config.service_name, config.max_clients, iox_config);
+    let mut live_clients: Vec<u128> = Vec::with_capacity(config.max_clients);
     let mut out = Outbox {
-        shared: &notifier,
+        shared: notifier,
         wakers: &mut wakers,
         batch: Vec::with_capacity(config.max_batch),
         answered: Vec::with_capacity(config.max_batch),
@@ -440,7 +552,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
 
     loop {
         // Answer everything queued first, so that a stop answers in-flight requests.
-        let served = drain(&server, &mut out, &mut screen, config.max_batch, &mut obs)?;
+        let served = drain(server, &mut out, &mut screen, config.max_batch, &mut obs)?;
         let changed = serve_admin(&admin, &mut screen, &mut fleet, &obs.metrics)
             + fleet.as_mut().map_or(0, |m| {
                 m.poll(&mut screen, &mut |a: RemoteCheck| {
@@ -460,7 +572,7 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
             break;
         }
         if control.reload.swap(false, Ordering::SeqCst) {
-            reload(&config, &mut screen, &sd);
+            reload(config, &mut screen, sd);
             obs.publish_state(&screen);
         }
         if let Some(w) = watchdog
@@ -537,11 +649,11 @@ pub fn run(config: Config, control: Control) -> Result<(), RunError> {
 
     sd.stopping();
     tracing::info!("stopping: answering queued requests and flushing state");
-    let _ = drain(&server, &mut out, &mut screen, config.max_batch, &mut obs)?;
+    let _ = drain(server, &mut out, &mut screen, config.max_batch, &mut obs)?;
     let _ = serve_admin(&admin, &mut screen, &mut fleet, &obs.metrics);
     drop(admin);
-    http_stop.store(true, Ordering::SeqCst);
-    for t in http_threads {
+    http.stop.store(true, Ordering::SeqCst);
+    for t in http.threads {
         let _ = t.join();
     }
     // The record's writer commits what is queued.
@@ -764,13 +876,7 @@ struct Outbox<'a> {
 /// Answer every queued request, taking up to `max_batch` at a time so that queued checks
 /// are embedded in one forward pass; returns how many.
 fn drain(
-    server: &iceoryx2::port::server::Server<
-        ipc::Service,
-        [f32],
-        RequestHeader,
-        [ClassEntry],
-        ResponseHeader,
-    >,
+    server: &Server,
     out: &mut Outbox<'_>,
     screen: &mut Screen,
     max_batch: usize,
