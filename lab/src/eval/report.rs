@@ -743,7 +743,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             )?;
         }
     }
-    let md_path = args.out.join("README.md");
+    let md_path = args.out.join("few-shot.md");
     std::fs::write(&md_path, md).with_context(|| format!("writing {}", md_path.display()))?;
     let summary: Vec<serde_json::Value> = table
         .iter()
