@@ -34,6 +34,12 @@ pub struct GateConfig {
     pub tool: ToolSource,
     /// How long to wait for the controller to accept or reject a forwarded goal (ms).
     pub controller_timeout_ms: u64,
+    /// How long a goal's result is kept for its sender to ask for it (s; ROS 2's action
+    /// servers keep results 900 s). The next goals never wait for it.
+    pub result_keep_s: u64,
+    /// Results kept at once for senders that have not asked yet; a result beyond is
+    /// dropped (logged).
+    pub max_pending_results: usize,
     /// How the action's services map onto DDS: that of the RMW MoveIt and the controller
     /// use (the same for both).
     pub service_mapping: ServiceMappingName,
@@ -80,6 +86,8 @@ impl Default for GateConfig {
             robot: "panda".into(),
             tool: ToolSource::default(),
             controller_timeout_ms: 2000,
+            result_keep_s: 900,
+            max_pending_results: 256,
             service_mapping: ServiceMappingName::default(),
             guardiand: GuardiandConfig::default(),
         }
@@ -184,6 +192,11 @@ impl GateConfig {
     /// The controller answer timeout.
     pub fn controller_timeout(&self) -> Duration {
         Duration::from_millis(self.controller_timeout_ms)
+    }
+
+    /// How long a goal's result waits for its sender.
+    pub fn result_keep(&self) -> Duration {
+        Duration::from_secs(self.result_keep_s)
     }
 
     /// The installed config as commented TOML (`--print-default-config`): the defaults

@@ -3,7 +3,10 @@
 //! them together (docs/ros2.md).
 //!
 //! One goal is screened and relayed at a time (as MoveIt sends them to one controller); a
-//! goal that arrives meanwhile waits in the DDS queue until the active one has ended.
+//! goal that arrives meanwhile waits in the DDS queue until the active one has ended. A goal
+//! has ended when its result is known: the result then waits for its sender to ask for it
+//! (a [`Delivery`], kept up to `result-keep-s`) beside the next goals, so a sender that never
+//! asks, or is gone, stalls nothing.
 
 use std::cell::{Cell, RefCell};
 use std::sync::Arc;
@@ -15,7 +18,7 @@ use futures::{FutureExt, StreamExt, pin_mut};
 use guardian_robot::kinematics::RobotDescription;
 use ros2_client::action::{
     ActionClient, ActionClientQosPolicies, ActionServerQosPolicies, AsyncActionServer,
-    GoalEndStatus, GoalId, GoalStatusEnum, SendGoalResponse,
+    ExecutingGoalHandle, GoalEndStatus, GoalId, GoalStatusEnum, SendGoalResponse,
 };
 use ros2_client::{
     ActionTypeName, Context, MessageTypeName, Name, NodeName, NodeOptions, Publisher, QosProfile,
@@ -149,10 +152,23 @@ pub fn context(domain: u16, only_networks: &[std::net::IpAddr]) -> anyhow::Resul
 
 enum Event {
     Goal(ros2_client::ReadResult<ros2_client::action::NewGoalHandle<Goal>>),
-    Done,
+    Done(Option<Delivery>),
+    Delivered,
     Cancel(ros2_client::ReadResult<ros2_client::action::CancelHandle>),
     Tick,
 }
+
+/// A goal's result waiting for its sender's result request (ROS 2 actions answer results on
+/// request): delivered beside the next goals, dropped after `result-keep-s`.
+struct Delivery {
+    executing: ExecutingGoalHandle<Goal>,
+    end: GoalEndStatus,
+    result: GoalResult,
+}
+
+/// How often a waiting delivery looks again for its result request (another delivery may
+/// have read it off the shared request stream meanwhile, into the server's table).
+const DELIVERY_RETRY: Duration = Duration::from_millis(100);
 
 /// Counters for /diagnostics.
 #[derive(Debug, Default)]
@@ -258,7 +274,8 @@ pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
 
 impl Gate<'_> {
     async fn serve(&self, stop: &AtomicBool, diagnostics: &Publisher<DiagnosticArray>) {
-        let mut active: Option<futures::future::LocalBoxFuture<'_, ()>> = None;
+        let mut active: Option<futures::future::LocalBoxFuture<'_, Option<Delivery>>> = None;
+        let mut deliveries = futures::stream::FuturesUnordered::new();
         let mut ticks = StreamExt::fuse(smol::Timer::interval(Duration::from_millis(100)));
         let mut last_diag = Instant::now() - Duration::from_secs(2);
         while !stop.load(Ordering::Relaxed) {
@@ -284,21 +301,41 @@ impl Gate<'_> {
                 }
                 .fuse();
                 let cancel = self.server.receive_cancel_request().fuse();
-                pin_mut!(new_goal, running, cancel);
+                let delivered = async {
+                    if deliveries.is_empty() {
+                        futures::future::pending().await
+                    } else {
+                        deliveries.next().await
+                    }
+                }
+                .fuse();
+                pin_mut!(new_goal, running, cancel, delivered);
                 futures::select! {
                     g = new_goal => Event::Goal(g),
-                    () = running => Event::Done,
+                    d = running => Event::Done(d),
                     c = cancel => Event::Cancel(c),
+                    _ = delivered => Event::Delivered,
                     _ = ticks.next() => Event::Tick,
                 }
             };
             match event {
                 Event::Goal(Ok(handle)) => active = Some(self.handle_goal(handle).boxed_local()),
                 Event::Goal(Err(e)) => tracing::warn!("receiving a goal: {e:?}"),
-                Event::Done => {
+                Event::Done(delivery) => {
                     active = None;
                     self.forwarded.set(None);
+                    if let Some(d) = delivery {
+                        if deliveries.len() >= self.config.max_pending_results {
+                            tracing::warn!(
+                                pending = deliveries.len(),
+                                "too many results waiting for their senders; the oldest are kept, this one is dropped"
+                            );
+                        } else {
+                            deliveries.push(self.deliver(d).boxed_local());
+                        }
+                    }
                 }
+                Event::Delivered => {}
                 Event::Cancel(Ok(handle)) => self.relay_cancel(handle).await,
                 Event::Cancel(Err(e)) => tracing::warn!("receiving a cancel request: {e:?}"),
                 Event::Tick => {}
@@ -316,11 +353,14 @@ impl Gate<'_> {
         self.claim.borrow().clone()
     }
 
-    async fn handle_goal(&self, handle: ros2_client::action::NewGoalHandle<Goal>) {
+    async fn handle_goal(
+        &self,
+        handle: ros2_client::action::NewGoalHandle<Goal>,
+    ) -> Option<Delivery> {
         let goal_id = handle.goal_id();
         let Some(goal) = self.server.get_new_goal(handle.clone()) else {
             tracing::warn!("goal {goal_id:?} vanished before it was screened");
-            return;
+            return None;
         };
         let claim = self.current_claim();
         let id_hex = uuid_hex(&goal_id);
@@ -340,9 +380,9 @@ impl Gate<'_> {
                     0,
                 );
                 self.counts.no_go.set(self.counts.no_go.get() + 1);
-                self.refuse(handle, error_code::INVALID_JOINTS, detail)
+                return self
+                    .refuse(handle, error_code::INVALID_JOINTS, detail)
                     .await;
-                return;
             }
         };
         let sha = plan.sha256();
@@ -357,14 +397,15 @@ impl Gate<'_> {
                 &self.counts.no_go
             };
             c.set(c.get() + 1);
-            self.refuse(handle, error_code::INVALID_GOAL, outcome.detail)
+            return self
+                .refuse(handle, error_code::INVALID_GOAL, outcome.detail)
                 .await;
-            return;
         }
         self.counts.go.set(self.counts.go.get() + 1);
         // The screen said go; if the controller then fails the goal, the verdicts topic says
         // so too (a second verdict for the goal), so no one reads a lost goal as executed.
-        if let Some((reason, detail)) = self.forward(handle, goal).await {
+        let (failed, delivery) = self.forward(handle, goal).await;
+        if let Some((reason, detail)) = failed {
             tracing::warn!(goal = %id_hex, reason, "{detail}");
             self.publish_verdict(
                 &id_hex,
@@ -374,42 +415,91 @@ impl Gate<'_> {
                 waypoints,
             );
         }
+        delivery
     }
 
     /// Accept, then abort with `code` and `detail`: the only way FollowJointTrajectory
-    /// carries an error code and string to MoveIt. Never forwarded.
+    /// carries an error code and string to MoveIt. Never forwarded. The aborted result is
+    /// returned, for its sender to fetch.
     async fn refuse(
         &self,
         handle: ros2_client::action::NewGoalHandle<Goal>,
         code: i32,
         detail: String,
-    ) {
-        let result = async {
+    ) -> Option<Delivery> {
+        let executing = async {
             let accepted = self
                 .server
                 .accept_goal(handle)
                 .await
                 .map_err(|e| format!("{e:?}"))?;
-            let executing = self
-                .server
-                .start_executing_goal(accepted)
-                .await
-                .map_err(|e| format!("{e:?}"))?;
             self.server
-                .send_result_response(
-                    executing,
-                    GoalEndStatus::Aborted,
-                    GoalResult {
-                        error_code: code,
-                        error_string: detail,
-                    },
-                )
+                .start_executing_goal(accepted)
                 .await
                 .map_err(|e| format!("{e:?}"))
         };
-        if let Err(e) = result.await {
-            tracing::warn!("refusing a goal: {e}");
+        match executing.await {
+            Ok(executing) => Some(Delivery {
+                executing,
+                end: GoalEndStatus::Aborted,
+                result: GoalResult {
+                    error_code: code,
+                    error_string: detail,
+                },
+            }),
+            Err(e) => {
+                tracing::warn!("refusing a goal: {e}");
+                None
+            }
         }
+    }
+
+    /// Answer the result request of a goal that has ended, when its sender asks, for at most
+    /// `result-keep-s`.
+    async fn deliver(&self, d: Delivery) {
+        let id = uuid_hex(&d.executing.goal_id());
+        if self
+            .deliver_for(d, self.config.result_keep())
+            .await
+            .is_some()
+        {
+            tracing::warn!(
+                goal = %id,
+                keep_s = self.config.result_keep().as_secs(),
+                "a goal's result was never asked for (its sender gone?); dropped"
+            );
+        }
+    }
+
+    /// A refused goal's result delivered at once if its sender asks within a second (MoveIt
+    /// asks right after the goal's answer), before the gate waits on the controller; what
+    /// is still waiting is returned.
+    async fn deliver_first(&self, d: Option<Delivery>) -> Option<Delivery> {
+        self.deliver_for(d?, Duration::from_secs(1)).await
+    }
+
+    /// Answer `d`'s result request if it comes within `keep` (`None`: answered, or the
+    /// answer failed and was logged); `d` again if not. Each attempt is bounded, so a
+    /// request another delivery read off the shared request stream (into the server's
+    /// table) is found at the next attempt.
+    async fn deliver_for(&self, d: Delivery, keep: Duration) -> Option<Delivery> {
+        let deadline = Instant::now() + keep;
+        while Instant::now() < deadline {
+            let attempt = self
+                .server
+                .send_result_response(d.executing.clone(), d.end, d.result.clone())
+                .boxed_local();
+            match futures::future::select(attempt, smol::Timer::after(DELIVERY_RETRY)).await {
+                futures::future::Either::Left((Ok(()), _)) => return None,
+                futures::future::Either::Left((Err(e), _)) => {
+                    let id = uuid_hex(&d.executing.goal_id());
+                    tracing::warn!(goal = %id, "sending a goal's result: {e:?}");
+                    return None;
+                }
+                futures::future::Either::Right(_) => {}
+            }
+        }
+        Some(d)
     }
 
     /// Send the goal unchanged to the controller and relay its answers. When the controller
@@ -419,7 +509,7 @@ impl Gate<'_> {
         &self,
         handle: ros2_client::action::NewGoalHandle<Goal>,
         goal: Goal,
-    ) -> Option<(&'static str, String)> {
+    ) -> (Option<(&'static str, String)>, Option<Delivery>) {
         // The gate chooses the controller goal's id when it sends it, so a goal the
         // controller has not answered in time can still be cancelled by id.
         let (request, ctrl_id) = match self.controller.send_goal(goal) {
@@ -430,9 +520,10 @@ impl Gate<'_> {
                     "guardian gate: sending the goal to {} failed: {e:?}",
                     self.config.controller
                 );
-                self.refuse(handle, error_code::INVALID_GOAL, detail.clone())
+                let refused = self
+                    .refuse(handle, error_code::INVALID_GOAL, detail.clone())
                     .await;
-                return Some(("controller-unreachable", detail));
+                return (Some(("controller-unreachable", detail)), refused);
             }
         };
         let answer = self
@@ -451,10 +542,12 @@ impl Gate<'_> {
                     "guardian gate: the goal's answer from {} was lost: {e:?}",
                     self.config.controller
                 );
-                self.refuse(handle, error_code::INVALID_GOAL, detail.clone())
+                let refused = self
+                    .refuse(handle, error_code::INVALID_GOAL, detail.clone())
                     .await;
+                let pending = self.deliver_first(refused).await;
                 self.cancel_late(ctrl_id, None).await;
-                return Some(("controller-lost", detail));
+                return (Some(("controller-lost", detail)), pending);
             }
             futures::future::Either::Right((_, answer)) => {
                 // MoveIt hears "aborted"; the controller may still accept the goal later:
@@ -465,10 +558,12 @@ impl Gate<'_> {
                     self.config.controller,
                     self.config.controller_timeout()
                 );
-                self.refuse(handle, error_code::INVALID_GOAL, detail.clone())
+                let refused = self
+                    .refuse(handle, error_code::INVALID_GOAL, detail.clone())
                     .await;
+                let pending = self.deliver_first(refused).await;
                 self.cancel_late(ctrl_id, Some(answer)).await;
-                return Some(("controller-timeout", detail));
+                return (Some(("controller-timeout", detail)), pending);
             }
         };
         if !response.accepted {
@@ -476,13 +571,11 @@ impl Gate<'_> {
             if let Err(e) = self.server.reject_goal(handle).await {
                 tracing::warn!("rejecting a goal: {e:?}");
             }
-            return Some((
-                "controller-rejected",
-                format!(
-                    "guardian gate: controller {} rejected the goal",
-                    self.config.controller
-                ),
-            ));
+            let detail = format!(
+                "guardian gate: controller {} rejected the goal",
+                self.config.controller
+            );
+            return (Some(("controller-rejected", detail)), None);
         }
         let ours = handle.goal_id();
         self.forwarded.set(Some((ours, ctrl_id)));
@@ -491,12 +584,12 @@ impl Gate<'_> {
                 Ok(x) => x,
                 Err(e) => {
                     tracing::warn!("starting a goal: {e:?}");
-                    return None;
+                    return (None, None);
                 }
             },
             Err(e) => {
                 tracing::warn!("accepting a goal: {e:?}");
-                return None;
+                return (None, None);
             }
         };
         let fb = executing.clone();
@@ -533,14 +626,14 @@ impl Gate<'_> {
             GoalStatusEnum::Canceled => GoalEndStatus::Canceled,
             _ => GoalEndStatus::Aborted,
         };
-        if let Err(e) = self
-            .server
-            .send_result_response(executing, end, result)
-            .await
-        {
-            tracing::warn!("relaying the result: {e:?}");
-        }
-        None
+        (
+            None,
+            Some(Delivery {
+                executing,
+                end,
+                result,
+            }),
+        )
     }
 
     /// Cancel controller goal `ctrl_id`, which MoveIt was told is aborted: at once and, if

@@ -255,6 +255,16 @@ async fn send(
     }
 }
 
+/// `f`'s output, or a panic after [`PATIENCE`] (the gate stalled).
+async fn within<T>(f: impl std::future::Future<Output = T>, what: &str) -> T {
+    smol::future::or(async { Some(f.await) }, async {
+        smol::Timer::after(PATIENCE).await;
+        None
+    })
+    .await
+    .unwrap_or_else(|| panic!("{what} not within {PATIENCE:?} (the gate stalled?)"))
+}
+
 fn latched() -> QosProfile {
     QosProfile::publisher_default()
         .durability(Durability::TransientLocal)
@@ -579,6 +589,66 @@ fn gate_screens_forwards_relays_and_fails_closed() {
         );
         assert_eq!(seen.goals.lock().unwrap().len(), 5);
 
+        // 6b. A sender that never asks for its result, and one that leaves after its goal is
+        // answered, stall nothing: the next goal is screened and relayed, and the first
+        // one's result is still there when it is asked for later.
+        let (silent, resp) = within(
+            client.async_send_goal(goal(outlier_class, 7, &in_order())),
+            "a goal's answer",
+        )
+        .await
+        .expect("send goal");
+        assert!(resp.accepted);
+        assert_eq!(next_verdict().await.verdict, "no-go");
+        {
+            let mut gone = node(domain, "vanishing_sender");
+            let vanishing = action_client(&mut gone, ServiceMapping::Enhanced, &gate_ns).unwrap();
+            let found = smol::future::or(
+                async {
+                    vanishing.goal_client().wait_for_service(&gone).await;
+                    true
+                },
+                async {
+                    smol::Timer::after(PATIENCE).await;
+                    false
+                },
+            )
+            .await;
+            assert!(found, "the second sender did not discover the gate");
+            let (_, resp) = within(
+                vanishing.async_send_goal(goal(outlier_class, 8, &in_order())),
+                "the second sender's goal's answer",
+            )
+            .await
+            .expect("send goal");
+            assert!(resp.accepted);
+            assert_eq!(next_verdict().await.verdict, "no-go");
+        }
+        let gone_at = Instant::now();
+        let sending = send(&client, goal(1, 8, &in_order()), false);
+        let screened = async {
+            let v = next_verdict().await;
+            (v, gone_at.elapsed())
+        };
+        let (r, (v, after)) = futures::join!(sending, screened);
+        eprintln!(
+            "6b: next goal screened {after:?} after the second sender left (the first never asked for its result)"
+        );
+        assert_eq!(r.status, Some(GoalStatusEnum::Succeeded), "{r:?}");
+        assert_eq!(v.verdict, "go", "{v:?}");
+        assert_eq!(seen.goals.lock().unwrap().len(), 6);
+        let kept = smol::future::or(
+            async { Some(client.async_request_result(silent).await.expect("result")) },
+            async {
+                smol::Timer::after(PATIENCE).await;
+                None
+            },
+        )
+        .await;
+        let (status, res) = kept.expect("the silent sender's result was kept");
+        assert_eq!(status, GoalStatusEnum::Aborted);
+        assert!(res.error_string.contains("outlier"), "{res:?}");
+
         // 7. guardiand killed: the goal is refused, never forwarded.
         daemon.child.kill().unwrap();
         daemon.child.wait().unwrap();
@@ -590,7 +660,7 @@ fn gate_screens_forwards_relays_and_fails_closed() {
         assert!(res.error_string.contains("fail closed"), "{res:?}");
         assert_eq!(
             seen.goals.lock().unwrap().len(),
-            5,
+            6,
             "a goal was forwarded without a verdict"
         );
         let v = next_verdict().await;
