@@ -26,12 +26,12 @@ use guardian_robot::kinematics::PANDA_JOINTS;
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::{Arc, Barrier};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-use guardian_client::{Client, ClientConfig, Trajectory, Verdict};
+use guardian_client::{Client, Trajectory, Verdict};
 use guardian_daemon::config::Config;
 use guardian_daemon::screen::Screen;
 use guardian_daemon::state::{load_bank, load_model};
@@ -44,7 +44,7 @@ use guardian_shared::trajectory::Waypoint;
 use guardian_shared::wire::{
     Op, ReasonCode, RequestHeader, VerdictCode, decode_code, decode_text, encode_class_name,
 };
-use guardian_tests::harness::{guardiand_bin, workspace_root};
+use guardian_tests::harness::{Daemon, Setup, workspace_root};
 use serde::{Deserialize, Serialize};
 
 /// Latin characters enrolled as task classes, drawers used to enroll, drawers checked.
@@ -209,95 +209,34 @@ fn load_drawings(strokes: &Path) -> Result<Drawings> {
 
 // ---------------------------------------------------------------- guardiand
 
-#[derive(Clone)]
-struct Deployment {
-    dir: PathBuf,
-    service: String,
-    prefix: String,
-    model: PathBuf,
-    /// The shipped default bank (with its calibration) when the model is the shipped one.
-    default_bank: Option<PathBuf>,
+/// A deployment: the tests' harness set-up (its own directory, service name and iceoryx2
+/// prefix; `/metrics` on a free loopback port) with the bench's model and bank, the
+/// workcell rules on as shipped, three nearest classes.
+fn deployment(model: &Path, default_bank: Option<PathBuf>) -> Setup {
+    let mut s = Setup::new(0);
+    s.model = model.to_path_buf();
+    s.default_bank = default_bank;
+    s.workcell_rules = true;
+    configure(&mut s, "event", 16);
+    s
 }
 
-impl Deployment {
-    fn config_text(&self, mode: &str, max_batch: usize) -> String {
-        format!(
-            "model = {:?}\ndefault-bank = {:?}\nstate-dir = {:?}\nservice-name = {:?}\n\
-             serving-mode = {mode:?}\nmax-batch = {max_batch}\nk-nearest = 3\n[iceoryx2]\nroot-path = {:?}\nprefix = {:?}\n",
-            self.model,
-            self.default_bank.clone().unwrap_or_default(),
-            self.dir.join("state"),
-            self.service,
-            self.dir.join("iox"),
-            self.prefix
-        )
-    }
-
-    fn write_config(&self, mode: &str, max_batch: usize) -> Result<PathBuf> {
-        let p = self.dir.join(format!("guardiand-{mode}-{max_batch}.toml"));
-        std::fs::write(&p, self.config_text(mode, max_batch))?;
-        Ok(p)
-    }
-
-    fn client_config(&self) -> ClientConfig {
-        ClientConfig {
-            service_name: self.service.clone(),
-            timeout: Duration::from_secs(10),
-            iceoryx2_root_path: Some(self.dir.join("iox")),
-            iceoryx2_prefix: Some(self.prefix.clone()),
-        }
-    }
+/// Set `s`'s serving mode and batch size (written with its config).
+fn configure(s: &mut Setup, mode: &str, max_batch: usize) {
+    s.extra = format!("serving-mode = {mode:?}\nmax-batch = {max_batch}\nk-nearest = 3");
 }
 
-struct Daemon {
-    child: Child,
+/// Start guardiand in `mode` with `max_batch` on the harness (warnings only in its log, so
+/// no log line per request).
+fn start(s: &mut Setup, mode: &str, max_batch: usize) -> Daemon {
+    configure(s, mode, max_batch);
+    Daemon::start_with_env(s, &[("RUST_LOG", "warn".into())])
 }
 
-impl Daemon {
-    fn start(bin: &Path, dep: &Deployment, mode: &str, max_batch: usize) -> Result<Self> {
-        let config = dep.write_config(mode, max_batch)?;
-        let log = std::fs::File::create(dep.dir.join(format!("guardiand-{mode}-{max_batch}.log")))?;
-        let child = Command::new(bin)
-            .arg("--config")
-            .arg(&config)
-            .env("RUST_LOG", "warn")
-            .env_remove("NOTIFY_SOCKET")
-            .env_remove("WATCHDOG_USEC")
-            .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()
-            .with_context(|| format!("spawning {}", bin.display()))?;
-        let d = Daemon { child };
-        let start = Instant::now();
-        loop {
-            if Client::connect(dep.client_config()).is_ok() {
-                return Ok(d);
-            }
-            if start.elapsed() > Duration::from_secs(60) {
-                bail!(
-                    "guardiand ({mode}) did not come up; see its log in {}",
-                    dep.dir.display()
-                );
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
-    }
-
-    /// SIGTERM (so shared memory is released), wait, SIGKILL as a fallback.
-    fn stop(mut self) -> Result<()> {
-        let pid = self.child.id().to_string();
-        let _ = Command::new("kill").args(["-TERM", &pid]).status();
-        let start = Instant::now();
-        while start.elapsed() < Duration::from_secs(20) {
-            if self.child.try_wait()?.is_some() {
-                return Ok(());
-            }
-            std::thread::sleep(Duration::from_millis(10));
-        }
-        self.child.kill()?;
-        self.child.wait()?;
-        bail!("guardiand did not stop on SIGTERM")
-    }
+/// SIGTERM (so shared memory is released) and wait for the exit.
+fn stop(mut d: Daemon) {
+    d.signal("TERM");
+    d.wait_exit();
 }
 
 /// The daemon's own p50, p90, p99, max service time (us) of its recent requests.
@@ -351,7 +290,7 @@ struct Throughput {
 
 /// `clients` threads, each with its own connection, checking for `run_for`.
 fn throughput(
-    dep: &Deployment,
+    dep: &Setup,
     checks: &Arc<Vec<(String, Trajectory)>>,
     clients: usize,
     max_batch: usize,
@@ -425,15 +364,15 @@ type Requests = Vec<(RequestHeader, Vec<f32>)>;
 /// A `Screen` in this process built from `dep`'s configuration, the Latin classes enrolled
 /// through it, and one check request per check drawing.
 fn in_process_screen(
-    dep: &Deployment,
+    dep: &Setup,
     drawings: &Drawings,
     name: &str,
 ) -> Result<(Screen, Config, Requests)> {
-    let config = Config::from_file(&dep.write_config("event", 16)?)?;
+    let config = Config::from_file(&dep.write_config())?;
     let (embedder, station) = load_model(&config)?;
     let panda = station.robot().clone();
     let (bank, _) = load_bank(&config, &embedder, &station)?;
-    let state = dep.dir.join(name);
+    let state = dep.dir.path().join(name);
     std::fs::create_dir_all(&state)?;
     let mut screen = Screen::new(
         embedder,
@@ -466,8 +405,8 @@ fn in_process_screen(
 /// (and its default bank), timed in alternating rounds over the same requests so both see
 /// the same machine: `(baseline, current)` samples.
 fn paired_checks(
-    baseline: &Deployment,
-    current: &Deployment,
+    baseline: &Setup,
+    current: &Setup,
     drawings: &Drawings,
     n: usize,
 ) -> Result<(Vec<Duration>, Vec<Duration>)> {
@@ -494,7 +433,7 @@ fn paired_checks(
 }
 
 fn compute_breakdown(
-    dep: &Deployment,
+    dep: &Setup,
     drawings: &Drawings,
     n: usize,
 ) -> Result<Vec<(&'static str, Vec<Duration>)>> {
@@ -932,27 +871,14 @@ fn run(o: Opts) -> Result<()> {
     let floor_us = flops as f64 / (rate_med * 1e9) * 1e6;
 
     // ---- guardiand over iceoryx2
-    let bin = guardiand_bin()?;
-    let tag = format!("{}", std::process::id());
-    let dep = Deployment {
-        dir: tmp.path().to_path_buf(),
-        service: format!("guardian-bench/{tag}/v1/rpc"),
-        prefix: format!("gb{tag}_"),
-        model: model_path.clone(),
-        default_bank: o.bank.clone().or_else(|| {
-            Some(workspace_root().join("models/default-bank.gcb")).filter(|b| {
-                b.exists()
-                    && o.model.is_none()
-                    && model_path.ends_with("models/embedder.safetensors")
-            })
-        }),
-    };
+    let default_bank = o.bank.clone().or_else(|| {
+        Some(workspace_root().join("models/default-bank.gcb")).filter(|b| {
+            b.exists() && o.model.is_none() && model_path.ends_with("models/embedder.safetensors")
+        })
+    });
+    let mut dep = deployment(&model_path, default_bank);
     if let Some(base) = &o.baseline_model {
-        let baseline = Deployment {
-            model: base.clone(),
-            default_bank: o.baseline_bank.clone(),
-            ..dep.clone()
-        };
+        let baseline = deployment(base, o.baseline_bank.clone());
         let (a, b) = paired_checks(&baseline, &dep, &drawings, n_fwd)?;
         let (sa, sb) = (stats(&a), stats(&b));
         println!();
@@ -981,7 +907,7 @@ fn run(o: Opts) -> Result<()> {
             .map(|(c, w)| (c.clone(), Trajectory::from_waypoints(w, PANDA_JOINTS)))
             .collect(),
     );
-    let daemon = Daemon::start(&bin, &dep, "event", 16)?;
+    let daemon = start(&mut dep, "event", 16);
     let client = Client::connect(dep.client_config()).map_err(|e| anyhow::anyhow!("{e}"))?;
     for (class, ex) in &drawings.enroll {
         client
@@ -1006,15 +932,15 @@ fn run(o: Opts) -> Result<()> {
         tput.push(throughput(&dep, &checks, clients, 16, run_for)?);
     }
     drop(client);
-    daemon.stop()?;
+    stop(daemon);
     // The same without micro-batching.
-    let daemon = Daemon::start(&bin, &dep, "event", 1)?;
+    let daemon = start(&mut dep, "event", 1);
     for clients in [4, 16] {
         tput.push(throughput(&dep, &checks, clients, 1, run_for)?);
     }
-    daemon.stop()?;
+    stop(daemon);
 
-    let daemon = Daemon::start(&bin, &dep, "busy-poll", 16)?;
+    let daemon = start(&mut dep, "busy-poll", 16);
     let mut client = Client::connect(dep.client_config()).map_err(|e| anyhow::anyhow!("{e}"))?;
     let (rt_busy, fwd_busy) = round_trips(&client, &checks, 200, n_rt, &mut forward_once)?;
     // The planner polls for its answer too instead of sleeping on the notification.
@@ -1023,11 +949,12 @@ fn run(o: Opts) -> Result<()> {
         round_trips(&client, &checks, 200, n_rt, &mut forward_once)?;
     let served_busy = service_times(&client)?;
     drop(client);
-    daemon.stop()?;
+    stop(daemon);
 
     // ---- UDS + JSON baseline, same screen, same model, same bank
-    let socket = dep.dir.join("baseline.sock");
-    let config = dep.write_config("event", 16)?;
+    let socket = dep.dir.path().join("baseline.sock");
+    configure(&mut dep, "event", 16);
+    let config = dep.write_config();
     let mut server = Command::new(std::env::current_exe()?)
         .arg("--uds-server")
         .arg(&socket)
