@@ -24,6 +24,13 @@ struct Args {
     print_default_config: bool,
 }
 
+/// The log filter unless `RUST_LOG` is set. RustDDS logs every discovery event at INFO, and
+/// two of its WARNs repeat without end: "No locators for RtpsReaderProxy" from its writers
+/// (tens a second while a peer's reader has no UDP locator, e.g. Cyclone DDS's on an idle
+/// gate) and "Message size" for every datagram over 1,500 bytes (one per forwarded goal);
+/// those two modules log errors only.
+const DEFAULT_LOG: &str = "info,rustdds=warn,rustdds::rtps::writer=error,rustdds::network::udp_sender=error,ros2_client=warn";
+
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     if args.print_default_config {
@@ -33,10 +40,11 @@ fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
-                // RustDDS logs every discovery event at INFO.
-                .unwrap_or_else(|_| "info,rustdds=warn,ros2_client=warn".into()),
+                .unwrap_or_else(|_| DEFAULT_LOG.into()),
         )
         .with_writer(std::io::stderr)
+        // Colour only on a terminal: the journal and log files get plain text.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
     let path = args
         .config

@@ -187,7 +187,12 @@ with open(xml, "w") as f:
             '<AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>'
             '<Peers><Peer address="127.0.0.1"/></Peers><MaxAutoParticipantIndex>20</MaxAutoParticipantIndex></Discovery></Domain></CycloneDDS>')
 os.environ["CYCLONEDDS_URI"] = "file://" + xml
-proc = subprocess.Popen([gate_bin, "--config", cfg], env=dict(os.environ, RUST_LOG="warn"))
+# The gate's own default log filter (no RUST_LOG), its log in a file (not a terminal).
+log_path = os.path.join(tmp, "gate.log")
+log = open(log_path, "wb")
+gate_env = {k: v for k, v in os.environ.items() if k != "RUST_LOG"}
+proc = subprocess.Popen([gate_bin, "--config", cfg], env=gate_env, stderr=log)
+IDLE = 20
 try:
     dp = DomainParticipant(domain)
     rel = Qos(Policy.Reliability.Reliable(1_000_000_000), Policy.History.KeepLast(10))
@@ -251,6 +256,18 @@ try:
     v = take_one(ver_r)
     check("the verdict arrives on rt/<gate>/verdicts with the goal id and the claim",
           v is not None and v.verdict == "error" and v.goal_id == gid_bytes.hex() and v.claimed_task == claim, repr(v))
+
+    # An idle gate beside a live Cyclone DDS participant logs (almost) nothing: the target is
+    # under one line a minute; RustDDS's "No locators" WARN once came at ~33 lines/s here.
+    log.flush()
+    before = open(log_path, "rb").read().count(b"\n")
+    time.sleep(IDLE)
+    text = open(log_path, "rb").read()
+    idle_lines = text.count(b"\n") - before
+    print(f"idle gate: {idle_lines} log lines in {IDLE} s")
+    check(f"an idle gate logs at most one line in {IDLE} s", idle_lines <= 1,
+          text.decode(errors="replace").splitlines()[-1:][0][:300] if idle_lines else "")
+    check("the gate's log file has no terminal colour codes", b"\x1b[" not in text)
 finally:
     proc.terminate()
     proc.wait(timeout=15)
