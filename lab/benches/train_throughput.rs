@@ -3,7 +3,7 @@
 //! the optimiser) for the shipped architecture on batches of 16 classes x 4 real drawings,
 //! with 1 and 2 threads:
 //!
-//! - guardian's training path (`guardian_models::grad`: hand-written backward on `gemm`,
+//! - guardian's training path (`guardian_models::sequence::backward`: hand-written backward on `gemm`,
 //!   batch-all triplet loss in candle, AdamW over the flat weights);
 //! - the previous path, candle autograd through `Net::forward` (forward + loss + backward;
 //!   its optimiser is not timed), measured in the same run;
@@ -33,9 +33,9 @@ use anyhow::Context as _;
 use candle_core::{DType, Tensor, Var};
 use guardian_lab::train::{Learner, LossKind, Prepared, batch_loss};
 use guardian_models::embedder::Embedder;
-use guardian_models::fast::FastNet;
 use guardian_models::features::FeatureKind;
 use guardian_models::net::{Net, NetConfig};
+use guardian_models::sequence::forward::FastNet;
 use guardian_omniglot::dataset::generate_files;
 use guardian_omniglot::path::Geometry;
 use guardian_omniglot::strokes::scan;

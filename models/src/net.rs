@@ -4,7 +4,7 @@
 //! Convolutions are written as explicit zero padding + unfold (`narrow` + `cat`) + `matmul`
 //! rather than `candle_nn::conv1d`, whose weight gradients are wrong on CPU for batch > 1 in
 //! candle 0.11 (see the engineering guide). Pooling is a `reshape` + `max`, whose backward is
-//! exact. This is the reference path: [`crate::fast`] serves and [`crate::grad`] trains the
+//! exact. This is the reference path: [`crate::sequence::forward`] serves and [`crate::sequence::backward`] trains the
 //! same network, and tests hold both to this one (forward and gradients).
 //!
 //! Layout: input `[B, L, F]` (batch, time, feature channels), activations `[B, L, C]`.
@@ -169,7 +169,7 @@ impl NetConfig {
 }
 
 // The candle network: the reference the fast path is tested against, and what training
-// builds on (feature `train`; the daemon serves from `crate::fast` alone).
+// builds on (feature `train`; the daemon serves from `crate::sequence::forward` alone).
 #[cfg(feature = "train")]
 mod reference;
 #[cfg(feature = "train")]

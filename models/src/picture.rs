@@ -1,6 +1,6 @@
 //! The picture network's fast path: forward (serving and training) and backward (training)
 //! of [`FeatureKind::Picture`](crate::features::FeatureKind::Picture) networks, on the same
-//! weights and buffers as the sequence network of [`crate::fast`] and [`crate::grad`].
+//! weights and buffers as the sequence network of [`crate::sequence::forward`] and [`crate::sequence::backward`].
 //!
 //! Layout: a picture is `[side, side]` row-major (one channel), activations are
 //! `[batch, s, s, c]` (channels last). A layer is a "same" 2D convolution written as im2col
@@ -15,12 +15,12 @@
 //! ([`crate::net::Net::forward`]) follows the same rules, and the tests hold this code to it
 //! and to central finite differences in `f64`.
 
-use crate::fast::{
-    FastNet, FastNetError, Real, Scratch, gemm_strided, grow, l2_normalize_rows, real,
-};
 use crate::features::PICTURE_SIDE;
 #[cfg(feature = "train")]
-use crate::grad::{BackScratch, Grads};
+use crate::sequence::backward::{BackScratch, Grads};
+use crate::sequence::forward::{
+    FastNet, FastNetError, Real, Scratch, gemm_strided, grow, l2_normalize_rows, real,
+};
 
 /// Write the im2col rows of `x [batch, s, s, c]` for a `k x k` "same" convolution into
 /// `cols [batch * s * s, k * k * c]` (zero outside the picture). The `k` taps of one kernel

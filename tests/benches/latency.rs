@@ -1,7 +1,7 @@
 //! Latency and throughput of the go/no-go screen, all figures from one run:
 //!
 //! - the embedding forward pass, batch 1: candle (the reference) and the fast path
-//!   (`guardian_models::fast`), plus features + forward and preprocessing + embedding;
+//!   (`guardian_models::sequence::forward`), plus features + forward and preprocessing + embedding;
 //! - `guardiand`'s compute per check in this process: its own `Screen` built from the same
 //!   configuration (shipped model and default bank, workcell rules on, the same classes
 //!   enrolled) answering whole check requests, and each stage alone;
@@ -36,7 +36,7 @@ use guardian_daemon::config::Config;
 use guardian_daemon::screen::Screen;
 use guardian_daemon::state::{load_bank, load_model};
 use guardian_models::embedder::{EMBED_DIM, Embedder};
-use guardian_models::fast::{Scratch, sgemm};
+use guardian_models::sequence::forward::{Scratch, sgemm};
 use guardian_omniglot::dataset::convert_strokes;
 use guardian_omniglot::path::{Geometry, PathSolver};
 use guardian_omniglot::strokes::read_strokes;

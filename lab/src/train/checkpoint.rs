@@ -128,8 +128,8 @@ pub fn load_opt(path: &Path) -> Result<Moments, TrainError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use guardian_models::fast::FastNet;
     use guardian_models::net::NetConfig;
+    use guardian_models::sequence::forward::FastNet;
 
     #[test]
     fn a_state_without_a_finite_validation_loss_round_trips() {

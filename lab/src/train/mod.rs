@@ -21,7 +21,7 @@
 
 use std::path::{Path, PathBuf};
 
-use guardian_models::fast::FastNetError;
+use guardian_models::sequence::forward::FastNetError;
 
 pub mod batches;
 pub mod checkpoint;

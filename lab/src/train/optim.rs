@@ -4,8 +4,8 @@
 //! autograd, the hand-written backward through the network, one AdamW update.
 
 use candle_core::{Device, Tensor, Var};
-use guardian_models::fast::FastNet;
-use guardian_models::grad::{Grads, Trainable};
+use guardian_models::sequence::backward::{Grads, Trainable};
+use guardian_models::sequence::forward::FastNet;
 
 use crate::train::TrainError;
 

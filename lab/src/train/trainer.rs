@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use candle_core::{Device, Tensor};
 use guardian_models::embedder::Embedder;
-use guardian_models::fast::FastNet;
+use guardian_models::sequence::forward::FastNet;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use serde::{Deserialize, Serialize};

@@ -7,7 +7,7 @@
 //! the layer input, read as overlapping rows): the weight gradient is `Aᵀ · dY` over the
 //! same overlapping rows `A`, and the input gradient is the forward convolution itself,
 //! applied to the time-padded output gradient with the kernel flipped in time and
-//! transposed. So the arithmetic of the convolution exists once, in [`crate::fast`].
+//! transposed. So the arithmetic of the convolution exists once, in [`crate::sequence::forward`].
 //!
 //! The gradients equal candle's autograd of [`crate::net::Net::forward`] (tests: against
 //! finite differences in `f64`, and against candle on real batches). Ties follow candle:
@@ -16,7 +16,9 @@
 
 use rayon::prelude::*;
 
-use crate::fast::{FastNet, FastNetError, Real, Scratch, conv_rows, gemm_strided, grow};
+use crate::sequence::forward::{
+    FastNet, FastNetError, Real, Scratch, conv_rows, gemm_strided, grow,
+};
 
 /// Gradients of every parameter, flat, in [`crate::net::NetConfig::param_shapes`] order.
 #[derive(Debug, Clone)]
@@ -146,7 +148,7 @@ impl<T: Real> FastNet<T> {
         let y = &scratch.outputs[n_layers - 1];
         let g = grow(dy, batch * lp * o);
         g.fill(T::zero());
-        let inv = T::one() / crate::fast::real(l as f64);
+        let inv = T::one() / crate::sequence::forward::real(l as f64);
         for b in 0..batch {
             let (dmean, dmax) = dp[b * 2 * o..(b + 1) * 2 * o].split_at(o);
             let max = &p[b * 2 * o + o..(b + 1) * 2 * o];

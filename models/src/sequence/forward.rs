@@ -6,7 +6,7 @@
 //! scratch has grown to the largest batch seen).
 //!
 //! The daemon serves with it, and training runs it too: the forward keeps every layer's
-//! input and output in the [`Scratch`], from which [`crate::grad`] computes the backward
+//! input and output in the [`Scratch`], from which [`crate::sequence::backward`] computes the backward
 //! with the same GEMM. candle's [`Net`] is the reference path: a test checks both agree to
 //! 1e-5 relative error, on random inputs with random weights and with the shipped model.
 //! The arithmetic is generic over [`Real`] (`f32`; `f64` for gradient checks).
@@ -91,7 +91,7 @@ pub struct FastNet<T = f32> {
 }
 
 /// Reusable intermediate buffers of a forward pass, kept per layer so that
-/// [`FastNet::backward`](crate::grad) can read them. Grows to the largest batch seen, then
+/// [`FastNet::backward`](crate::sequence::backward) can read them. Grows to the largest batch seen, then
 /// never allocates.
 #[derive(Debug, Clone)]
 pub struct Scratch<T = f32> {
