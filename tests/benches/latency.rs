@@ -44,7 +44,7 @@ use guardian_shared::trajectory::Waypoint;
 use guardian_shared::wire::{
     Op, ReasonCode, RequestHeader, VerdictCode, decode_code, decode_text, encode_class_name,
 };
-use guardian_tests::harness::{Daemon, Setup, workspace_root};
+use guardian_tests::harness::{Daemon, Setup, latin_drawing, workspace_root};
 use serde::{Deserialize, Serialize};
 
 /// Latin characters enrolled as task classes, drawers used to enroll, drawers checked.
@@ -171,25 +171,10 @@ struct Drawings {
     checks: Vec<(String, Vec<Waypoint>)>,
 }
 
-fn drawing(strokes: &Path, character: u32, drawer: u32) -> Result<PathBuf> {
-    let dir = strokes
-        .join("Latin")
-        .join(format!("character{character:02}"));
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
-        .with_context(|| format!("reading {}", dir.display()))?
-        .map(|e| e.map(|e| e.path()))
-        .collect::<std::io::Result<_>>()?;
-    files.sort();
-    files
-        .get(drawer as usize - 1)
-        .cloned()
-        .with_context(|| format!("{}: no drawer {drawer}", dir.display()))
-}
-
 fn load_drawings(strokes: &Path) -> Result<Drawings> {
     let solver = PathSolver::new(&Geometry::default())?;
     let conv = |c: u32, d: u32| -> Result<Vec<Waypoint>> {
-        let s = read_strokes(&drawing(strokes, c, d)?)?;
+        let s = read_strokes(&latin_drawing(strokes, c, d)?)?;
         Ok(convert_strokes(&solver, &s)?.dense.waypoints)
     };
     let mut enroll = Vec::new();

@@ -13,7 +13,7 @@
 
 use guardian_robot::kinematics::PANDA_JOINTS;
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Barrier, Mutex};
 use std::time::{Duration, Instant};
@@ -23,7 +23,7 @@ use guardian_client::{Client, Decision, NoGoReason, Trajectory, Waypoint};
 use guardian_omniglot::dataset::convert_strokes;
 use guardian_omniglot::path::{Geometry, PathSolver};
 use guardian_omniglot::strokes::read_strokes;
-use guardian_tests::harness::{Daemon, Expected, Setup, workspace_root};
+use guardian_tests::harness::{Daemon, Expected, Setup, latin_drawing, workspace_root};
 
 /// Latin characters enrolled as task classes, drawers used to enroll, drawers checked.
 const CLASSES: u32 = 8;
@@ -63,21 +63,6 @@ fn parse_opts() -> Result<Opts> {
         bail!("need --threads >= 1 and --requests >= 2 x --window");
     }
     Ok(o)
-}
-
-fn drawing(strokes: &Path, character: u32, drawer: u32) -> Result<PathBuf> {
-    let dir = strokes
-        .join("Latin")
-        .join(format!("character{character:02}"));
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
-        .with_context(|| format!("reading {}", dir.display()))?
-        .map(|e| e.map(|e| e.path()))
-        .collect::<std::io::Result<_>>()?;
-    files.sort();
-    files
-        .get(drawer as usize - 1)
-        .cloned()
-        .with_context(|| format!("{}: no drawer {drawer}", dir.display()))
 }
 
 struct Request {
@@ -134,7 +119,7 @@ fn main() -> Result<()> {
     // Real Omniglot drawings converted to dense Panda joint paths by the dataset library.
     let solver = PathSolver::new(&Geometry::default())?;
     let conv = |c: u32, d: u32| -> Result<Vec<Waypoint>> {
-        let s = read_strokes(&drawing(&o.strokes, c, d)?)?;
+        let s = read_strokes(&latin_drawing(&o.strokes, c, d)?)?;
         Ok(convert_strokes(&solver, &s)?.dense.waypoints)
     };
     let mut s = Setup::new(0);

@@ -690,3 +690,21 @@ pub fn machine_line() -> String {
         load_average()
     )
 }
+
+/// The stroke file of Latin character `character` by its `drawer`-th drawer (1-based, in
+/// file-name order) under an Omniglot stroke root: what the benches check and enroll.
+pub fn latin_drawing(strokes: &Path, character: u32, drawer: u32) -> anyhow::Result<PathBuf> {
+    use anyhow::Context as _;
+    let dir = strokes
+        .join("Latin")
+        .join(format!("character{character:02}"));
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .with_context(|| format!("reading {}", dir.display()))?
+        .map(|e| e.map(|e| e.path()))
+        .collect::<std::io::Result<_>>()?;
+    files.sort();
+    files
+        .get((drawer as usize).wrapping_sub(1))
+        .cloned()
+        .with_context(|| format!("{}: no drawer {drawer}", dir.display()))
+}
