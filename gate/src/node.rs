@@ -266,6 +266,10 @@ pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
         "guardian-gate serving {}/follow_joint_trajectory",
         config.gate
     );
+    // Until a claim arrives the gate identifies.
+    if gate.current_claim().is_none() {
+        gate.warn_identify_mode();
+    }
     smol::block_on(gate.serve(&stop, &diagnostics));
     tracing::info!("guardian-gate stopped");
     drop(node);
@@ -343,14 +347,30 @@ impl Gate<'_> {
         }
     }
 
-    /// The latest claim on `<gate>/task` (an empty string clears it: identify mode).
+    /// The latest claim on `<gate>/task` (an empty string clears it: identify mode). Entering
+    /// identify mode is said with a WARN: a plan then passes as whichever enrolled class it is
+    /// nearest to.
     fn current_claim(&self) -> Option<String> {
         while let Ok(Some((msg, _))) = self.task.take() {
             let claim = msg.data.trim().to_string();
             tracing::info!(claim = %claim, "claimed task");
+            let was_claimed = self.claim.borrow().is_some();
             *self.claim.borrow_mut() = (!claim.is_empty()).then_some(claim);
+            if was_claimed && self.claim.borrow().is_none() {
+                self.warn_identify_mode();
+            }
         }
         self.claim.borrow().clone()
+    }
+
+    /// What identify mode lets through, said once each time the gate enters it.
+    fn warn_identify_mode(&self) {
+        tracing::warn!(
+            gate = %self.config.gate,
+            "identify mode (no claimed task): a plan passes as whichever class guardiand serves it is nearest to, \
+             any enrolled class, those of a shipped default bank too; publish the task on {}/task to check plans against it",
+            self.config.gate
+        );
     }
 
     async fn handle_goal(
@@ -748,6 +768,14 @@ impl Gate<'_> {
             KeyValue {
                 key: "claimed task".into(),
                 value: self.current_claim().unwrap_or_default(),
+            },
+            KeyValue {
+                key: "mode".into(),
+                value: if self.claim.borrow().is_some() {
+                    "claimed".into()
+                } else {
+                    "identify: any enrolled class passes".into()
+                },
             },
             KeyValue {
                 key: "go".into(),

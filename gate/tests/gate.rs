@@ -422,6 +422,9 @@ fn gate_screens_forwards_relays_and_fails_closed() {
                     );
                     assert_eq!(get("bank size").as_deref(), Some("2"), "{st:?}");
                     if get("claimed task").as_deref() == Some(want) {
+                        // Identify mode says what it lets through.
+                        let mode = get("mode").unwrap_or_default();
+                        assert_eq!(mode.starts_with("identify"), want.is_empty(), "{st:?}");
                         return;
                     }
                 }
