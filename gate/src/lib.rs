@@ -20,6 +20,6 @@ pub mod msgs;
 pub mod plan;
 
 #[cfg(feature = "node")]
-pub mod node;
+pub mod guardiand;
 #[cfg(feature = "node")]
-pub mod screen;
+pub mod node;

@@ -27,13 +27,13 @@ use ros2_client::{
 };
 
 use crate::config::{GateConfig, ServiceMappingName};
+use crate::guardiand::{Outcome, Screen};
 use crate::msgs::{
     DiagnosticArray, DiagnosticStatus, FollowJointTrajectoryFeedback as Feedback,
     FollowJointTrajectoryGoal as Goal, FollowJointTrajectoryResult as GoalResult, Header, KeyValue,
     StringMsg, Time, Verdict, error_code,
 };
 use crate::plan::PlanMapper;
-use crate::screen::{Outcome, Screen};
 
 /// A FollowJointTrajectory action server (the gate's own, a controller's).
 pub type Server = AsyncActionServer<Goal, GoalResult, Feedback>;
