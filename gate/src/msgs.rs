@@ -245,8 +245,9 @@ pub struct Verdict {
     /// `go`, `no-go` or `error` (fail closed: the goal was not forwarded).
     pub verdict: String,
     /// Why: `genuine`, `wrong-task`, `outlier`, `unknown-class`, `invalid-trajectory`,
-    /// `workcell`, `geometry`, `invalid-joints`, `guardiand-unreachable`, `timeout`,
-    /// `internal`.
+    /// `workcell`, `geometry-mismatch`, `invalid-joints`, `guardiand-unreachable`, `timeout`,
+    /// `internal`; a second verdict `error` after a go names the controller's failure:
+    /// `controller-timeout`, `controller-lost`, `controller-unreachable`, `controller-rejected`.
     pub reason: String,
     /// The full sentence (the result's `error_string` for a no-go).
     pub detail: String,
