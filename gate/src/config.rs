@@ -25,6 +25,10 @@ pub struct GateConfig {
     pub node_name: String,
     /// DDS domain; unset: `$ROS_DOMAIN_ID`, else 0.
     pub domain_id: Option<u16>,
+    /// The controller's DDS domain, when it is not the gate's: the gate then bridges the two
+    /// (its action server on `domain-id`, its client of the controller on this one), so
+    /// nothing on MoveIt's domain can reach the controller around the gate. Unset: the gate's.
+    pub controller_domain_id: Option<u16>,
     /// Limit DDS to the interfaces with these addresses (e.g. `["127.0.0.1"]` when
     /// MoveIt, the controller and the gate share the host). Empty: every interface.
     pub only_networks: Vec<std::net::IpAddr>,
@@ -82,6 +86,7 @@ impl Default for GateConfig {
             controller: "/panda_arm_controller".into(),
             node_name: "guardian_gate".into(),
             domain_id: None,
+            controller_domain_id: None,
             only_networks: Vec::new(),
             robot: "panda".into(),
             tool: ToolSource::default(),
@@ -180,6 +185,11 @@ impl GateConfig {
             });
         }
         Ok(())
+    }
+
+    /// The controller's domain id: `controller-domain-id`, else the gate's.
+    pub fn controller_domain(&self) -> u16 {
+        self.controller_domain_id.unwrap_or_else(|| self.domain())
     }
 
     /// The domain id: the config's, else `$ROS_DOMAIN_ID`, else 0.

@@ -213,7 +213,28 @@ pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
 
     let mapping = service_mapping(config.service_mapping);
     let server = action_server(&mut node, mapping, &config.gate)?;
-    let controller = action_client(&mut node, mapping, &config.controller)?;
+    // The controller on a domain of its own: a second participant, which only the gate uses
+    // (kept until the gate stops).
+    let mut controller_node = None;
+    let controller = if config.controller_domain() == config.domain() {
+        action_client(&mut node, mapping, &config.controller)?
+    } else {
+        let ctx = context(config.controller_domain(), &config.only_networks)?;
+        let mut n = ctx
+            .new_node(
+                NodeName::new("/", &config.node_name)
+                    .map_err(|e| anyhow!("node name {:?}: {e:?}", config.node_name))?,
+                NodeOptions::new().enable_rosout(false),
+            )
+            .map_err(|e| anyhow!("creating the controller-side node: {e:?}"))?;
+        let spinner = n
+            .spinner()
+            .map_err(|e| anyhow!("controller-side node spinner: {e:?}"))?;
+        smol::spawn(spinner.spin()).detach();
+        let client = action_client(&mut n, mapping, &config.controller)?;
+        controller_node = Some((n, ctx));
+        client
+    };
     let task_topic = node
         .create_topic(
             &Name::new(&config.gate, "task").map_err(|e| anyhow!("task topic: {e:?}"))?,
@@ -262,6 +283,7 @@ pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
         gate = %config.gate,
         controller = %config.controller,
         domain = config.domain(),
+        controller_domain = config.controller_domain(),
         robot = %config.robot,
         "guardian-gate serving {}/follow_joint_trajectory",
         config.gate
@@ -272,6 +294,7 @@ pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
     }
     smol::block_on(gate.serve(&stop, &diagnostics));
     tracing::info!("guardian-gate stopped");
+    drop(controller_node);
     drop(node);
     Ok(())
 }

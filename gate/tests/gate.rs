@@ -304,13 +304,15 @@ fn gate_screens_forwards_relays_and_fails_closed() {
 
     // The gate.
     let domain = 100 + (std::process::id() % 100) as u16;
+    // The controller on a domain of its own, which only the gate bridges.
+    let ctrl_domain = domain + 30;
     let gate_ns = format!("/gate_t{}", std::process::id());
     let ctrl_ns = format!("/ctrl_t{}", std::process::id());
     let config = s.dir.path().join("gate.toml");
     std::fs::write(
         &config,
         format!(
-            "gate = {gate_ns:?}\ncontroller = {ctrl_ns:?}\ndomain-id = {domain}\nonly-networks = [\"127.0.0.1\"]\ncontroller-timeout-ms = 5000\n\
+            "gate = {gate_ns:?}\ncontroller = {ctrl_ns:?}\ndomain-id = {domain}\ncontroller-domain-id = {ctrl_domain}\nonly-networks = [\"127.0.0.1\"]\ncontroller-timeout-ms = 5000\n\
              [tool]\nsource = \"joint\"\njoint = \"pen\"\n\
              [guardiand]\nservice-name = {:?}\ntimeout-ms = 1000\niceoryx2-root-path = {:?}\niceoryx2-prefix = {:?}\n",
             s.service,
@@ -337,7 +339,7 @@ fn gate_screens_forwards_relays_and_fails_closed() {
 
     let seen = Arc::new(Seen::default());
     let stop = Arc::new(AtomicBool::new(false));
-    let ctrl = controller(domain, &ctrl_ns, seen.clone(), stop.clone());
+    let ctrl = controller(ctrl_domain, &ctrl_ns, seen.clone(), stop.clone());
 
     smol::block_on(async {
         let mut moveit = node(domain, "moveit_standin");
@@ -443,6 +445,26 @@ fn gate_screens_forwards_relays_and_fails_closed() {
 
         claim("task-a");
         wait_claim("task-a").await;
+
+        // 0. The controller is on a domain only the gate bridges: from MoveIt's domain it is
+        // not there (a direct goal has nowhere to go), while the gate reaches it (1.).
+        let direct = action_client(&mut moveit, ServiceMapping::Enhanced, &ctrl_ns).unwrap();
+        let found = smol::future::or(
+            async {
+                direct.goal_client().wait_for_service(&moveit).await;
+                true
+            },
+            async {
+                smol::Timer::after(Duration::from_secs(3)).await;
+                false
+            },
+        )
+        .await;
+        assert!(
+            !found,
+            "the controller is reachable from MoveIt's domain, around the gate"
+        );
+        drop(direct);
 
         // 1. A genuine plan is forwarded; feedback and result are relayed.
         let r = send(&client, goal(0, 7, &in_order()), false).await;
