@@ -125,7 +125,7 @@ pub struct GeometryCalibration {
     /// Pooled within-class spread of every feature (validation alphabet), in
     /// [`GeometryFeature::ALL`] order.
     pub scales: [f32; GEOMETRY_FEATURES],
-    /// A plan whose geometry score exceeds this is a [`Outcome::GeometryMismatch`].
+    /// A plan whose geometry score exceeds this is a [`NoGoReason::GeometryMismatch`](guardian_shared::verdict::NoGoReason::GeometryMismatch).
     pub threshold: f32,
     /// Combined false-reject target (embedding and geometry together).
     pub target_rate: f32,
