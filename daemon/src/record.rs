@@ -337,59 +337,60 @@ impl Writer {
                 "INSERT INTO plans (verdict_id, channels, waypoints, vals) VALUES (?1, ?2, ?3, ?4)",
             )?;
             for e in batch {
-                let claimed = decode_text(&e.request.class_name);
-                match &e.check {
-                    Ok(v) => {
-                        let nearest: Vec<serde_json::Value> = v
-                            .nearest
-                            .iter()
-                            .map(|n| {
-                                serde_json::json!({
-                                    "class": n.class,
-                                    "distance": finite(n.distance),
+                // A verdict's decision, reason, why, numbers and nearest classes; a failure's
+                // status and message (the daemon's state from its answer's header).
+                let (status, name, reason, message, numbers, nearest, model, bank) = match &e.check
+                {
+                    Ok(v) => (
+                        "ok",
+                        if v.is_go() { "go" } else { "no-go" },
+                        v.reason().map_or("none", |r| r.name()),
+                        v.why(),
+                        [v.claimed_distance, v.threshold, v.margin, v.gap]
+                            .map(|x| x.and_then(finite)),
+                        serde_json::Value::Array(
+                            v.nearest
+                                .iter()
+                                .map(|n| {
+                                    serde_json::json!({
+                                        "class": n.class,
+                                        "distance": finite(n.distance),
+                                    })
                                 })
-                            })
-                            .collect();
-                        verdict.execute(params![
-                            e.time_ms,
-                            self.settings.service,
-                            e.client,
-                            claimed,
-                            "ok",
-                            if v.is_go() { "go" } else { "no-go" },
-                            v.reason().map_or("none", |r| r.name()),
-                            // Why a no-go is one (its rule, feature and numbers).
-                            v.why(),
-                            v.claimed_distance.and_then(finite),
-                            v.threshold.and_then(finite),
-                            v.margin.and_then(finite),
-                            v.gap.and_then(finite),
-                            serde_json::Value::Array(nearest).to_string(),
-                            v.model_version,
-                            i64::try_from(v.bank_version).unwrap_or(i64::MAX),
-                        ])?;
-                    }
-                    Err(f) => {
-                        let r = &e.response;
-                        verdict.execute(params![
-                            e.time_ms,
-                            self.settings.service,
-                            e.client,
-                            claimed,
-                            status_name(f.status() as u32),
-                            "error",
-                            "none",
-                            f.message(),
-                            None::<f64>,
-                            None::<f64>,
-                            None::<f64>,
-                            None::<f64>,
-                            "[]",
-                            decode_text(&r.model_version),
-                            i64::try_from(r.bank_version).unwrap_or(i64::MAX),
-                        ])?;
-                    }
-                }
+                                .collect(),
+                        )
+                        .to_string(),
+                        v.model_version.clone(),
+                        v.bank_version,
+                    ),
+                    Err(f) => (
+                        status_name(f.status() as u32),
+                        "error",
+                        "none",
+                        f.message().to_owned(),
+                        [None; 4],
+                        "[]".to_owned(),
+                        decode_text(&e.response.model_version),
+                        e.response.bank_version,
+                    ),
+                };
+                verdict.execute(params![
+                    e.time_ms,
+                    self.settings.service,
+                    e.client,
+                    decode_text(&e.request.class_name),
+                    status,
+                    name,
+                    reason,
+                    message,
+                    numbers[0],
+                    numbers[1],
+                    numbers[2],
+                    numbers[3],
+                    nearest,
+                    model,
+                    i64::try_from(bank).unwrap_or(i64::MAX),
+                ])?;
                 if let Some(values) = &e.plan {
                     let id = tx.last_insert_rowid();
                     let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();

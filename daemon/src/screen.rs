@@ -472,24 +472,16 @@ impl Screen {
         trajectory: Result<Vec<Waypoint>, InvalidTrajectory>,
         prepared: Option<PreparedPlan>,
     ) -> Result<Verdict, Failure> {
-        let t = match trajectory {
-            Ok(t) => t,
-            Err(inv) => {
-                return Ok(check::decide(
-                    &self.bank,
-                    &self.station,
-                    &Prepared::Invalid(inv),
-                    claimed,
-                    self.k,
-                ));
-            }
+        // A trajectory whose shape the request already refused is decided as invalid.
+        let prepared = match trajectory {
+            Err(inv) => Prepared::Invalid(inv),
+            Ok(t) => prepared
+                .unwrap_or_else(|| check::prepare(&self.embedder, &self.station, &t))
+                .map_err(|e| {
+                    tracing::error!(error = %e, "embedding failed");
+                    embedding_failed(&e)
+                })?,
         };
-        let prepared = prepared
-            .unwrap_or_else(|| check::prepare(&self.embedder, &self.station, &t))
-            .map_err(|e| {
-                tracing::error!(error = %e, "embedding failed");
-                embedding_failed(&e)
-            })?;
         Ok(check::decide(
             &self.bank,
             &self.station,
@@ -715,7 +707,10 @@ impl Screen {
         ClassEntry {
             name: encode_text(name),
             distance,
-            threshold: self.bank.threshold(name).unwrap_or(f32::NAN),
+            // The threshold the decision uses (`ClassBank::threshold`), from the one lookup.
+            threshold: class.map_or(f32::NAN, |c| {
+                c.threshold.unwrap_or(self.bank.default_threshold())
+            }),
             examples: class.map_or(0, |c| u32::try_from(c.embeddings.len()).unwrap_or(u32::MAX)),
             calibrated: u32::from(class.is_some_and(|c| c.threshold.is_some())),
         }

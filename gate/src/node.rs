@@ -194,6 +194,19 @@ struct Gate<'a> {
     reachable: Cell<Option<bool>>,
 }
 
+/// A node named `name` on `ctx`'s domain, its spinner running.
+fn spinning_node(ctx: &Context, name: &str) -> anyhow::Result<ros2_client::Node> {
+    let mut node = ctx
+        .new_node(
+            NodeName::new("/", name).map_err(|e| anyhow!("node name {name:?}: {e:?}"))?,
+            NodeOptions::new().enable_rosout(false),
+        )
+        .map_err(|e| anyhow!("creating the node on domain {}: {e:?}", ctx.domain_id()))?;
+    let spinner = node.spinner().map_err(|e| anyhow!("node spinner: {e:?}"))?;
+    smol::spawn(spinner.spin()).detach();
+    Ok(node)
+}
+
 /// Run the gate until `stop` is set.
 pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
     let description = RobotDescription::resolve(&config.robot)
@@ -201,15 +214,7 @@ pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
     let mapper = PlanMapper::new(&description, config.tool.clone());
     let screen = Screen::start(&config.guardiand).context("starting the guardiand client")?;
     let ctx = context(config.domain(), &config.only_networks)?;
-    let mut node = ctx
-        .new_node(
-            NodeName::new("/", &config.node_name)
-                .map_err(|e| anyhow!("node name {:?}: {e:?}", config.node_name))?,
-            NodeOptions::new().enable_rosout(false),
-        )
-        .map_err(|e| anyhow!("creating the node: {e:?}"))?;
-    let spinner = node.spinner().map_err(|e| anyhow!("node spinner: {e:?}"))?;
-    smol::spawn(spinner.spin()).detach();
+    let mut node = spinning_node(&ctx, &config.node_name)?;
 
     let mapping = service_mapping(config.service_mapping);
     let server = action_server(&mut node, mapping, &config.gate)?;
@@ -220,17 +225,7 @@ pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
         action_client(&mut node, mapping, &config.controller)?
     } else {
         let ctx = context(config.controller_domain(), &config.only_networks)?;
-        let mut n = ctx
-            .new_node(
-                NodeName::new("/", &config.node_name)
-                    .map_err(|e| anyhow!("node name {:?}: {e:?}", config.node_name))?,
-                NodeOptions::new().enable_rosout(false),
-            )
-            .map_err(|e| anyhow!("creating the controller-side node: {e:?}"))?;
-        let spinner = n
-            .spinner()
-            .map_err(|e| anyhow!("controller-side node spinner: {e:?}"))?;
-        smol::spawn(spinner.spin()).detach();
+        let mut n = spinning_node(&ctx, &config.node_name)?;
         let client = action_client(&mut n, mapping, &config.controller)?;
         controller_node = Some((n, ctx));
         client
