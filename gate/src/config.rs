@@ -32,6 +32,10 @@ pub struct GateConfig {
     /// Limit DDS to the interfaces with these addresses (e.g. `["127.0.0.1"]` when
     /// MoveIt, the controller and the gate share the host). Empty: every interface.
     pub only_networks: Vec<std::net::IpAddr>,
+    /// The ROS nodes (fully qualified names, e.g. `"/cell/executive"`) whose claims on
+    /// `<gate>/task` count; a claim from any other node is refused and changes nothing.
+    /// Empty: any participant may claim (warned at start).
+    pub claim_from: Vec<String>,
     /// The robot served: `panda`, `ur5e` or a robot description path; must be guardiand's.
     pub robot: String,
     /// Where the tool channel comes from.
@@ -88,6 +92,7 @@ impl Default for GateConfig {
             domain_id: None,
             controller_domain_id: None,
             only_networks: Vec::new(),
+            claim_from: Vec::new(),
             robot: "panda".into(),
             tool: ToolSource::default(),
             controller_timeout_ms: 2000,
@@ -175,6 +180,14 @@ impl GateConfig {
                 });
             }
         }
+        if let Some(bad) = self.claim_from.iter().find(|n| {
+            !n.starts_with('/') || n.ends_with('/') || n.len() < 2 || n.contains("//")
+        }) {
+            return Err(ConfigError::Name {
+                key: "claim-from",
+                value: bad.clone(),
+            });
+        }
         if self.gate == self.controller {
             return Err(ConfigError::Name {
                 key: "controller",
@@ -249,6 +262,10 @@ mod tests {
         assert!(e.to_string().contains("bogus"), "{e}");
         let e = GateConfig::parse("gate = \"no_slash\"\n", Path::new("x")).unwrap_err();
         assert!(matches!(e, ConfigError::Name { key: "gate", .. }));
+        let c = GateConfig::parse("claim-from = [\"/cell/executive\"]\n", Path::new("x")).unwrap();
+        assert_eq!(c.claim_from, ["/cell/executive"]);
+        let e = GateConfig::parse("claim-from = [\"executive\"]\n", Path::new("x")).unwrap_err();
+        assert!(matches!(e, ConfigError::Name { key: "claim-from", .. }));
         let e = GateConfig::parse("controller = \"/guardian_gate\"\n", Path::new("x")).unwrap_err();
         assert!(matches!(
             e,

@@ -20,6 +20,8 @@ pub mod msgs;
 pub mod plan;
 
 #[cfg(feature = "node")]
+pub mod claim;
+#[cfg(feature = "node")]
 pub mod guardiand;
 #[cfg(feature = "node")]
 pub mod node;

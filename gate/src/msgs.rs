@@ -312,6 +312,44 @@ mod message_impls {
     impl Message for super::DiagnosticArray {}
 }
 
+/// `rmw_dds_common/Gid` (ROS 2 Iron and later: 16 bytes, the DDS GUID).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Gid {
+    /// The GUID: participant prefix (12 bytes) and entity id (4).
+    pub data: [u8; 16],
+}
+
+/// `rmw_dds_common/NodeEntitiesInfo`: a ROS node and its DDS readers and writers.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct NodeEntitiesInfo {
+    /// Its namespace (`/`, `/cell`).
+    pub node_namespace: String,
+    /// Its name.
+    pub node_name: String,
+    /// Its readers.
+    pub reader_gid_seq: Vec<Gid>,
+    /// Its writers.
+    pub writer_gid_seq: Vec<Gid>,
+}
+
+impl NodeEntitiesInfo {
+    /// `/namespace/name`.
+    pub fn fully_qualified_name(&self) -> String {
+        let ns = self.node_namespace.trim_end_matches('/');
+        format!("{ns}/{}", self.node_name)
+    }
+}
+
+/// `rmw_dds_common/ParticipantEntitiesInfo`, what every ROS 2 participant publishes on the
+/// DDS topic `ros_discovery_info`: its nodes and their entities.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ParticipantEntitiesInfo {
+    /// The participant's GUID.
+    pub gid: Gid,
+    /// Its nodes.
+    pub node_entities_info_seq: Vec<NodeEntitiesInfo>,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -26,12 +26,13 @@ use ros2_client::{
     qos::{Durability, History},
 };
 
+use crate::claim::{Claims, Taken};
 use crate::config::{GateConfig, ServiceMappingName};
 use crate::guardiand::{Outcome, Screen};
 use crate::msgs::{
     DiagnosticArray, DiagnosticStatus, FollowJointTrajectoryFeedback as Feedback,
     FollowJointTrajectoryGoal as Goal, FollowJointTrajectoryResult as GoalResult, Header, KeyValue,
-    StringMsg, Time, Verdict, error_code,
+    ParticipantEntitiesInfo, StringMsg, Time, Verdict, error_code,
 };
 use crate::plan::PlanMapper;
 
@@ -185,7 +186,9 @@ struct Gate<'a> {
     server: Server,
     controller: Controller,
     task: Subscription<StringMsg>,
-    claim: RefCell<Option<String>>,
+    /// `ros_discovery_info`, read when `claim-from` limits who may claim.
+    discovery: Option<Subscription<ParticipantEntitiesInfo>>,
+    claims: RefCell<Claims>,
     verdicts: Publisher<Verdict>,
     counts: Counts,
     /// The active goal: (ours, the controller's) once forwarded.
@@ -240,6 +243,29 @@ pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
     let task = node
         .create_subscription::<StringMsg>(&task_topic, Some(latched_qos()))
         .map_err(|e| anyhow!("task subscription: {e:?}"))?;
+    // Who owns which writer, from every participant's ROS 2 discovery sample (transient
+    // local: each participant's latest comes when the gate joins).
+    let discovery = if config.claim_from.is_empty() {
+        tracing::warn!(
+            gate = %config.gate,
+            "any participant on the domain may claim the task on {}/task: set claim-from to the task executive's node",
+            config.gate
+        );
+        None
+    } else {
+        let qos = latched_qos().history(History::KeepLast { depth: 64 });
+        let topic = ctx
+            .create_topic(
+                "ros_discovery_info".into(),
+                MessageTypeName::new("rmw_dds_common", "ParticipantEntitiesInfo"),
+                &qos,
+            )
+            .map_err(|e| anyhow!("ros_discovery_info topic: {e:?}"))?;
+        Some(
+            node.create_subscription::<ParticipantEntitiesInfo>(&topic, Some(qos))
+                .map_err(|e| anyhow!("ros_discovery_info subscription: {e:?}"))?,
+        )
+    };
     let verdict_topic = node
         .create_topic(
             &Name::new(&config.gate, "verdicts").map_err(|e| anyhow!("verdict topic: {e:?}"))?,
@@ -268,7 +294,8 @@ pub fn run(config: GateConfig, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
         server,
         controller,
         task,
-        claim: RefCell::new(None),
+        discovery,
+        claims: RefCell::new(Claims::new(config.claim_from.clone())),
         verdicts,
         counts: Counts::default(),
         forwarded: Cell::new(None),
@@ -365,20 +392,43 @@ impl Gate<'_> {
         }
     }
 
-    /// The latest claim on `<gate>/task` (an empty string clears it: identify mode). Entering
-    /// identify mode is said with a WARN: a plan then passes as whichever enrolled class it is
-    /// nearest to.
+    /// The latest claim on `<gate>/task` from a writer that may claim ([`Claims`]; an empty
+    /// string clears it: identify mode). Entering identify mode is said with a WARN: a plan
+    /// then passes as whichever enrolled class it is nearest to.
     fn current_claim(&self) -> Option<String> {
-        while let Ok(Some((msg, _))) = self.task.take() {
-            let claim = msg.data.trim().to_string();
-            tracing::info!(claim = %claim, "claimed task");
-            let was_claimed = self.claim.borrow().is_some();
-            *self.claim.borrow_mut() = (!claim.is_empty()).then_some(claim);
-            if was_claimed && self.claim.borrow().is_none() {
-                self.warn_identify_mode();
+        let was = self.claims.borrow().current().map(str::to_owned);
+        let mut taken = Vec::new();
+        if let Some(discovery) = &self.discovery {
+            while let Ok(Some((info, _))) = discovery.take() {
+                let nodes = info.node_entities_info_seq.iter().map(|n| {
+                    let writers = n.writer_gid_seq.iter().map(|g| g.data).collect();
+                    (n.fully_qualified_name(), writers)
+                });
+                let prefix = info.gid.data[..12].try_into().unwrap_or_default();
+                taken.extend(self.claims.borrow_mut().participant(prefix, nodes));
             }
         }
-        self.claim.borrow().clone()
+        while let Ok(Some((msg, info))) = self.task.take() {
+            let writer = info.publisher_gid().to_bytes16();
+            taken.push(self.claims.borrow_mut().claim(writer, &msg.data));
+        }
+        for t in taken {
+            match t {
+                Taken::Claimed(claim) => tracing::info!(claim = %claim, "claimed task"),
+                Taken::Refused { node, task } => tracing::warn!(
+                    node = %node,
+                    claim = %task,
+                    allowed = ?self.config.claim_from,
+                    "claim refused: its writer's node is not one of claim-from; the claim is unchanged"
+                ),
+                Taken::Waiting => tracing::debug!("a claim waits for its writer's node"),
+            }
+        }
+        let now = self.claims.borrow().current().map(str::to_owned);
+        if was.is_some() && now.is_none() {
+            self.warn_identify_mode();
+        }
+        now
     }
 
     /// What identify mode lets through, said once each time the gate enters it.
@@ -788,8 +838,12 @@ impl Gate<'_> {
                 value: self.current_claim().unwrap_or_default(),
             },
             KeyValue {
+                key: "claims refused".into(),
+                value: self.claims.borrow().refused().to_string(),
+            },
+            KeyValue {
                 key: "mode".into(),
-                value: if self.claim.borrow().is_some() {
+                value: if self.claims.borrow().current().is_some() {
                     "claimed".into()
                 } else {
                     "identify: any enrolled class passes".into()

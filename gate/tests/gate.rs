@@ -312,7 +312,7 @@ fn gate_screens_forwards_relays_and_fails_closed() {
     std::fs::write(
         &config,
         format!(
-            "gate = {gate_ns:?}\ncontroller = {ctrl_ns:?}\ndomain-id = {domain}\ncontroller-domain-id = {ctrl_domain}\nonly-networks = [\"127.0.0.1\"]\ncontroller-timeout-ms = 5000\n\
+            "gate = {gate_ns:?}\ncontroller = {ctrl_ns:?}\ndomain-id = {domain}\ncontroller-domain-id = {ctrl_domain}\nonly-networks = [\"127.0.0.1\"]\ncontroller-timeout-ms = 5000\nclaim-from = [\"/moveit_standin\"]\n\
              [tool]\nsource = \"joint\"\njoint = \"pen\"\n\
              [guardiand]\nservice-name = {:?}\ntimeout-ms = 1000\niceoryx2-root-path = {:?}\niceoryx2-prefix = {:?}\n",
             s.service,
@@ -466,6 +466,52 @@ fn gate_screens_forwards_relays_and_fails_closed() {
         );
         drop(direct);
 
+        // 0b. Only the node of claim-from may claim: another participant's claims, of another
+        // task and of identify mode, are refused (counted in /diagnostics) and change nothing;
+        // the intruder stays on the domain, its latched claim with it, through 1-3.
+        let mut intruder = node(domain, "intruder");
+        let intruder_topic = intruder
+            .create_topic(
+                &Name::new(&gate_ns, "task").unwrap(),
+                MessageTypeName::new("std_msgs", "String"),
+                &latched(),
+            )
+            .unwrap();
+        let intruder_task = intruder
+            .create_publisher::<StringMsg>(&intruder_topic, Some(latched()))
+            .unwrap();
+        let wait_refused = |want: u64| {
+            let diagnostics = &diagnostics;
+            async move {
+                let deadline = Instant::now() + PATIENCE;
+                loop {
+                    assert!(
+                        Instant::now() < deadline,
+                        "/diagnostics never counted {want} refused claims"
+                    );
+                    let (d, _) = diagnostics.async_take().await.expect("diagnostics");
+                    let st = &d.status[0];
+                    let get = |k: &str| {
+                        st.values
+                            .iter()
+                            .find(|v| v.key == k)
+                            .map(|v| v.value.clone())
+                    };
+                    assert_eq!(get("claimed task").as_deref(), Some("task-a"), "{st:?}");
+                    let refused: u64 = get("claims refused").unwrap().parse().unwrap();
+                    if refused >= want {
+                        return;
+                    }
+                }
+            }
+        };
+        for (i, other) in ["task-b", ""].into_iter().enumerate() {
+            intruder_task
+                .publish(StringMsg { data: other.into() })
+                .unwrap();
+            wait_refused(i as u64 + 1).await;
+        }
+
         // 1. A genuine plan is forwarded; feedback and result are relayed.
         let r = send(&client, goal(0, 7, &in_order()), false).await;
         assert!(r.accepted, "{r:?}");
@@ -529,6 +575,8 @@ fn gate_screens_forwards_relays_and_fails_closed() {
             "{v:?}"
         );
         assert!(v.distance > v.threshold, "{v:?}");
+        drop(intruder_task);
+        drop(intruder);
 
         // 4. An unknown joint: INVALID_JOINTS, not forwarded.
         let mut g = goal(0, 7, &in_order());
