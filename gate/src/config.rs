@@ -143,7 +143,20 @@ pub enum ConfigError {
         /// Its value.
         value: String,
     },
+    /// A DDS domain id beyond what the RTPS port mapping fits in a UDP port.
+    #[error(
+        "{key} = {value} is not a DDS domain id: 0..={MAX_DOMAIN_ID} (ROS 2 advises 0..=101 on Linux)"
+    )]
+    Domain {
+        /// The key (or `ROS_DOMAIN_ID`).
+        key: &'static str,
+        /// Its value.
+        value: u16,
+    },
 }
+
+/// The largest domain id whose RTPS ports (7400 + 250 × domain + offsets) fit in 16 bits.
+pub const MAX_DOMAIN_ID: u16 = 232;
 
 impl GateConfig {
     /// Parse `text` (errors name `path`).
@@ -180,13 +193,28 @@ impl GateConfig {
                 });
             }
         }
-        if let Some(bad) = self.claim_from.iter().find(|n| {
-            !n.starts_with('/') || n.ends_with('/') || n.len() < 2 || n.contains("//")
-        }) {
+        if let Some(bad) = self
+            .claim_from
+            .iter()
+            .find(|n| !n.starts_with('/') || n.ends_with('/') || n.len() < 2 || n.contains("//"))
+        {
             return Err(ConfigError::Name {
                 key: "claim-from",
                 value: bad.clone(),
             });
+        }
+        let key = if self.domain_id.is_some() {
+            "domain-id"
+        } else {
+            "ROS_DOMAIN_ID"
+        };
+        for (key, value) in [
+            (key, self.domain()),
+            ("controller-domain-id", self.controller_domain()),
+        ] {
+            if value > MAX_DOMAIN_ID {
+                return Err(ConfigError::Domain { key, value });
+            }
         }
         if self.gate == self.controller {
             return Err(ConfigError::Name {
@@ -265,7 +293,37 @@ mod tests {
         let c = GateConfig::parse("claim-from = [\"/cell/executive\"]\n", Path::new("x")).unwrap();
         assert_eq!(c.claim_from, ["/cell/executive"]);
         let e = GateConfig::parse("claim-from = [\"executive\"]\n", Path::new("x")).unwrap_err();
-        assert!(matches!(e, ConfigError::Name { key: "claim-from", .. }));
+        assert!(matches!(
+            e,
+            ConfigError::Name {
+                key: "claim-from",
+                ..
+            }
+        ));
+        let e = GateConfig::parse("domain-id = 240\n", Path::new("x")).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                ConfigError::Domain {
+                    key: "domain-id",
+                    value: 240
+                }
+            ),
+            "{e}"
+        );
+        let e = GateConfig::parse(
+            "domain-id = 5\ncontroller-domain-id = 233\n",
+            Path::new("x"),
+        )
+        .unwrap_err();
+        assert!(matches!(
+            e,
+            ConfigError::Domain {
+                key: "controller-domain-id",
+                ..
+            }
+        ));
+        assert!(GateConfig::parse("domain-id = 232\n", Path::new("x")).is_ok());
         let e = GateConfig::parse("controller = \"/guardian_gate\"\n", Path::new("x")).unwrap_err();
         assert!(matches!(
             e,

@@ -410,8 +410,13 @@ impl Gate<'_> {
         }
         while let Ok(Some((msg, info))) = self.task.take() {
             let writer = info.publisher_gid().to_bytes16();
-            taken.push(self.claims.borrow_mut().claim(writer, &msg.data));
+            taken.push(
+                self.claims
+                    .borrow_mut()
+                    .claim(writer, &msg.data, Instant::now()),
+            );
         }
+        taken.extend(self.claims.borrow_mut().expire(Instant::now()));
         for t in taken {
             match t {
                 Taken::Claimed(claim) => tracing::info!(claim = %claim, "claimed task"),
