@@ -4,18 +4,22 @@
 #          the examples' plots (pkg-config, fontconfig, freetype, DejaVu fonts)
 #   test   build + what the test suite runs for real: systemd's tools (systemd-analyze),
 #          util-linux, Prometheus (promtool and the server) and Chromium (tests/tests/observe.rs)
-#   ci     test + Python 3 with venv (python/ci.sh)
+#   ci     test + Python 3 with venv (python/ci.sh) + fastdds
+#   fastdds  the Fast DDS interop test (gate/tests/fastdds/run.sh): Fast DDS 2.9 and its
+#          type generator (Java), g++
 # Needs root, or sudo. The Rust toolchain itself comes from rustup.
 set -euo pipefail
 what="${1:-test}"
 build=(pkg-config libfontconfig1-dev libfreetype-dev fonts-dejavu-core libclang-dev clang)
 test=(systemd util-linux prometheus chromium)
 ci=(python3 python3-venv)
+fastdds=(libfastrtps-dev fastddsgen g++)
 case "$what" in
   build) pkgs=("${build[@]}") ;;
   test) pkgs=("${build[@]}" "${test[@]}") ;;
-  ci) pkgs=("${build[@]}" "${test[@]}" "${ci[@]}") ;;
-  *) echo "usage: $0 build|test|ci" >&2; exit 2 ;;
+  ci) pkgs=("${build[@]}" "${test[@]}" "${ci[@]}" "${fastdds[@]}") ;;
+  fastdds) pkgs=("${fastdds[@]}") ;;
+  *) echo "usage: $0 build|test|ci|fastdds" >&2; exit 2 ;;
 esac
 missing=()
 for p in "${pkgs[@]}"; do
