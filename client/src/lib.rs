@@ -323,6 +323,15 @@ pub enum CheckError {
         /// The daemon's explanation (the file and the system error).
         message: String,
     },
+    /// A fleet member made the enroll or forget (it is in effect and durable there), but
+    /// fewer peers than its `[fleet] replicas` acknowledged holding it within
+    /// `replica-timeout-ms`: they get it when they catch up, and it is lost if that member
+    /// is lost first. Retrying makes the change again (a new record).
+    #[error("the change is in effect on this member, but not yet on enough peers: {message}")]
+    Unreplicated {
+        /// How many peers hold it, how many were required, within how long.
+        message: String,
+    },
     /// An iceoryx2 operation failed.
     #[error(transparent)]
     Transport(TransportError),
@@ -836,6 +845,7 @@ pub(crate) fn status_ok(r: &ResponseHeader) -> Result<(), CheckError> {
         Failure::LimitExceeded { limit, message } => CheckError::LimitExceeded { limit, message },
         Failure::NotPermitted { message } => CheckError::NotPermitted { message },
         Failure::Storage { message } => CheckError::Storage { message },
+        Failure::Unreplicated { message } => CheckError::Unreplicated { message },
         // A status this client does not know yet.
         _ => CheckError::Protocol {
             detail: format!("unknown status {}", r.status),

@@ -8,6 +8,10 @@ mod robot;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+/// The shortest wait for an admin's answer: longer than the longest `[fleet]
+/// replica-timeout-ms` (30 s).
+const ADMIN_TIMEOUT: Duration = Duration::from_secs(35);
+
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
 mod verdicts;
@@ -31,7 +35,8 @@ struct Args {
     /// Request-response service name of the daemon.
     #[arg(long, default_value = guardian_shared::wire::DEFAULT_SERVICE_NAME)]
     service: String,
-    /// Per-request timeout in milliseconds.
+    /// Per-request timeout in milliseconds (an enroll or forget waits at least 35 s: a fleet
+    /// member answers it once its peers hold the change, `[fleet] replica-timeout-ms`).
     #[arg(long, default_value_t = 2000)]
     timeout_ms: u64,
     /// iceoryx2 root path (must match the daemon's config).
@@ -147,9 +152,15 @@ fn main() -> anyhow::Result<()> {
         iceoryx2_root_path: args.iceoryx2_root_path.clone(),
         iceoryx2_prefix: args.iceoryx2_prefix.clone(),
     };
+    // An admin's enroll or forget may wait for the fleet's peers (`[fleet]
+    // replica-timeout-ms`, at most 30 s): its answer is awaited longer than a check's.
+    let admin_timeout = timeout.max(ADMIN_TIMEOUT);
     let admin = || match &args.admin_socket {
-        Some(p) => Ok(AdminClient::new(p, timeout)),
-        None => AdminClient::locate(&config),
+        Some(p) => Ok(AdminClient::new(p, admin_timeout)),
+        None => AdminClient::locate(&ClientConfig {
+            timeout: admin_timeout,
+            ..config.clone()
+        }),
     };
     let connect = || Client::connect(config.clone()).context("cannot connect to guardiand");
     let json = args.json;
@@ -219,6 +230,9 @@ fn main() -> anyhow::Result<()> {
                 Err(guardian_client::EnrollError::Request(
                     e @ CheckError::OutcomeUnknown { .. },
                 )) => settle(&admin()?, timeout, &e, &name, true),
+                Err(guardian_client::EnrollError::Request(e @ CheckError::Unreplicated { .. })) => {
+                    unreplicated(&e)
+                }
                 other => other?,
             };
             if json {
@@ -235,6 +249,7 @@ fn main() -> anyhow::Result<()> {
                 Err(e @ CheckError::OutcomeUnknown { .. }) => {
                     settle(&admin()?, timeout, &e, &name, false);
                 }
+                Err(e @ CheckError::Unreplicated { .. }) => unreplicated(&e),
                 other => other?,
             }
             if json {
@@ -331,6 +346,13 @@ fn main() -> anyhow::Result<()> {
 /// answers requests in arrival order, so its class list now shows the outcome. Returns the
 /// class if an enroll was applied; exits 1 if the change was not applied, 3 if the daemon
 /// cannot be asked either.
+/// A fleet member made the change but fewer peers than its `replicas` hold it: said, exit
+/// status 4 (not 1: the change is in effect; doing it again makes another record).
+fn unreplicated(e: &CheckError) -> ! {
+    eprintln!("guardianctl: {e}");
+    std::process::exit(4);
+}
+
 fn settle(
     admin: &AdminClient,
     timeout: Duration,

@@ -306,7 +306,9 @@ pub const FLEET_TEMPLATE: &str = "\
 # signing-key = \"/etc/guardian/fleet.key\"  # guardiand --fleet-keygen\n\
 # admin-keys = []                          # the other members' public keys (64 hex)\n\
 # caller-keys = []                         # remote callers' public keys (64 hex)\n\
-# resync-ms = 10000                        # catch-up period\n";
+# resync-ms = 10000                        # catch-up period\n\
+# replicas = 1                             # peers that hold a change before it is answered\n\
+# replica-timeout-ms = 2000                # how long the answer waits for them\n";
 
 /// The `[fleet]` table: parsed and checked by `guardian-fleet` when the daemon is built with
 /// the `fleet` feature.
@@ -678,6 +680,8 @@ mod tests {
             "admin-keys",
             "caller-keys",
             "resync-ms",
+            "replicas",
+            "replica-timeout-ms",
         ] {
             assert!(
                 block.iter().any(|l| l.starts_with(&format!("# {key} = "))),

@@ -4,10 +4,17 @@
 //! status requests are answered. Zenoh runs on its own threads and hands everything to the
 //! serving loop through a channel that [`Member::poll`] drains between requests, waking
 //! the loop through the request event like the admin endpoint does.
+//!
+//! With `[fleet] replicas = N` an admin's enroll or forget is answered only once N peers
+//! have acknowledged holding its record ([`guardian_fleet::ack`]), or `replica-timeout-ms`
+//! has passed (then `Unreplicated`, saying how many did); the serving loop goes on
+//! meanwhile, the answer waits in [`Member`].
 
+use std::collections::BTreeSet;
 use std::path::Path;
 use std::sync::Arc;
 use std::sync::mpsc;
+use std::time::Instant;
 
 use guardian_bank::Class;
 use guardian_fleet::config::FleetConfig;
@@ -17,8 +24,11 @@ use guardian_fleet::record::{Change, Record, Unsigned};
 use guardian_fleet::remote::{Gate, now_ms, seal_response};
 use guardian_fleet::store::{Offer, STORE_FILE, Store, StoreError, Undo};
 use guardian_fleet::{SigningKey, VerifyingKey};
-use guardian_shared::wire::{ClassEntry, admin, encode_text};
+use guardian_shared::wire::{
+    ClassEntry, Failure, ResponseHeader, Status, admin, encode_failure, encode_text,
+};
 
+use crate::admin::AdminJob;
 use crate::record::RemoteCheck;
 use crate::screen::{ChangeLog, Screen};
 
@@ -44,6 +54,20 @@ pub struct Refusals {
     pub records: u64,
     /// Remote requests refused by the gate.
     pub calls: u64,
+    /// Acknowledgements refused (malformed, other fleet, untrusted).
+    pub acks: u64,
+}
+
+/// An admin's answer waiting for the peers to hold its change.
+#[derive(Debug)]
+struct Waiting {
+    lamport: u64,
+    class: String,
+    /// Peers (their keys) that acknowledged the record.
+    held: BTreeSet<[u8; 32]>,
+    since: Instant,
+    job: AdminJob,
+    answer: (ResponseHeader, Vec<ClassEntry>),
 }
 
 /// A running fleet member.
@@ -64,6 +88,10 @@ pub struct Member {
     pending: Option<(Record, Undo)>,
     /// The winners changed since the last [`Member::refresh`].
     dirty: bool,
+    /// The Lamport counter of the admin change just published (until its answer).
+    published: Option<u64>,
+    /// Admin answers waiting for `replicas` peers.
+    waiting: Vec<Waiting>,
 }
 
 /// The robot identity records carry: `<name>/<joints>/<URDF sha256>`.
@@ -127,6 +155,8 @@ impl Member {
             refused: Refusals::default(),
             pending: None,
             dirty: false,
+            published: None,
+            waiting: Vec::new(),
         };
         screen.set_report_bank_digest(true);
         member.reconcile(screen);
@@ -206,6 +236,7 @@ impl Member {
                 Incoming::Record(bytes) => changed |= self.receive(&bytes, screen, true),
                 Incoming::CaughtUp(bytes) => changed |= self.receive(&bytes, screen, false),
                 Incoming::Call(call) => self.answer(call, screen, checked),
+                Incoming::Ack(bytes) => self.take_ack(&bytes),
             }
         }
         if changed {
@@ -265,10 +296,15 @@ impl Member {
         };
         let name = f.class.clone();
         let (lamport, signer) = (f.lamport, hex(&record.signer()[..8]));
+        let signer_key = *record.signer();
         let checked = started.elapsed();
         let offered = self.store.offer(record);
         let stored = started.elapsed();
-        match offered {
+        // Once this member holds the record (stored, and applied to the bank) or a later
+        // one of its class, it says so to the signer, which may be waiting to answer its
+        // admin. Records a catch-up brings again are not acknowledged again.
+        let holds = matches!(offered, Ok(Offer::Applied)) || (live && offered.is_ok());
+        let changed = match offered {
             Ok(Offer::Applied) => match screen.apply_replicated(&name, class) {
                 Ok(()) => {
                     tracing::info!(
@@ -308,7 +344,118 @@ impl Member {
                 tracing::error!(class = %name, error = %e, "cannot persist a fleet record; not applied");
                 false
             }
+        };
+        if holds {
+            self.acknowledge(&signer_key, lamport);
         }
+        changed
+    }
+
+    fn acknowledge(&self, signer: &[u8; 32], lamport: u64) {
+        let ack = guardian_fleet::ack::sign(&self.config.name, signer, lamport, &self.key);
+        if let Err(e) = self.node.acknowledge(ack) {
+            tracing::debug!(error = %e, "cannot publish a holding acknowledgement");
+        }
+    }
+
+    /// A peer's acknowledgement: count it for the admin answer waiting for that record.
+    fn take_ack(&mut self, bytes: &[u8]) {
+        let ack = match guardian_fleet::ack::open(bytes, &self.config.name, &self.trusted) {
+            Ok(a) => a,
+            Err(e) => {
+                self.refused.acks += 1;
+                tracing::warn!(error = %e, "fleet acknowledgement refused");
+                return;
+            }
+        };
+        let own = self.key.verifying_key();
+        if ack.signer != *own.as_bytes() || ack.holder == *own.as_bytes() {
+            return;
+        }
+        for w in self.waiting.iter_mut().filter(|w| w.lamport == ack.lamport) {
+            w.held.insert(ack.holder);
+        }
+    }
+
+    /// Answer an admin request now, or, for an enroll or forget this member just published
+    /// while `replicas` is set, once enough peers hold it ([`Member::settle`]). The status
+    /// answered now, if it was.
+    pub fn answer_admin(
+        &mut self,
+        job: AdminJob,
+        answer: (ResponseHeader, Vec<ClassEntry>),
+    ) -> Option<u32> {
+        let published = self.published.take();
+        match published {
+            Some(lamport) if self.config.replicas > 0 && answer.0.status == Status::Ok as u32 => {
+                self.waiting.push(Waiting {
+                    lamport,
+                    class: guardian_shared::wire::decode_text(&answer.0.class_name),
+                    held: BTreeSet::new(),
+                    since: Instant::now(),
+                    job,
+                    answer,
+                });
+                None
+            }
+            _ => {
+                let status = answer.0.status;
+                job.answer(answer);
+                Some(status)
+            }
+        }
+    }
+
+    /// Answer the admin requests whose change enough peers hold, or whose time is up
+    /// (`Unreplicated`), or every one of them when `all` (the daemon stops). Returns each
+    /// answered request's op and status.
+    pub fn settle(&mut self, all: bool) -> Vec<(u32, u32)> {
+        let (wanted, timeout) = (self.config.replicas, self.config.replica_timeout());
+        let mut answered = Vec::new();
+        let mut i = 0;
+        while i < self.waiting.len() {
+            let w = &self.waiting[i];
+            let held = w.held.len();
+            if held < wanted && w.since.elapsed() < timeout && !all {
+                i += 1;
+                continue;
+            }
+            let Waiting {
+                lamport,
+                class,
+                since,
+                job,
+                mut answer,
+                ..
+            } = self.waiting.swap_remove(i);
+            let waited_ms = since.elapsed().as_millis() as u64;
+            if held >= wanted {
+                tracing::info!(
+                    class,
+                    lamport,
+                    peers = held,
+                    waited_ms,
+                    "fleet change held by the peers required"
+                );
+            } else {
+                let message = format!(
+                    "class {class:?} changed here (lamport {lamport}), held by {held} of the {wanted} peers required after {waited_ms} ms{}; the others get it when they catch up",
+                    if all { " (the daemon is stopping)" } else { "" }
+                );
+                tracing::warn!(
+                    class,
+                    lamport,
+                    peers = held,
+                    wanted,
+                    waited_ms,
+                    "fleet change not acknowledged by enough peers in time"
+                );
+                encode_failure(&mut answer.0, &Failure::Unreplicated { message });
+            }
+            answered.push((answer.0.op, answer.0.status));
+            job.answer(answer);
+        }
+        answered
     }
 
     /// An admin request was answered: publish what changed to the catch-up queryable and
@@ -444,6 +591,7 @@ impl ChangeLog for Member {
         if let Err(e) = self.node.publish(record.bytes()) {
             tracing::warn!(class, error = %e, "cannot publish the fleet record; peers get it at their next catch-up");
         }
+        self.published = Some(record.lamport());
         crate::faults::hit(crate::faults::FLEET_AFTER_PUBLISH);
         tracing::info!(class, lamport = record.lamport(), "fleet change published");
     }

@@ -288,6 +288,7 @@ pub fn status_name(status: u32) -> &'static str {
         Some(Status::LimitExceeded) => "limit-exceeded",
         Some(Status::NotPermitted) => "not-permitted",
         Some(Status::Storage) => "storage",
+        Some(Status::Unreplicated) => "unreplicated",
         _ => "other",
     }
 }

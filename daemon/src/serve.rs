@@ -96,6 +96,21 @@ impl Member {
     fn after_admin(&mut self, _: &mut Screen) {
         match *self {}
     }
+
+    fn answer_admin(
+        &mut self,
+        _: crate::admin::AdminJob,
+        _: (
+            guardian_shared::wire::ResponseHeader,
+            Vec<guardian_shared::wire::ClassEntry>,
+        ),
+    ) -> Option<u32> {
+        match *self {}
+    }
+
+    fn settle(&mut self, _: bool) -> Vec<(u32, u32)> {
+        match *self {}
+    }
 }
 
 #[cfg(not(feature = "fleet"))]
@@ -559,6 +574,12 @@ fn serve(
                     obs.checked(a.request, a.response, a.check, a.plan, a.client, a.took)
                 })
             });
+        // Admin answers waiting for the fleet's peers to hold their change.
+        if let Some(m) = fleet.as_mut() {
+            for (op, status) in m.settle(false) {
+                obs.metrics.count_admin(op, status);
+            }
+        }
         let served = served + changed;
         if served > 0 {
             last_request = Instant::now();
@@ -651,6 +672,11 @@ fn serve(
     tracing::info!("stopping: answering queued requests and flushing state");
     let _ = drain(server, &mut out, &mut screen, config.max_batch, &mut obs)?;
     let _ = serve_admin(&admin, &mut screen, &mut fleet, &obs.metrics);
+    if let Some(m) = fleet.as_mut() {
+        for (op, status) in m.settle(true) {
+            obs.metrics.count_admin(op, status);
+        }
+    }
     drop(admin);
     http.stop.store(true, Ordering::SeqCst);
     for t in http.threads {
@@ -727,8 +753,18 @@ fn serve_admin(
         if let Some(m) = fleet.as_mut() {
             m.after_admin(screen);
         }
-        metrics.count_admin(job.header.op, answer.response.status);
-        job.answer((answer.response, answer.entries));
+        let op = job.header.op;
+        let answered = match fleet.as_mut() {
+            Some(m) => m.answer_admin(job, (answer.response, answer.entries)),
+            None => {
+                let status = answer.response.status;
+                job.answer((answer.response, answer.entries));
+                Some(status)
+            }
+        };
+        if let Some(status) = answered {
+            metrics.count_admin(op, status);
+        }
         n += 1;
     }
     n

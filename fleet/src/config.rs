@@ -9,6 +9,8 @@
 //! signing-key = "/etc/guardian/fleet.key"   # this member's admin key (guardiand --fleet-keygen)
 //! admin-keys = ["<64 hex>", ...]      # public keys whose records are applied (own key implied)
 //! caller-keys = ["<64 hex>", ...]     # public keys of remote callers (check/identify/status)
+//! replicas = 1                        # peers that hold an enroll/forget before it is answered
+//! replica-timeout-ms = 2000           # how long the answer waits for them
 //! ```
 //!
 //! Zenoh runs in peer mode with multicast and gossip scouting off: a member talks only to
@@ -48,10 +50,24 @@ pub struct FleetConfig {
     /// partition), milliseconds; it also asks once at start.
     #[serde(default = "default_resync_ms")]
     pub resync_ms: u64,
+    /// How many peers must hold an enroll or forget made on this member before its admin
+    /// hears "done" (they acknowledge each record they hold, signed). 0: answered once the
+    /// change is durable here and published, as before this key existed.
+    #[serde(default)]
+    pub replicas: usize,
+    /// How long the admin's answer waits for `replicas` peers, milliseconds; past it the
+    /// admin hears `Unreplicated` (the change is in effect and durable here, fewer peers
+    /// acknowledged it; the others get it when they catch up).
+    #[serde(default = "default_replica_timeout_ms")]
+    pub replica_timeout_ms: u64,
 }
 
 fn default_resync_ms() -> u64 {
     10_000
+}
+
+fn default_replica_timeout_ms() -> u64 {
+    2_000
 }
 
 /// What is wrong with a `[fleet]` table.
@@ -80,6 +96,9 @@ pub enum FleetConfigError {
     /// `resync-ms` is 0.
     #[error("[fleet] resync-ms must be at least 1")]
     Resync,
+    /// `replica-timeout-ms` is 0 or longer than an admin waits for its answer.
+    #[error("[fleet] replica-timeout-ms must be 1..=30000 (an admin waits 60 s for an answer)")]
+    ReplicaTimeout,
 }
 
 fn chunk_ok(s: &str) -> bool {
@@ -113,6 +132,9 @@ impl FleetConfig {
         if self.resync_ms == 0 {
             return Err(FleetConfigError::Resync);
         }
+        if !(1..=30_000).contains(&self.replica_timeout_ms) {
+            return Err(FleetConfigError::ReplicaTimeout);
+        }
         self.admin_public_keys()?;
         self.caller_public_keys()?;
         Ok(())
@@ -131,6 +153,16 @@ impl FleetConfig {
     /// Key expression on which records are published: `guardian/<fleet>/records`.
     pub fn records_key(&self) -> String {
         format!("guardian/{}/records", self.name)
+    }
+
+    /// Key expression of holding acknowledgements: `guardian/<fleet>/acks`.
+    pub fn acks_key(&self) -> String {
+        format!("guardian/{}/acks", self.name)
+    }
+
+    /// How long an admin's answer waits for the peers.
+    pub fn replica_timeout(&self) -> std::time::Duration {
+        std::time::Duration::from_millis(self.replica_timeout_ms)
     }
 
     /// This member's catch-up queryable: `guardian/<fleet>/<member>/records`.
@@ -182,6 +214,8 @@ admin-keys = ["0101010101010101010101010101010101010101010101010101010101010101"
         let c = parse(GOOD);
         c.check().unwrap();
         assert_eq!(c.resync_ms, 10_000);
+        assert_eq!((c.replicas, c.replica_timeout_ms), (0, 2_000));
+        assert_eq!(c.acks_key(), "guardian/cell-1/acks");
         assert_eq!(c.check_key(), "guardian/cell-1/robot-a/check");
         assert_eq!(c.records_key(), "guardian/cell-1/records");
         assert_eq!(c.admin_public_keys().unwrap().len(), 1);
@@ -201,6 +235,9 @@ admin-keys = ["0101010101010101010101010101010101010101010101010101010101010101"
         let mut c = parse(GOOD);
         c.connect.push("localhost".into());
         assert!(matches!(c.check(), Err(FleetConfigError::Endpoint(_))));
+        let mut c = parse(GOOD);
+        c.replica_timeout_ms = 0;
+        assert!(matches!(c.check(), Err(FleetConfigError::ReplicaTimeout)));
         let mut c = parse(GOOD);
         c.caller_keys.push("nothex".into());
         assert!(matches!(c.check(), Err(FleetConfigError::Key(_))));

@@ -8,7 +8,10 @@
 //! - `guardian/<fleet>/<member>/records`: queryable answering, to a peer whose digest of
 //!   the winners differs, every winning record (one reply, frames of `u32` length + record);
 //! - `guardian/<fleet>/<member>/check`: queryable for remote check / identify / status
-//!   ([`crate::remote`]).
+//!   ([`crate::remote`]);
+//! - `guardian/<fleet>/acks`: every member publishes a signed acknowledgement of each
+//!   record it takes ([`crate::ack`]), every member subscribes (a signer counts those of its
+//!   own records).
 //!
 //! Zenoh runs its own threads; everything received is handed to a `sink` closure (the
 //! daemon sends it through a channel to its serving loop), so nothing here touches the
@@ -54,6 +57,8 @@ pub enum Incoming {
     CaughtUp(Vec<u8>),
     /// A remote request, to be answered with [`RemoteCall::reply`].
     Call(RemoteCall),
+    /// A peer's holding acknowledgement ([`crate::ack`]), not verified yet.
+    Ack(Vec<u8>),
 }
 
 /// A remote request waiting for its answer.
@@ -101,11 +106,13 @@ struct Served {
 pub struct Node {
     session: zenoh::Session,
     records_key: String,
+    acks_key: String,
     served: Arc<Mutex<Served>>,
     stop: Arc<AtomicBool>,
     resync: Option<std::thread::JoinHandle<()>>,
     // Declared entities live as long as the node.
     _subscriber: zenoh::pubsub::Subscriber<()>,
+    _acks: zenoh::pubsub::Subscriber<()>,
     _records: zenoh::query::Queryable<()>,
     _check: zenoh::query::Queryable<()>,
 }
@@ -185,6 +192,12 @@ impl Node {
             .callback(move |sample| s(Incoming::Record(sample.payload().to_bytes().into_owned())))
             .wait()
             .map_err(zerr("declare record subscriber"))?;
+        let s = sink.clone();
+        let acks = session
+            .declare_subscriber(config.acks_key())
+            .callback(move |sample| s(Incoming::Ack(sample.payload().to_bytes().into_owned())))
+            .wait()
+            .map_err(zerr("declare acknowledgement subscriber"))?;
         let sv = served.clone();
         let records = session
             .declare_queryable(config.member_records_key())
@@ -250,10 +263,12 @@ impl Node {
         Ok(Self {
             session,
             records_key: config.records_key(),
+            acks_key: config.acks_key(),
             served,
             stop,
             resync: Some(resync),
             _subscriber: subscriber,
+            _acks: acks,
             _records: records,
             _check: check,
         })
@@ -267,6 +282,15 @@ impl Node {
             .allowed_destination(Locality::Remote)
             .wait()
             .map_err(zerr("publish record"))
+    }
+
+    /// Publish a holding acknowledgement ([`crate::ack`]) to the peers.
+    pub fn acknowledge(&self, ack: Vec<u8>) -> Result<(), NodeError> {
+        self.session
+            .put(&self.acks_key, ack)
+            .allowed_destination(Locality::Remote)
+            .wait()
+            .map_err(zerr("publish acknowledgement"))
     }
 
     /// Set what the catch-up queryable serves (after every change of the winners).
@@ -432,6 +456,8 @@ mod tests {
             admin_keys: vec![],
             caller_keys: vec![],
             resync_ms: 200,
+            replicas: 0,
+            replica_timeout_ms: 2_000,
         };
         let (tx_a, _rx_a) = std::sync::mpsc::channel();
         let tx_a = Mutex::new(tx_a);

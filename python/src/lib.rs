@@ -123,6 +123,12 @@ create_exception!(
 );
 create_exception!(
     guardian,
+    Unreplicated,
+    GuardianError,
+    "A fleet member made the change (in effect and durable there), but fewer peers than its `replicas` acknowledged it in time."
+);
+create_exception!(
+    guardian,
     AdminSocketError,
     GuardianError,
     "The admin socket could not be reached or broke off: `path`."
@@ -195,6 +201,7 @@ fn check_err(py: Python<'_>, e: gc::CheckError) -> PyErr {
         ),
         E::NotPermitted { .. } => raise::<NotPermitted>(py, msg, &[]),
         E::Storage { .. } => raise::<StorageError>(py, msg, &[]),
+        E::Unreplicated { .. } => raise::<Unreplicated>(py, msg, &[]),
         E::AdminSocket { path, .. } => {
             raise::<AdminSocketError>(py, msg, &[("path", obj(py, path.display().to_string()))])
         }
@@ -966,6 +973,7 @@ fn guardian(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("LimitExceeded", py.get_type::<LimitExceeded>())?;
     m.add("NotPermitted", py.get_type::<NotPermitted>())?;
     m.add("StorageError", py.get_type::<StorageError>())?;
+    m.add("Unreplicated", py.get_type::<Unreplicated>())?;
     m.add("AdminSocketError", py.get_type::<AdminSocketError>())?;
     m.add("AdminSocketNotFound", py.get_type::<AdminSocketNotFound>())?;
     Ok(())

@@ -45,7 +45,7 @@ def test_dataset_reads_as_numpy(dataset):
 def test_every_error_is_a_guardian_error():
     # A daemon that cannot persist an enroll answers Storage: its own exception, still a
     # GuardianError, so `except guardian.GuardianError` never lets it pass as a verdict.
-    for name in ["StorageError", "NotPermitted", "LimitExceeded", "InternalError"]:
+    for name in ["StorageError", "Unreplicated", "NotPermitted", "LimitExceeded", "InternalError"]:
         assert issubclass(getattr(guardian, name), guardian.GuardianError), name
 
 

@@ -10,7 +10,7 @@
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use guardian_client::{CheckError, Trajectory};
+use guardian_client::{CheckError, EnrollError, Trajectory};
 use guardian_fleet::SigningKey;
 use guardian_fleet::keys::read_signing_key;
 use guardian_fleet::record::{Change, Record, Unsigned};
@@ -170,6 +170,106 @@ fn three_members_replicate_catch_up_and_converge() {
     phase("guardianctl status shows the fleet position");
     drop(f);
     phase("members stopped");
+}
+
+/// `replicas = 2`: an enroll or forget on A is answered once B and C hold it, so each
+/// serves the change the moment A's admin hears "done"; with C down the answer is
+/// `Unreplicated` after `replica-timeout-ms`, saying how many peers hold it, and the change
+/// is in effect on A and B; C gets it when it comes back.
+#[test]
+fn with_replicas_an_answered_change_is_held_by_the_peers() {
+    let mut f = Fleet::new(3);
+    for m in &mut f.members {
+        m.setup
+            .extra
+            .push_str("replicas = 2\nreplica-timeout-ms = 1500\n");
+    }
+    for i in 0..3 {
+        f.start(i);
+    }
+    // Until the Zenoh links are up an enroll may be answered Unreplicated.
+    let start = Instant::now();
+    let mut unreplicated = 0;
+    loop {
+        match f.admin(0).enroll("warmup", &examples(5, 0..3)) {
+            Ok(_) => break,
+            Err(EnrollError::Request(CheckError::Unreplicated { .. }))
+                if start.elapsed() < CONVERGE =>
+            {
+                unreplicated += 1
+            }
+            Err(e) => panic!("warm-up enroll: {e}"),
+        }
+    }
+    eprintln!("warm-up: {unreplicated} enrolls answered Unreplicated before the links were up");
+    let serves = |f: &Fleet, i: usize, class: &str| {
+        f.client(i)
+            .classes()
+            .expect("classes")
+            .iter()
+            .any(|c| c.name == class)
+    };
+    let admin = f.admin(0);
+    let mut waited = Vec::new();
+    for round in 0..5u32 {
+        let class = format!("held{round}");
+        let t0 = Instant::now();
+        admin
+            .enroll(&class, &examples(round % 3, 0..3))
+            .expect("enroll");
+        waited.push(t0.elapsed());
+        for i in [1, 2] {
+            assert!(
+                serves(&f, i, &class),
+                "member {i} does not serve {class} when A answers its enroll"
+            );
+        }
+    }
+    admin.forget("held0").expect("forget");
+    for i in [1, 2] {
+        assert!(
+            !serves(&f, i, "held0"),
+            "member {i} still serves a class A forgot"
+        );
+    }
+    waited.sort();
+    eprintln!(
+        "enroll answered after both peers held it: median {:?}, max {:?}",
+        waited[waited.len() / 2],
+        waited[waited.len() - 1]
+    );
+
+    // C down: the answer says the change is here and on one peer of the two required.
+    let c = f.members[2].daemon.as_mut().expect("running");
+    let _ = c.child.kill();
+    let _ = c.child.wait();
+    f.members[2].daemon = None;
+    let t0 = Instant::now();
+    let e = admin
+        .enroll("c-down", &examples(1, 0..3))
+        .expect_err("C is down: two peers cannot hold it");
+    let after = t0.elapsed();
+    match &e {
+        EnrollError::Request(CheckError::Unreplicated { message }) => assert!(
+            message.contains("held by 1 of the 2 peers required"),
+            "{message}"
+        ),
+        other => panic!("expected Unreplicated, got {other:?}"),
+    }
+    assert!(
+        after >= Duration::from_millis(1500),
+        "answered after {after:?}"
+    );
+    eprintln!("with C down: answered Unreplicated after {after:?}: {e}");
+    assert!(serves(&f, 0, "c-down") && serves(&f, 1, "c-down"));
+    assert!(
+        f.log(0).contains("not acknowledged by enough peers"),
+        "{}",
+        f.log(0)
+    );
+    // C comes back and catches up.
+    f.start(2);
+    f.converge(&[0, 1, 2], |c| c.iter().any(|x| x.name == "c-down"));
 }
 
 /// Publish raw bytes on the fleet's record key from an outside session connected to every

@@ -150,6 +150,12 @@ pub enum Status {
     /// journal and a fleet member's records are as before, and the daemon keeps serving
     /// the old bank. See `message`; retry once the cause is fixed.
     Storage = 9,
+    /// A fleet member's enroll or forget is in effect and durable on this member, but
+    /// fewer peers than its `[fleet] replicas` acknowledged holding it within
+    /// `replica-timeout-ms` (`message` says how many): the others get it when they catch
+    /// up, and it is lost if this member is lost before they do. Not an error of the
+    /// change; retrying it makes a new record.
+    Unreplicated = 10,
 }
 
 /// Verdict codes ([`ResponseHeader::verdict`]).

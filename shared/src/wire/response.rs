@@ -98,6 +98,12 @@ pub enum Failure {
         /// The daemon's explanation (the file and the system error).
         message: String,
     },
+    /// [`Status::Unreplicated`]: the change is in effect here, fewer peers than required
+    /// acknowledged it in time.
+    Unreplicated {
+        /// How many peers hold it, how many were required, within how long.
+        message: String,
+    },
 }
 
 /// A configured bank limit an enroll would have exceeded.
@@ -139,6 +145,7 @@ impl Failure {
             Self::LimitExceeded { .. } => Status::LimitExceeded,
             Self::NotPermitted { .. } => Status::NotPermitted,
             Self::Storage { .. } => Status::Storage,
+            Self::Unreplicated { .. } => Status::Unreplicated,
         }
     }
 
@@ -153,7 +160,8 @@ impl Failure {
             | Self::Internal { message }
             | Self::LimitExceeded { message, .. }
             | Self::NotPermitted { message }
-            | Self::Storage { message } => message,
+            | Self::Storage { message }
+            | Self::Unreplicated { message } => message,
         }
     }
 }
@@ -208,6 +216,7 @@ pub fn decode_failure(r: &ResponseHeader) -> Result<Option<Failure>, ProtocolErr
         },
         Some(Status::NotPermitted) => Failure::NotPermitted { message },
         Some(Status::Storage) => Failure::Storage { message },
+        Some(Status::Unreplicated) => Failure::Unreplicated { message },
         None => return Err(ProtocolError::UnknownStatus(r.status)),
     }))
 }
