@@ -8,8 +8,8 @@ mod robot;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-/// The shortest wait for an admin's answer: longer than the longest `[fleet]
-/// replica-timeout-ms` (30 s).
+/// The wait for an admin's answer unless `--timeout-ms` says otherwise: longer than the
+/// longest `[fleet] replica-timeout-ms` (30 s).
 const ADMIN_TIMEOUT: Duration = Duration::from_secs(35);
 
 use anyhow::{Context, bail};
@@ -35,10 +35,11 @@ struct Args {
     /// Request-response service name of the daemon.
     #[arg(long, default_value = guardian_shared::wire::DEFAULT_SERVICE_NAME)]
     service: String,
-    /// Per-request timeout in milliseconds (an enroll or forget waits at least 35 s: a fleet
-    /// member answers it once its peers hold the change, `[fleet] replica-timeout-ms`).
-    #[arg(long, default_value_t = 2000)]
-    timeout_ms: u64,
+    /// Per-request timeout in milliseconds. Unset: 2000, and 35000 for an enroll or forget
+    /// (a fleet member answers it once its peers hold the change, `[fleet]
+    /// replica-timeout-ms`, at most 30 s).
+    #[arg(long)]
+    timeout_ms: Option<u64>,
     /// iceoryx2 root path (must match the daemon's config).
     #[arg(long)]
     iceoryx2_root_path: Option<PathBuf>,
@@ -143,7 +144,7 @@ fn main() -> anyhow::Result<()> {
     // any Unix tool, instead of a panic in `println!`.
     sigpipe::reset();
     let args = Args::parse();
-    let timeout = Duration::from_millis(args.timeout_ms);
+    let timeout = Duration::from_millis(args.timeout_ms.unwrap_or(2000));
     // Enroll and forget go through the admin socket only: an admin of another uid cannot
     // (and need not) open the planners' iceoryx2 service.
     let config = ClientConfig {
@@ -154,7 +155,7 @@ fn main() -> anyhow::Result<()> {
     };
     // An admin's enroll or forget may wait for the fleet's peers (`[fleet]
     // replica-timeout-ms`, at most 30 s): its answer is awaited longer than a check's.
-    let admin_timeout = timeout.max(ADMIN_TIMEOUT);
+    let admin_timeout = args.timeout_ms.map_or(ADMIN_TIMEOUT, Duration::from_millis);
     let admin = || match &args.admin_socket {
         Some(p) => Ok(AdminClient::new(p, admin_timeout)),
         None => AdminClient::locate(&ClientConfig {

@@ -170,7 +170,7 @@ proptest! {
     #[test]
     fn any_code_decodes_or_is_rejected(v in prop_oneof![0u32..20, any::<u32>()]) {
         prop_assert_eq!(decode_code::<Op>(v).map(|o| o as u32), (1..=6).contains(&v).then_some(v));
-        prop_assert_eq!(decode_code::<Status>(v).map(|o| o as u32), (v <= 9).then_some(v));
+        prop_assert_eq!(decode_code::<Status>(v).map(|o| o as u32), (v <= 10).then_some(v));
         prop_assert_eq!(decode_code::<VerdictCode>(v).map(|o| o as u32), (v <= 2).then_some(v));
         prop_assert_eq!(decode_code::<ReasonCode>(v).map(|o| o as u32), (v <= 6).then_some(v));
         prop_assert_eq!(decode_code::<LimitKind>(v).map(|o| o as u32), (1..=3).contains(&v).then_some(v));

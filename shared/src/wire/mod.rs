@@ -627,10 +627,10 @@ mod tests {
             assert_eq!(decode_code::<Op>(v).map(|o| o as u32), Some(v));
         }
         assert_eq!(decode_code::<Op>(7), None);
-        for v in 0..=9 {
+        for v in 0..=10 {
             assert_eq!(decode_code::<Status>(v).map(|s| s as u32), Some(v));
         }
-        assert_eq!(decode_code::<Status>(10), None);
+        assert_eq!(decode_code::<Status>(11), None);
         for v in 1..=3 {
             assert_eq!(decode_code::<LimitKind>(v).map(|s| s as u32), Some(v));
         }
