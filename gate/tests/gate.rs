@@ -34,6 +34,30 @@ fn loopback() -> Vec<std::net::IpAddr> {
     vec!["127.0.0.1".parse().unwrap()]
 }
 
+/// Takes `/diagnostics` samples until `done` (given a value getter and the status; it may
+/// assert on every sample) says one is what the step waits for; panics after [`PATIENCE`].
+async fn wait_diagnostics(
+    diagnostics: &ros2_client::Subscription<DiagnosticArray>,
+    what: String,
+    done: impl Fn(&dyn Fn(&str) -> Option<String>, &guardian_gate::msgs::DiagnosticStatus) -> bool,
+) {
+    let deadline = Instant::now() + PATIENCE;
+    loop {
+        assert!(Instant::now() < deadline, "/diagnostics never {what}");
+        let (d, _) = diagnostics.async_take().await.expect("diagnostics");
+        let st = &d.status[0];
+        let get = |k: &str| {
+            st.values
+                .iter()
+                .find(|v| v.key == k)
+                .map(|v| v.value.clone())
+        };
+        if done(&get, st) {
+            return;
+        }
+    }
+}
+
 fn node(domain: u16, name: &str) -> Node {
     let ctx = context(domain, &loopback()).expect("DDS participant");
     let mut node = ctx
@@ -401,36 +425,25 @@ fn gate_screens_forwards_relays_and_fails_closed() {
             task.publish(StringMsg { data: c.into() }).unwrap();
         };
         let wait_claim = |want: &'static str| {
-            let diagnostics = &diagnostics;
-            async move {
-                let deadline = Instant::now() + PATIENCE;
-                loop {
-                    assert!(
-                        Instant::now() < deadline,
-                        "/diagnostics never reported the claim {want:?}"
-                    );
-                    let (d, _) = diagnostics.async_take().await.expect("diagnostics");
-                    let st = &d.status[0];
-                    let get = |k: &str| {
-                        st.values
-                            .iter()
-                            .find(|v| v.key == k)
-                            .map(|v| v.value.clone())
-                    };
+            wait_diagnostics(
+                &diagnostics,
+                format!("reported the claim {want:?}"),
+                move |get, st| {
                     assert_eq!(
                         get("guardiand reachable").as_deref(),
                         Some("true"),
                         "{st:?}"
                     );
                     assert_eq!(get("bank size").as_deref(), Some("2"), "{st:?}");
-                    if get("claimed task").as_deref() == Some(want) {
+                    let claimed = get("claimed task").as_deref() == Some(want);
+                    if claimed {
                         // Identify mode says what it lets through.
                         let mode = get("mode").unwrap_or_default();
                         assert_eq!(mode.starts_with("identify"), want.is_empty(), "{st:?}");
-                        return;
                     }
-                }
-            }
+                    claimed
+                },
+            )
         };
         let next_verdict = || async {
             let t = smol::Timer::after(PATIENCE);
@@ -481,29 +494,14 @@ fn gate_screens_forwards_relays_and_fails_closed() {
             .create_publisher::<StringMsg>(&intruder_topic, Some(latched()))
             .unwrap();
         let wait_refused = |want: u64| {
-            let diagnostics = &diagnostics;
-            async move {
-                let deadline = Instant::now() + PATIENCE;
-                loop {
-                    assert!(
-                        Instant::now() < deadline,
-                        "/diagnostics never counted {want} refused claims"
-                    );
-                    let (d, _) = diagnostics.async_take().await.expect("diagnostics");
-                    let st = &d.status[0];
-                    let get = |k: &str| {
-                        st.values
-                            .iter()
-                            .find(|v| v.key == k)
-                            .map(|v| v.value.clone())
-                    };
+            wait_diagnostics(
+                &diagnostics,
+                format!("counted {want} refused claims"),
+                move |get, st| {
                     assert_eq!(get("claimed task").as_deref(), Some("task-a"), "{st:?}");
-                    let refused: u64 = get("claims refused").unwrap().parse().unwrap();
-                    if refused >= want {
-                        return;
-                    }
-                }
-            }
+                    get("claims refused").unwrap().parse::<u64>().unwrap() >= want
+                },
+            )
         };
         for (i, other) in ["task-b", ""].into_iter().enumerate() {
             intruder_task
