@@ -9,6 +9,8 @@
 //!   with a class's enrolled examples.
 //! - [`place`]: where a plan happens (its tool path in the base frame), for cells whose tasks
 //!   are anchored to their place; [`cell`]: a cell's rules (allowed and keep-out boxes).
+//! - [`variant`]: near misses of a plan (stopped early, drawn mirrored) the screen compares
+//!   a plan with.
 //!
 //! `guardianctl`, the ROS 2 gate and the data generator link this crate and no network code.
 #![forbid(unsafe_code)]
@@ -19,4 +21,5 @@ pub mod kinematics;
 pub mod pen;
 pub mod place;
 pub mod preprocess;
+pub mod variant;
 pub mod workcell;

@@ -468,6 +468,8 @@ fn outlier_row(
         siamese_model: None,
         calibration_from: Some(bank.clone()),
         wrong_task_tolerance: None,
+        near_misses: Vec::new(),
+        near_miss_share: 0.25,
         out: None,
         json: false,
     })?;

@@ -26,6 +26,14 @@
 //!   budget, [`bank::calibrate_geometry`]), and the workcell score (the largest deviation
 //!   over all waypoints and rules, each divided by its tolerance,
 //!   [`guardian_robot::workcell::Inspection::score`]);
+//! - `guardian-near-miss` (with `--near-misses`): the full decision and a near-miss step.
+//!   Every enrolled example's near misses (`guardian_robot::variant`: stopped early,
+//!   mirrored) are embedded, a prototype per class and kind; a plan whose distance to its
+//!   class exceeds its distance to the nearest near-miss prototype of the class by more than
+//!   a tolerance is a no-go. The tolerance takes `--near-miss-share` of the false-reject
+//!   budget from the embedding's share (what the embedding and geometry rules leave of the
+//!   budget, on the calibration plans they accept), so the genuine false-reject target is
+//!   the same as `guardian`'s;
 //! - `guardian-embedding`: the shipped embedder alone, calibrated for the whole target
 //!   (the decision before the workcell and geometry checks existed), for comparison;
 //! - `siamese`, `knn`: the baselines.
@@ -70,6 +78,10 @@ pub enum Method {
     Guardian,
     /// The shipped embedder alone, calibrated for the whole target.
     GuardianEmbedding,
+    /// The full decision and the near-miss step: a plan nearer to a near miss of its class
+    /// (the enrolled examples stopped early or mirrored, `--near-misses`) than to the class
+    /// by more than a calibrated tolerance is a no-go.
+    GuardianNearMiss,
     /// The Siamese baseline network, prototypes, calibrated the same way.
     Siamese,
     /// 1-NN on standardised raw trajectories (smallest L2 to a class's enrolled drawings),
@@ -98,11 +110,54 @@ struct Enrolled {
     /// Support vectors per class.
     support: Vec<Vec<Vec<f32>>>,
     spread: Vec<Option<f32>>,
+    /// Per class, the prototype of each near miss of its support (empty without near
+    /// misses, or where no example had that near miss).
+    near: Vec<Vec<Vec<f32>>>,
+}
+
+/// Mean of `rows` (empty for none).
+fn mean_of(rows: &[&Vec<f32>]) -> Vec<f32> {
+    let dim = rows.first().map_or(0, |r| r.len());
+    let mut m = vec![0.0f32; dim];
+    for r in rows {
+        for (a, v) in m.iter_mut().zip(r.iter()) {
+            *a += v / rows.len() as f32;
+        }
+    }
+    m
 }
 
 impl Space<'_> {
+    /// Enroll `support`; with `near`, also the prototype of every near miss (`near[k][i]`:
+    /// near miss `k` of sample `i`, `None` where it could not be made).
+    fn enroll_near(
+        &self,
+        support: &[Vec<usize>],
+        geo: Option<&[Option<PlanGeometry>]>,
+        near: Option<&[Vec<Option<Vec<f32>>>]>,
+    ) -> Enrolled {
+        let mut e = self.enroll(support, geo);
+        if let Some(near) = near {
+            e.near = support
+                .iter()
+                .map(|idx| {
+                    near.iter()
+                        .map(|kind| {
+                            let rows: Vec<&Vec<f32>> =
+                                idx.iter().filter_map(|&i| kind[i].as_ref()).collect();
+                            mean_of(&rows)
+                        })
+                        .filter(|m| !m.is_empty())
+                        .collect()
+                })
+                .collect();
+        }
+        e
+    }
+
     fn enroll(&self, support: &[Vec<usize>], geo: Option<&[Option<PlanGeometry>]>) -> Enrolled {
         let mut e = Enrolled {
+            near: Vec::new(),
             geometry: support
                 .iter()
                 .map(|idx| {
@@ -116,18 +171,7 @@ impl Space<'_> {
         };
         for idx in support {
             let rows: Vec<Vec<f32>> = idx.iter().map(|&i| self.vecs[i].clone()).collect();
-            let dim = self.vecs.first().map_or(0, Vec::len);
-            let proto = if rows.is_empty() {
-                Vec::new()
-            } else {
-                let mut m = vec![0.0f32; dim];
-                for r in &rows {
-                    for (a, v) in m.iter_mut().zip(r) {
-                        *a += v / rows.len() as f32;
-                    }
-                }
-                m
-            };
+            let proto = mean_of(&rows.iter().collect::<Vec<_>>());
             e.spread.push(if self.method.prototypes() {
                 bank::class_spread(&rows)
             } else {
@@ -180,6 +224,18 @@ pub fn score(g: &GenuineScore, cal: &Calibration) -> f32 {
 }
 
 impl Enrolled {
+    /// The near-miss margin of a plan at `q` claiming class `c`: its distance to the class
+    /// minus its distance to the nearest near miss of the class (> 0: it resembles a near
+    /// miss more than the class). `None` without near misses.
+    fn near_miss_margin(&self, q: &[f32], c: usize) -> Option<f32> {
+        let near = self.near.get(c).filter(|n| !n.is_empty())?;
+        let dn = near
+            .iter()
+            .map(|p| bank::distance(q, p))
+            .fold(f32::INFINITY, f32::min);
+        Some(bank::distance(q, &self.protos[c]) - dn)
+    }
+
     /// Raw geometry score of `g` against class `c` (`None` without descriptors).
     fn geometry_score(
         &self,
@@ -240,12 +296,54 @@ pub struct Args {
     /// the calibrated thresholds, to measure what the tolerance buys.
     #[arg(long)]
     pub wrong_task_tolerance: Option<f32>,
+    /// Near misses enrolled with every example for the `guardian-near-miss` method:
+    /// `truncated:SHARE` (stopped with SHARE of its pen-down path left undrawn), `mirrored`.
+    /// None: the method is not measured.
+    #[arg(long, value_delimiter = ',')]
+    pub near_misses: Vec<NearMiss>,
+    /// Share of the false-reject budget given to the near-miss step (taken from the
+    /// embedding's share).
+    #[arg(long, default_value_t = 0.25)]
+    pub near_miss_share: f32,
     /// Directory for ROC curves and score histograms (PNG) and the raw scores (JSON).
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Print one JSON object (otherwise a markdown table).
     #[arg(long)]
     pub json: bool,
+}
+
+/// A near miss of a plan (`guardian_robot::variant`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum NearMiss {
+    /// Stopped with this share of its pen-down path undrawn.
+    Truncated(f64),
+    /// Mirrored left-right.
+    Mirrored,
+}
+
+impl std::str::FromStr for NearMiss {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.split_once(':') {
+            None if s == "mirrored" => Ok(Self::Mirrored),
+            Some(("truncated", v)) => match v.parse::<f64>() {
+                Ok(x) if x > 0.0 && x < 1.0 => Ok(Self::Truncated(x)),
+                _ => Err(format!("truncated share {v:?} is not in (0, 1)")),
+            },
+            _ => Err(format!("{s:?}: expected truncated:SHARE or mirrored")),
+        }
+    }
+}
+
+impl NearMiss {
+    /// The near miss of `x`, if it can be made.
+    fn of(self, robot: &guardian_robot::kinematics::Robot, x: &Resampled) -> Option<Resampled> {
+        match self {
+            Self::Truncated(share) => guardian_robot::variant::truncated(robot, x, share).ok(),
+            Self::Mirrored => guardian_robot::variant::mirrored(robot, x).ok(),
+        }
+    }
 }
 
 /// Figures of one fault at one severity.
@@ -421,7 +519,27 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
     );
     let (gc, gt, gf) = (vectors(&ec), vectors(&et), vectors(&ef));
     methods.push((Method::Guardian, gc.clone(), gt.clone(), gf.clone()));
+    if !args.near_misses.is_empty() {
+        methods.push((Method::GuardianNearMiss, gc.clone(), gt.clone(), gf.clone()));
+    }
     methods.push((Method::GuardianEmbedding, gc, gt, gf));
+    // The near misses of every calibration and test plan, embedded: [kind][plan].
+    let near_of = |xs: &[Resampled]| -> anyhow::Result<Vec<Vec<Option<Vec<f32>>>>> {
+        let mut out = Vec::new();
+        for k in &args.near_misses {
+            let made: Vec<Option<Resampled>> = xs.par_iter().map(|x| k.of(&robot, x)).collect();
+            let ok: Vec<Resampled> = made.iter().flatten().copied().collect();
+            let mut vecs = vectors(&embed(&model, &ok)?).into_iter();
+            eprintln!("near miss {k:?}: {} of {} plans", ok.len(), xs.len());
+            out.push(
+                made.iter()
+                    .map(|m| m.as_ref().and_then(|_| vecs.next()))
+                    .collect(),
+            );
+        }
+        Ok(out)
+    };
+    let (cnear, tnear) = (near_of(&cpool.xs)?, near_of(&pool.xs)?);
     // Plan geometry of every plan (from its pen path), workcell score of every test and
     // faulty plan.
     let geo_of = |es: &[Embedded]| -> Vec<Option<PlanGeometry>> {
@@ -474,9 +592,11 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
     let mut reports = Vec::new();
     let mut raw: BTreeMap<String, Scores> = BTreeMap::new();
     for (method, cv, tv, fv) in &methods {
-        let full = *method == Method::Guardian;
+        let full = matches!(method, Method::Guardian | Method::GuardianNearMiss);
+        let nm = *method == Method::GuardianNearMiss;
+        let nm_share = if nm { args.near_miss_share } else { 0.0 };
         let space_method = match method {
-            Method::GuardianEmbedding => Method::Guardian,
+            Method::GuardianEmbedding | Method::GuardianNearMiss => Method::Guardian,
             m => *m,
         };
         // Calibration.
@@ -487,18 +607,24 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
         let mut crng = StdRng::seed_from_u64(args.screen.seed);
         let mut gs = Vec::new();
         let mut ggeo = Vec::new();
+        let mut gnear = Vec::new();
         for _ in 0..args.calib_reps {
             let (support, queries) = split(&cpool.labels, args.screen.shots, &mut crng);
-            let e = cspace.enroll(&support, full.then_some(cgeo.as_slice()));
+            let e = cspace.enroll_near(
+                &support,
+                full.then_some(cgeo.as_slice()),
+                nm.then_some(cnear.as_slice()),
+            );
             for q in queries {
                 let d = e.distances(space_method, &cv[q]);
                 let c = cpool.labels[q] as usize;
                 gs.push(e.genuine(&d, c));
                 ggeo.push(e.geometry_score(cgeo[q].as_ref(), c, &scales));
+                gnear.push(e.near_miss_margin(&cv[q], c));
             }
         }
         let emb_target = if full {
-            args.screen.target_frr * (1.0 - args.screen.geometry_share)
+            args.screen.target_frr * (1.0 - args.screen.geometry_share - nm_share)
         } else {
             args.screen.target_frr
         };
@@ -529,7 +655,7 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
                     &gs,
                     &ggeo,
                     &cal,
-                    args.screen.target_frr,
+                    args.screen.target_frr * (1.0 - nm_share),
                     scales,
                     &format!("geometry share {}", args.screen.geometry_share),
                 )
@@ -539,18 +665,46 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
             None
         };
         let gcal = gcal.as_ref();
+        // The near-miss tolerance: what the embedding and geometry rules leave of the whole
+        // budget goes to the near-miss margin, on the plans they accept.
+        let near_tol = if nm {
+            let budget = (f64::from(args.screen.target_frr) * gs.len() as f64).floor() as usize;
+            let mut used = 0;
+            let mut kept = Vec::new();
+            for ((g, geo), m) in gs.iter().zip(&ggeo).zip(&gnear) {
+                let gs_ = full_score(score(g, &cal), *geo, gcal, 0.0);
+                if gs_ > 1.0 {
+                    used += 1;
+                } else if let Some(m) = m {
+                    kept.push(*m);
+                }
+            }
+            let t =
+                bank::threshold_allowing(&kept, budget.saturating_sub(used)).unwrap_or(f32::MAX);
+            eprintln!(
+                "near-miss tolerance {t:.4} ({used} of {} genuine plans rejected before it, budget {budget})",
+                gs.len()
+            );
+            Some(t)
+        } else {
+            None
+        };
         // The geometry scales the threshold was chosen with (the calibration alphabets', or
         // the bank's with `--calibration-from`).
         let tscales = gcal.map_or(scales, |g| g.scales);
         // The method's score of a plan claiming class c.
-        let plan_score = |e: &Enrolled, d: &[f32], c: usize, g: Option<&PlanGeometry>, wc: f32| {
-            let s = score(&e.genuine(d, c), &cal);
-            if full {
-                full_score(s, e.geometry_score(g, c, &tscales), gcal, wc)
-            } else {
-                s
-            }
-        };
+        let plan_score =
+            |e: &Enrolled, q: &[f32], d: &[f32], c: usize, g: Option<&PlanGeometry>, wc: f32| {
+                let s = score(&e.genuine(d, c), &cal);
+                if !full {
+                    return s;
+                }
+                let f = full_score(s, e.geometry_score(g, c, &tscales), gcal, wc);
+                match (near_tol, e.near_miss_margin(q, c)) {
+                    (Some(t), Some(m)) => f.max(1.0 + (m - t)),
+                    _ => f,
+                }
+            };
         // Test rounds.
         let tspace = Space {
             method: space_method,
@@ -566,7 +720,11 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
             for &u in &unknown {
                 support[u].clear();
             }
-            let e = tspace.enroll(&support, full.then_some(tgeo.as_slice()));
+            let e = tspace.enroll_near(
+                &support,
+                full.then_some(tgeo.as_slice()),
+                nm.then_some(tnear.as_slice()),
+            );
             let enrolled: Vec<usize> = (0..nclass).filter(|c| !support[*c].is_empty()).collect();
             // Nearest enrolled prototype of each class (in this method's space), by the
             // mean of all its drawings for never-enrolled classes.
@@ -620,11 +778,11 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
                         sc.faulty
                             .entry(format!("unknown-task@{sev}"))
                             .or_default()
-                            .push(plan_score(&e, &d, claim, g, wc));
+                            .push(plan_score(&e, &tv[q], &d, claim, g, wc));
                     }
                     continue;
                 }
-                sc.genuine.push(plan_score(&e, &d, c, g, wc));
+                sc.genuine.push(plan_score(&e, &tv[q], &d, c, g, wc));
                 for sev in [25u32, 50, 100] {
                     let claim = pick(c, sev, &mut trng);
                     if claim == c {
@@ -633,7 +791,7 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
                     sc.faulty
                         .entry(format!("wrong-task@{sev}"))
                         .or_default()
-                        .push(plan_score(&e, &d, claim, g, wc));
+                        .push(plan_score(&e, &tv[q], &d, claim, g, wc));
                 }
             }
             for (k, (p, key, _)) in faulty.iter().enumerate() {
@@ -645,7 +803,7 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
                 sc.faulty
                     .entry(format!("{}@{}", key.0, key.1))
                     .or_default()
-                    .push(plan_score(&e, &d, c, fgeo[k].as_ref(), fwc[k]));
+                    .push(plan_score(&e, &fv[k], &d, c, fgeo[k].as_ref(), fwc[k]));
             }
         }
         let mut figs = Vec::new();
