@@ -105,6 +105,43 @@ pub fn truncated(robot: &Robot, x: &Resampled, share: f64) -> Result<Resampled, 
 /// every pose re-solved by IK seeded with the previous one, the tool orientation kept. The
 /// first waypoint (where the plan starts) stays where it is.
 pub fn mirrored(robot: &Robot, x: &Resampled) -> Result<Resampled, VariantError> {
+    mirror(robot, x, |i| i > 0)
+}
+
+/// The pen-down runs (strokes) of `x`: the step ranges where the pen is down.
+pub fn strokes(x: &Resampled) -> Vec<std::ops::Range<usize>> {
+    let mut out = Vec::new();
+    let mut start = None;
+    for (i, w) in x.iter().enumerate() {
+        match (w[TOOL] > 0.5, start) {
+            (true, None) => start = Some(i),
+            (false, Some(s)) => {
+                out.push(s..i);
+                start = None;
+            }
+            _ => {}
+        }
+    }
+    if let Some(s) = start {
+        out.push(s..STEPS);
+    }
+    out
+}
+
+/// `x` with only its stroke `k` ([`strokes`]) mirrored about the centre of the whole
+/// pen-down path, as [`mirrored`] mirrors every pose: a drawing with one stroke the wrong
+/// way round.
+pub fn mirrored_stroke(robot: &Robot, x: &Resampled, k: usize) -> Result<Resampled, VariantError> {
+    let run = strokes(x).get(k).cloned().ok_or(VariantError::NoPenDown)?;
+    mirror(robot, x, |i| run.contains(&i))
+}
+
+/// `x` with the poses of the steps `which` selects mirrored (see [`mirrored`]).
+fn mirror(
+    robot: &Robot,
+    x: &Resampled,
+    which: impl Fn(usize) -> bool,
+) -> Result<Resampled, VariantError> {
     let mut p = [[0.0f64; 3]; STEPS];
     robot.pen_tip_positions_into(x, &mut p);
     let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
@@ -120,9 +157,13 @@ pub fn mirrored(robot: &Robot, x: &Resampled) -> Result<Resampled, VariantError>
     let c = 0.5 * (lo + hi);
     let options = IkOptions::default();
     let mut out: Vec<Waypoint> = Vec::with_capacity(STEPS);
-    out.push(x[0]);
     let mut seed = robot.joints_of(&x[0]);
-    for w in &x[1..] {
+    for (i, w) in x.iter().enumerate() {
+        if !which(i) {
+            out.push(*w);
+            seed = robot.joints_of(w);
+            continue;
+        }
         let mut target = robot.pen_tip(&robot.joints_of(w));
         target.translation.y = 2.0 * c - target.translation.y;
         seed = robot.ik(&target, &seed, &options)?;
@@ -226,6 +267,37 @@ mod tests {
         assert!(
             la[0] > c + 0.005 && lb[0] < c - 0.005,
             "{la:?} -> {lb:?} about {c}"
+        );
+    }
+
+    #[test]
+    fn one_stroke_mirrored_moves_that_stroke_only() {
+        let x = ell();
+        let runs = strokes(&x);
+        assert_eq!(runs.len(), 2, "{runs:?}");
+        let m = mirrored_stroke(default_panda(), &x, 1).expect("a near miss");
+        let (a, b) = (
+            pen_path_with(default_panda(), &x),
+            pen_path_with(default_panda(), &m),
+        );
+        // The first stroke (along canvas "up") is where it was, to a resampling step; the
+        // second went right (canvas +x) and now goes left.
+        let first = |p: &[[f32; 3]; STEPS]| p.iter().find(|q| q[2] > 0.5).copied().unwrap();
+        assert!(
+            (first(&a)[0] - first(&b)[0]).abs() < 2e-3,
+            "{:?} {:?}",
+            first(&a),
+            first(&b)
+        );
+        let second = |p: &[[f32; 3]; STEPS], x: &Resampled| {
+            let r = strokes(x)[1].clone();
+            p[r.end - 1][0] - p[r.start][0]
+        };
+        let (da, db) = (second(&a, &x), second(&b, &m));
+        assert!(da > 0.015 && db < -0.015, "second stroke: {da} -> {db}");
+        assert!(
+            mirrored_stroke(default_panda(), &x, 2).is_err(),
+            "no third stroke"
         );
     }
 

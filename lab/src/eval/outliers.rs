@@ -128,27 +128,32 @@ fn mean_of(rows: &[&Vec<f32>]) -> Vec<f32> {
 }
 
 impl Space<'_> {
-    /// Enroll `support`; with `near`, also the prototype of every near miss (`near[k][i]`:
-    /// near miss `k` of sample `i`, `None` where it could not be made).
+    /// Enroll `support`; with `near`, also every near miss (`near[k].1[i]`: the near misses
+    /// of kind `k` of sample `i`, none where they could not be made): a prototype per kind
+    /// that makes one near miss of a plan, every near miss of the support for a kind that
+    /// makes several (one per stroke).
     fn enroll_near(
         &self,
         support: &[Vec<usize>],
         geo: Option<&[Option<PlanGeometry>]>,
-        near: Option<&[Vec<Option<Vec<f32>>>]>,
+        near: Option<&[NearVectors]>,
     ) -> Enrolled {
         let mut e = self.enroll(support, geo);
         if let Some(near) = near {
             e.near = support
                 .iter()
                 .map(|idx| {
-                    near.iter()
-                        .map(|kind| {
-                            let rows: Vec<&Vec<f32>> =
-                                idx.iter().filter_map(|&i| kind[i].as_ref()).collect();
-                            mean_of(&rows)
-                        })
-                        .filter(|m| !m.is_empty())
-                        .collect()
+                    let mut out = Vec::new();
+                    for (kind, vecs) in near {
+                        let rows: Vec<&Vec<f32>> =
+                            idx.iter().flat_map(|&i| vecs[i].iter()).collect();
+                        if kind.per_stroke() {
+                            out.extend(rows.into_iter().cloned());
+                        } else if !rows.is_empty() {
+                            out.push(mean_of(&rows));
+                        }
+                    }
+                    out
                 })
                 .collect();
         }
@@ -320,13 +325,19 @@ pub enum NearMiss {
     Truncated(f64),
     /// Mirrored left-right.
     Mirrored,
+    /// One stroke mirrored left-right (one near miss per stroke).
+    MirroredStroke,
 }
+
+/// The near misses of one kind for every plan of a pool, embedded.
+type NearVectors = (NearMiss, Vec<Vec<Vec<f32>>>);
 
 impl std::str::FromStr for NearMiss {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
         match s.split_once(':') {
             None if s == "mirrored" => Ok(Self::Mirrored),
+            None if s == "mirrored-stroke" => Ok(Self::MirroredStroke),
             Some(("truncated", v)) => match v.parse::<f64>() {
                 Ok(x) if x > 0.0 && x < 1.0 => Ok(Self::Truncated(x)),
                 _ => Err(format!("truncated share {v:?} is not in (0, 1)")),
@@ -337,12 +348,24 @@ impl std::str::FromStr for NearMiss {
 }
 
 impl NearMiss {
-    /// The near miss of `x`, if it can be made.
-    fn of(self, robot: &guardian_robot::kinematics::Robot, x: &Resampled) -> Option<Resampled> {
+    /// The near misses of `x` that can be made.
+    fn of(self, robot: &guardian_robot::kinematics::Robot, x: &Resampled) -> Vec<Resampled> {
+        use guardian_robot::variant;
         match self {
-            Self::Truncated(share) => guardian_robot::variant::truncated(robot, x, share).ok(),
-            Self::Mirrored => guardian_robot::variant::mirrored(robot, x).ok(),
+            Self::Truncated(share) => variant::truncated(robot, x, share)
+                .ok()
+                .into_iter()
+                .collect(),
+            Self::Mirrored => variant::mirrored(robot, x).ok().into_iter().collect(),
+            Self::MirroredStroke => (0..variant::strokes(x).len())
+                .filter_map(|k| variant::mirrored_stroke(robot, x, k).ok())
+                .collect(),
         }
+    }
+
+    /// Several near misses per plan, each kept (not averaged over the support).
+    fn per_stroke(self) -> bool {
+        self == Self::MirroredStroke
     }
 }
 
@@ -524,18 +547,28 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
     }
     methods.push((Method::GuardianEmbedding, gc, gt, gf));
     // The near misses of every calibration and test plan, embedded: [kind][plan].
-    let near_of = |xs: &[Resampled]| -> anyhow::Result<Vec<Vec<Option<Vec<f32>>>>> {
+    let near_of = |xs: &[Resampled]| -> anyhow::Result<Vec<NearVectors>> {
         let mut out = Vec::new();
         for k in &args.near_misses {
-            let made: Vec<Option<Resampled>> = xs.par_iter().map(|x| k.of(&robot, x)).collect();
-            let ok: Vec<Resampled> = made.iter().flatten().copied().collect();
-            let mut vecs = vectors(&embed(&model, &ok)?).into_iter();
-            eprintln!("near miss {k:?}: {} of {} plans", ok.len(), xs.len());
-            out.push(
-                made.iter()
-                    .map(|m| m.as_ref().and_then(|_| vecs.next()))
-                    .collect(),
+            let t0 = std::time::Instant::now();
+            let made: Vec<Vec<Resampled>> = xs.par_iter().map(|x| k.of(&robot, x)).collect();
+            let t1 = t0.elapsed();
+            let all: Vec<Resampled> = made.iter().flatten().copied().collect();
+            let mut vecs = vectors(&embed(&model, &all)?).into_iter();
+            eprintln!(
+                "near miss {k:?}: {} of {} plans, made in {:.1} s, embedded in {:.1} s ({} threads)",
+                all.len(),
+                xs.len(),
+                t1.as_secs_f64(),
+                (t0.elapsed() - t1).as_secs_f64(),
+                rayon::current_num_threads()
             );
+            out.push((
+                *k,
+                made.iter()
+                    .map(|m| vecs.by_ref().take(m.len()).collect())
+                    .collect(),
+            ));
         }
         Ok(out)
     };
