@@ -30,7 +30,9 @@ pub struct GateConfig {
     /// nothing on MoveIt's domain can reach the controller around the gate. Unset: the gate's.
     pub controller_domain_id: Option<u16>,
     /// Limit DDS to the interfaces with these addresses (e.g. `["127.0.0.1"]` when
-    /// MoveIt, the controller and the gate share the host). Empty: every interface.
+    /// MoveIt, the controller and the gate share the host): announced, sent and received
+    /// on that interface only; the addresses must be on one interface
+    /// (the `sockets` module). Empty: every interface.
     pub only_networks: Vec<std::net::IpAddr>,
     /// The ROS nodes (fully qualified names, e.g. `"/cell/executive"`) whose claims on
     /// `<gate>/task` count; a claim from any other node is refused and changes nothing.

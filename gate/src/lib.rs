@@ -10,7 +10,8 @@
 //! Without the `node` feature the crate is the messages ([`msgs`]), their CDR encoding
 //! ([`cdr`]), the goal → plan mapping ([`plan`]) and rosbag2 reading ([`bag`]), which
 //! `guardianctl --bag` uses.
-#![forbid(unsafe_code)]
+// Denied, not forbidden: `sockets::borrow` is the one exception (see there).
+#![deny(unsafe_code)]
 #![warn(missing_docs)]
 
 pub mod bag;
@@ -25,3 +26,5 @@ pub mod claim;
 pub mod guardiand;
 #[cfg(feature = "node")]
 pub mod node;
+#[cfg(feature = "node")]
+pub mod sockets;

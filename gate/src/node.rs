@@ -35,6 +35,7 @@ use crate::msgs::{
     ParticipantEntitiesInfo, StringMsg, Time, Verdict, error_code,
 };
 use crate::plan::PlanMapper;
+use crate::sockets;
 
 /// A FollowJointTrajectory action server (the gate's own, a controller's).
 pub type Server = AsyncActionServer<Goal, GoalResult, Feedback>;
@@ -139,8 +140,14 @@ pub fn action_client(
 }
 
 /// A DDS participant on `domain`, limited to the interfaces with `only_networks` (all if
-/// empty), as a ros2-client context.
+/// empty), as a ros2-client context. With `only_networks`, its UDP sockets only take
+/// datagrams that came in on their interface ([`sockets`]); that failing is an error.
 pub fn context(domain: u16, only_networks: &[std::net::IpAddr]) -> anyhow::Result<Context> {
+    let device = sockets::interface_of(only_networks)?;
+    let before = match device {
+        Some(_) => sockets::sockets()?,
+        None => Default::default(),
+    };
     let mut b = ros2_client::dds::rustdds::DomainParticipantBuilder::new(domain);
     if !only_networks.is_empty() {
         b = b.with_only_networks(only_networks.iter().copied());
@@ -148,6 +155,13 @@ pub fn context(domain: u16, only_networks: &[std::net::IpAddr]) -> anyhow::Resul
     let dp = b
         .build()
         .map_err(|e| anyhow!("DDS participant on domain {domain}: {e:?}"))?;
+    if let Some(device) = device {
+        // On an error `dp` is dropped here, closing its sockets.
+        let n = sockets::bind_new(&before, &device)?;
+        tracing::info!(
+            "DDS sockets restricted to interface {device} ({n} sockets, domain {domain})"
+        );
+    }
     Context::from_domain_participant(dp).map_err(|e| anyhow!("ROS 2 context: {e:?}"))
 }
 
