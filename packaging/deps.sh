@@ -4,7 +4,8 @@
 #          the examples' plots (pkg-config, fontconfig, freetype, DejaVu fonts)
 #   test   build + what the test suite runs for real: systemd's tools (systemd-analyze),
 #          util-linux, Prometheus (promtool and the server) and Chromium (tests/tests/observe.rs)
-#   ci     test + Python 3 with venv (python/ci.sh) + fastdds
+#   ci     test + Python 3 with venv (python/ci.sh) + iproute2 (ip netns and ss, the gate's
+#          gate/tests/netns/run.sh) + fastdds
 #   fastdds  the Fast DDS interop test (gate/tests/fastdds/run.sh): Fast DDS 2.9 and its
 #          type generator (Java), g++
 # Needs root, or sudo. The Rust toolchain itself comes from rustup.
@@ -12,7 +13,7 @@ set -euo pipefail
 what="${1:-test}"
 build=(pkg-config libfontconfig1-dev libfreetype-dev fonts-dejavu-core libclang-dev clang)
 test=(systemd util-linux prometheus chromium)
-ci=(python3 python3-venv)
+ci=(python3 python3-venv iproute2)
 fastdds=(libfastrtps-dev fastddsgen g++)
 case "$what" in
   build) pkgs=("${build[@]}") ;;
