@@ -470,6 +470,8 @@ fn outlier_row(
         wrong_task_tolerance: None,
         near_misses: Vec::new(),
         near_miss_share: 0.25,
+        near_miss_from_geometry: false,
+        near_miss_form: crate::eval::outliers::NearMissForm::Margin,
         out: None,
         json: false,
     })?;

@@ -232,13 +232,18 @@ impl Enrolled {
     /// The near-miss margin of a plan at `q` claiming class `c`: its distance to the class
     /// minus its distance to the nearest near miss of the class (> 0: it resembles a near
     /// miss more than the class). `None` without near misses.
-    fn near_miss_margin(&self, q: &[f32], c: usize) -> Option<f32> {
+    fn near_miss_margin(&self, q: &[f32], c: usize, form: NearMissForm) -> Option<f32> {
         let near = self.near.get(c).filter(|n| !n.is_empty())?;
         let dn = near
             .iter()
             .map(|p| bank::distance(q, p))
             .fold(f32::INFINITY, f32::min);
-        Some(bank::distance(q, &self.protos[c]) - dn)
+        let dc = bank::distance(q, &self.protos[c]);
+        Some(match (form, self.spread[c]) {
+            (NearMissForm::Spread, Some(s)) if s > 0.0 => (dc - dn) / s,
+            (NearMissForm::Ratio, _) => dc / dn.max(1e-12),
+            _ => dc - dn,
+        })
     }
 
     /// Raw geometry score of `g` against class `c` (`None` without descriptors).
@@ -307,9 +312,17 @@ pub struct Args {
     #[arg(long, value_delimiter = ',')]
     pub near_misses: Vec<NearMiss>,
     /// Share of the false-reject budget given to the near-miss step (taken from the
-    /// embedding's share).
+    /// embedding's share, or the geometry's with `--near-miss-from-geometry`).
     #[arg(long, default_value_t = 0.25)]
     pub near_miss_share: f32,
+    /// Take the near-miss share from the geometry check's share instead of the embedding's.
+    #[arg(long)]
+    pub near_miss_from_geometry: bool,
+    /// The near-miss score: `margin` (distance to the class minus distance to the nearest
+    /// near miss), `spread` (that over the class's spread), `ratio` (the two distances'
+    /// ratio).
+    #[arg(long, value_enum, default_value_t = NearMissForm::Margin)]
+    pub near_miss_form: NearMissForm,
     /// Directory for ROC curves and score histograms (PNG) and the raw scores (JSON).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -327,6 +340,18 @@ pub enum NearMiss {
     Mirrored,
     /// One stroke mirrored left-right (one near miss per stroke).
     MirroredStroke,
+}
+
+/// How the near-miss step compares a plan's distance to its class (`d_c`) with its distance
+/// to the nearest near miss of the class (`d_n`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum NearMissForm {
+    /// `d_c - d_n`.
+    Margin,
+    /// `(d_c - d_n) / spread` (the class's spread; the margin without one).
+    Spread,
+    /// `d_c / d_n`.
+    Ratio,
 }
 
 /// The near misses of one kind for every plan of a pool, embedded.
@@ -556,7 +581,7 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
             let all: Vec<Resampled> = made.iter().flatten().copied().collect();
             let mut vecs = vectors(&embed(&model, &all)?).into_iter();
             eprintln!(
-                "near miss {k:?}: {} of {} plans, made in {:.1} s, embedded in {:.1} s ({} threads)",
+                "near miss {k:?}: {} of {} plans, made in {:.3} s, embedded in {:.3} s ({} threads)",
                 all.len(),
                 xs.len(),
                 t1.as_secs_f64(),
@@ -653,11 +678,16 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
                 let c = cpool.labels[q] as usize;
                 gs.push(e.genuine(&d, c));
                 ggeo.push(e.geometry_score(cgeo[q].as_ref(), c, &scales));
-                gnear.push(e.near_miss_margin(&cv[q], c));
+                gnear.push(e.near_miss_margin(&cv[q], c, args.near_miss_form));
             }
         }
         let emb_target = if full {
-            args.screen.target_frr * (1.0 - args.screen.geometry_share - nm_share)
+            let from_emb = if args.near_miss_from_geometry {
+                0.0
+            } else {
+                nm_share
+            };
+            args.screen.target_frr * (1.0 - args.screen.geometry_share - from_emb)
         } else {
             args.screen.target_frr
         };
@@ -733,7 +763,7 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
                     return s;
                 }
                 let f = full_score(s, e.geometry_score(g, c, &tscales), gcal, wc);
-                match (near_tol, e.near_miss_margin(q, c)) {
+                match (near_tol, e.near_miss_margin(q, c, args.near_miss_form)) {
                     (Some(t), Some(m)) => f.max(1.0 + (m - t)),
                     _ => f,
                 }
@@ -922,6 +952,61 @@ pub fn markdown(r: &OutliersReport) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn near_misses_parse_and_bad_ones_are_refused() {
+        let ok = |s: &str| s.parse::<NearMiss>().expect(s);
+        assert_eq!(ok("truncated:0.2"), NearMiss::Truncated(0.2));
+        assert_eq!(ok("mirrored"), NearMiss::Mirrored);
+        assert_eq!(ok("mirrored-stroke"), NearMiss::MirroredStroke);
+        for bad in [
+            "truncated:0",
+            "truncated:1",
+            "truncated:x",
+            "truncated",
+            "shifted",
+            "",
+        ] {
+            assert!(bad.parse::<NearMiss>().is_err(), "{bad:?} parsed");
+        }
+    }
+
+    /// The near-miss margin is > 0 exactly when the plan is nearer to a near miss of its
+    /// class than to the class, in every form (the ratio > 1).
+    #[test]
+    fn the_near_miss_margin_says_which_the_plan_is_nearer_to() {
+        let e = Enrolled {
+            geometry: vec![Vec::new()],
+            protos: vec![vec![1.0, 0.0]],
+            support: vec![vec![vec![1.0, 0.0]]],
+            spread: vec![Some(0.5)],
+            near: vec![vec![vec![0.0, 1.0], vec![0.0, -1.0]]],
+        };
+        let near_class = [0.9f32, 0.1];
+        let near_miss = [0.1f32, 0.9];
+        for form in [NearMissForm::Margin, NearMissForm::Spread] {
+            assert!(e.near_miss_margin(&near_class, 0, form).unwrap() < 0.0);
+            assert!(e.near_miss_margin(&near_miss, 0, form).unwrap() > 0.0);
+        }
+        assert!(
+            e.near_miss_margin(&near_class, 0, NearMissForm::Ratio)
+                .unwrap()
+                < 1.0
+        );
+        assert!(
+            e.near_miss_margin(&near_miss, 0, NearMissForm::Ratio)
+                .unwrap()
+                > 1.0
+        );
+        let bare = Enrolled {
+            near: vec![Vec::new()],
+            ..e
+        };
+        assert_eq!(
+            bare.near_miss_margin(&near_miss, 0, NearMissForm::Margin),
+            None
+        );
+    }
 
     #[test]
     fn score_above_one_is_the_bank_decision() {
