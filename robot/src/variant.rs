@@ -1,14 +1,16 @@
-//! Near misses of a plan: the same plan stopped early ([`truncated`]) or drawn mirrored
-//! ([`mirrored`]), made from a resampled plan by forward and inverse kinematics.
+//! Near misses of a plan: the same plan stopped early ([`truncated`]), drawn mirrored
+//! ([`mirrored`]) or with one stroke mirrored ([`mirrored_stroke`]), made from a resampled
+//! plan by forward and inverse kinematics.
 //!
-//! The embedder is trained to put a class's drawings close together, and a plan that stops
-//! after 80 % of its path, or draws its character mirrored, is still close to them: closer
-//! than the spread between the people who drew the examples. What separates it is that it
-//! is closer still to the *same near miss of the examples*. Enrolment makes these near
-//! misses of every example, and the decision asks whether a plan resembles a near miss of
-//! its class more than the class itself (`guardian_bank`, the near-miss step).
+//! The embedder puts a class's drawings close together, and a plan that stops after 80 % of
+//! its path is often as close to them as another person's drawing of the class. It can
+//! still be closer to the *same near miss of the enrolled examples*. The lab measures a
+//! decision step built on that (`guardian-lab outliers --near-misses`: every enrolled
+//! example's near misses embedded, a plan nearer to a near miss of its class than to the
+//! class refused; `docs/report/log-2026-12-06.md`, "Near misses in the decision"). The
+//! daemon does not use near misses.
 //!
-//! Both work on any serial arm: positions come from the robot's forward kinematics, new
+//! All three work on any serial arm: positions come from the robot's forward kinematics, new
 //! poses from its IK seeded along the path, and every result goes through the one
 //! preprocessing ([`crate::preprocess::preprocess_with`]), so a near miss is seen exactly
 //! as a plan would be.
