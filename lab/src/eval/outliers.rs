@@ -705,7 +705,7 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
             }
             _ => None,
         };
-        if let (Some(t), Method::Guardian | Method::GuardianEmbedding) =
+        if let (Some(t), Method::Guardian | Method::GuardianEmbedding | Method::GuardianNearMiss) =
             (args.wrong_task_tolerance, method)
         {
             cal.wrong_task_tolerance = Some(t);
