@@ -33,7 +33,7 @@
 use guardian_robot::kinematics::{
     Frame, IkError, IkOptions, JointVector, READY_POSE, Robot, default_panda,
 };
-use guardian_shared::trajectory::{SLOTS, TOOL, Waypoint};
+use guardian_shared::trajectory::Waypoint;
 use nalgebra::{Matrix3, Vector3};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -510,7 +510,6 @@ impl Cell {
                 .map_err(CellError::Start)?;
         }
         let mut state = self.robot.ik_state(&q);
-        let joints = self.robot.joints();
         let mut out = Vec::with_capacity(path.len());
         for (index, p) in path.iter().enumerate() {
             self.robot
@@ -520,13 +519,7 @@ impl Cell {
                     position: p.position.into(),
                     source,
                 })?;
-            let mut w = [0.0f32; SLOTS];
-            let limits = self.robot.q_min().iter().zip(self.robot.q_max());
-            for ((w, q), (lo, hi)) in w.iter_mut().zip(&state.q).zip(limits).take(joints) {
-                *w = guardian_robot::kinematics::f32_within(*q, *lo, *hi);
-            }
-            w[TOOL] = f32::from(u8::from(p.tool));
-            out.push(w);
+            out.push(self.robot.waypoint(&state.q, f32::from(u8::from(p.tool))));
         }
         Ok(out)
     }
@@ -646,6 +639,7 @@ fn bezier(
 mod tests {
     use super::*;
     use guardian_robot::kinematics::joints_of;
+    use guardian_shared::trajectory::TOOL;
 
     /// Every family solves on the Panda for several seeds; the plans are dense, the tool is
     /// on from the grasp to the release only, and the grasp and release are where the task

@@ -12,7 +12,7 @@ use guardian_robot::kinematics::{
     DEFAULT_ROBOT, Frame, IkError, IkOptions, JointVector, READY_POSE, Robot, RobotDescription,
     joint_vector,
 };
-use guardian_shared::trajectory::{MAX_WAYPOINTS, TOOL, Waypoint};
+use guardian_shared::trajectory::{MAX_WAYPOINTS, Waypoint};
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
@@ -345,17 +345,10 @@ impl PathSolver {
                     source,
                 })?;
             let q = &state.q;
-            let mut w = [0.0f32; guardian_shared::trajectory::SLOTS];
-            let mut stored: JointVector = [0.0f64; guardian_robot::kinematics::MAX_JOINTS];
-            for j in 0..self.robot.joints() {
-                w[j] = guardian_robot::kinematics::f32_within(
-                    q[j],
-                    self.robot.q_min()[j],
-                    self.robot.q_max()[j],
-                );
-                stored[j] = f64::from(w[j]);
-            }
-            w[TOOL] = if point.pen_down { 1.0 } else { 0.0 };
+            let w = self
+                .robot
+                .waypoint(q, if point.pen_down { 1.0 } else { 0.0 });
+            let stored = self.robot.joints_of(&w);
             let err = (self.robot.pen_tip_position(&stored) - point.position).norm();
             max_fk_error = max_fk_error.max(err);
             min_limit_margin = min_limit_margin.min(self.robot.limit_margin(&stored));

@@ -17,7 +17,7 @@
 
 use guardian_shared::trajectory::{InvalidTrajectory, Resampled, STEPS, TOOL, Waypoint};
 
-use crate::kinematics::{IkError, IkOptions, Robot, f32_within};
+use crate::kinematics::{IkError, IkOptions, Robot};
 use crate::preprocess::preprocess_with;
 
 /// Height the pen is lifted by after a plan stops early (m): the lift of the drawings the
@@ -37,17 +37,6 @@ pub enum VariantError {
     /// The variant is not a valid trajectory.
     #[error(transparent)]
     Invalid(#[from] InvalidTrajectory),
-}
-
-/// A waypoint with the joints `q` (rounded inside the limits) and tool value `tool`.
-fn waypoint_of(robot: &Robot, q: &[f64], tool: f32) -> Waypoint {
-    let mut w = [0.0f32; guardian_shared::trajectory::SLOTS];
-    let (lo, hi) = (robot.q_min(), robot.q_max());
-    for j in 0..robot.joints() {
-        w[j] = f32_within(q[j], lo[j], hi[j]);
-    }
-    w[TOOL] = tool;
-    w
 }
 
 /// The pen is down on the segment from step `i` to step `i + 1`.
@@ -93,12 +82,12 @@ pub fn truncated(robot: &Robot, x: &Resampled, share: f64) -> Result<Resampled, 
         let last = x[STEPS - 1];
         (0..robot.joints()).map(|j| f64::from(last[j])).collect()
     });
-    out.push(waypoint_of(robot, &q, 1.0));
+    out.push(robot.waypoint(&q, 1.0));
     let qv = crate::kinematics::joint_vector(&q);
     let mut target = robot.pen_tip(&qv);
     target.translation.z += LIFT;
     let lifted = robot.ik(&target, &qv, &IkOptions::default())?;
-    out.push(waypoint_of(robot, &lifted, 0.0));
+    out.push(robot.waypoint(&lifted, 0.0));
     Ok(preprocess_with(robot, &out)?)
 }
 
@@ -169,7 +158,7 @@ fn mirror(
         let mut target = robot.pen_tip(&robot.joints_of(w));
         target.translation.y = 2.0 * c - target.translation.y;
         seed = robot.ik(&target, &seed, &options)?;
-        out.push(waypoint_of(robot, &seed, w[TOOL]));
+        out.push(robot.waypoint(&seed, w[TOOL]));
     }
     Ok(preprocess_with(robot, &out)?)
 }
@@ -210,7 +199,7 @@ mod tests {
             seed = robot
                 .ik(&t, &seed, &IkOptions::default())
                 .expect("reachable");
-            wps.push(waypoint_of(robot, &seed, pen));
+            wps.push(robot.waypoint(&seed, pen));
         }
         preprocess(&wps).expect("a valid plan")
     }

@@ -362,4 +362,16 @@ impl Robot {
         }
         out
     }
+
+    /// The waypoint a plan stores for solved joints `q` (the robot's joints, slots past them
+    /// 0) and tool value `tool`: each joint rounded to `f32` inside its limits
+    /// ([`f32_within`]), so a solved pose never fails validation for the rounding.
+    pub fn waypoint(&self, q: &[f64], tool: f32) -> guardian_shared::trajectory::Waypoint {
+        let mut w = [0.0f32; guardian_shared::trajectory::SLOTS];
+        for j in 0..self.joints() {
+            w[j] = f32_within(q[j], self.q_min()[j], self.q_max()[j]);
+        }
+        w[guardian_shared::trajectory::TOOL] = tool;
+        w
+    }
 }
