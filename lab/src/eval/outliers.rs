@@ -31,9 +31,9 @@
 //!   mirrored) are embedded, a prototype per class and kind; a plan whose distance to its
 //!   class exceeds its distance to the nearest near-miss prototype of the class by more than
 //!   a tolerance is a no-go. The tolerance takes `--near-miss-share` of the false-reject
-//!   budget from the embedding's share (what the embedding and geometry rules leave of the
-//!   budget, on the calibration plans they accept), so the genuine false-reject target is
-//!   the same as `guardian`'s;
+//!   budget from the embedding's share (or the geometry's, `--near-miss-from-geometry`):
+//!   what the embedding and geometry rules leave of the budget, on the calibration plans
+//!   they accept, so the genuine false-reject target is the same as `guardian`'s;
 //! - `guardian-embedding`: the shipped embedder alone, calibrated for the whole target
 //!   (the decision before the workcell and geometry checks existed), for comparison;
 //! - `siamese`, `knn`: the baselines.
@@ -307,8 +307,8 @@ pub struct Args {
     #[arg(long)]
     pub wrong_task_tolerance: Option<f32>,
     /// Near misses enrolled with every example for the `guardian-near-miss` method:
-    /// `truncated:SHARE` (stopped with SHARE of its pen-down path left undrawn), `mirrored`.
-    /// None: the method is not measured.
+    /// `truncated:SHARE` (stopped with SHARE of its pen-down path left undrawn), `mirrored`,
+    /// `mirrored-stroke` (one per stroke). None: the method is not measured.
     #[arg(long, value_delimiter = ',')]
     pub near_misses: Vec<NearMiss>,
     /// Share of the false-reject budget given to the near-miss step (taken from the
@@ -367,7 +367,9 @@ impl std::str::FromStr for NearMiss {
                 Ok(x) if x > 0.0 && x < 1.0 => Ok(Self::Truncated(x)),
                 _ => Err(format!("truncated share {v:?} is not in (0, 1)")),
             },
-            _ => Err(format!("{s:?}: expected truncated:SHARE or mirrored")),
+            _ => Err(format!(
+                "{s:?}: expected truncated:SHARE, mirrored or mirrored-stroke"
+            )),
         }
     }
 }
@@ -796,14 +798,7 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
                     .filter(|&i| pool.labels[i] as usize == c)
                     .map(|i| &tv[i])
                     .collect();
-                let dim = rows.first().map_or(0, |r| r.len());
-                let mut m = vec![0.0f32; dim];
-                for r in &rows {
-                    for (a, v) in m.iter_mut().zip(r.iter()) {
-                        *a += v / rows.len() as f32;
-                    }
-                }
-                m
+                mean_of(&rows)
             };
             let centres: Vec<Vec<f32>> = (0..nclass).map(centre).collect();
             let nearest_other = |c: usize| -> usize {
