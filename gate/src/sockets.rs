@@ -81,7 +81,12 @@ pub fn interface_of(only_networks: &[IpAddr]) -> Result<Option<String>, Restrict
     }
     let mut names: BTreeMap<IpAddr, BTreeSet<String>> = BTreeMap::new();
     for ifa in nix::ifaddrs::getifaddrs().map_err(RestrictError::Interfaces)? {
-        if let Some(ip) = ifa.address.as_ref().and_then(ip_of) {
+        if let Some(ip) = ifa
+            .address
+            .as_ref()
+            .and_then(socket_addr_of)
+            .map(|s| s.ip())
+        {
             names.entry(ip).or_default().insert(ifa.interface_name);
         }
     }
@@ -99,11 +104,13 @@ pub fn interface_of(only_networks: &[IpAddr]) -> Result<Option<String>, Restrict
     }
 }
 
-fn ip_of(a: &SockaddrStorage) -> Option<IpAddr> {
+/// The IPv4 or IPv6 address and port of `a` (`None` for another family).
+fn socket_addr_of(a: &SockaddrStorage) -> Option<SocketAddr> {
     if let Some(v4) = a.as_sockaddr_in() {
-        Some(v4.ip().into())
+        Some(SocketAddr::new(v4.ip().into(), v4.port()))
     } else {
-        a.as_sockaddr_in6().map(|v6| v6.ip().into())
+        a.as_sockaddr_in6()
+            .map(|v6| SocketAddr::new(v6.ip().into(), v6.port()))
     }
 }
 
@@ -170,13 +177,7 @@ pub fn bind_new(before: &BTreeMap<RawFd, u64>, device: &str) -> Result<usize, Re
 /// `fd`'s local address and whether its IP is unspecified, if it is an IPv4 or IPv6 UDP
 /// socket.
 fn udp_local(fd: RawFd) -> Option<(SocketAddr, bool)> {
-    let addr: SockaddrStorage = getsockname(fd).ok()?;
-    let local = if let Some(v4) = addr.as_sockaddr_in() {
-        SocketAddr::new(v4.ip().into(), v4.port())
-    } else {
-        let v6 = addr.as_sockaddr_in6()?;
-        SocketAddr::new(v6.ip().into(), v6.port())
-    };
+    let local = socket_addr_of(&getsockname::<SockaddrStorage>(fd).ok()?)?;
     let kind = getsockopt(&borrow(fd), sockopt::SockType).ok()?;
     (kind == SockType::Datagram).then_some((local, local.ip().is_unspecified()))
 }
