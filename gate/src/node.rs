@@ -139,30 +139,66 @@ pub fn action_client(
     .map_err(|e| anyhow!("action client of {namespace:?}: {e:?}"))
 }
 
+/// How many participant ids [`context`] passes over whose user-traffic port another process
+/// holds, before it gives up.
+const TAKEN_IDS_MAX: usize = 8;
+
 /// A DDS participant on `domain`, limited to the interfaces with `only_networks` (all if
 /// empty), as a ros2-client context. With `only_networks`, its UDP sockets only take
 /// datagrams that came in on their interface ([`sockets`]); that failing is an error.
+///
+/// RustDDS takes the first participant id whose discovery port is free, and if that id's
+/// user-traffic port is taken (a participant of another DDS that numbers its ports
+/// otherwise, started at the same moment: seen with Fast DDS) it listens on an ephemeral
+/// port but still announces its writers on the taken one, so readers send their
+/// acknowledgements elsewhere and a reliable topic stalls at its first lost sample. Such a
+/// participant is dropped and built again while the gate holds that id's discovery port,
+/// which moves RustDDS to the next id.
 pub fn context(domain: u16, only_networks: &[std::net::IpAddr]) -> anyhow::Result<Context> {
     let device = sockets::interface_of(only_networks)?;
-    let before = match device {
-        Some(_) => sockets::sockets()?,
-        None => Default::default(),
-    };
-    let mut b = ros2_client::dds::rustdds::DomainParticipantBuilder::new(domain);
-    if !only_networks.is_empty() {
-        b = b.with_only_networks(only_networks.iter().copied());
+    let mut held = Vec::new();
+    for _ in 0..=TAKEN_IDS_MAX {
+        let before = sockets::sockets()?;
+        let mut b = ros2_client::dds::rustdds::DomainParticipantBuilder::new(domain);
+        if !only_networks.is_empty() {
+            b = b.with_only_networks(only_networks.iter().copied());
+        }
+        let dp = b
+            .build()
+            .map_err(|e| anyhow!("DDS participant on domain {domain}: {e:?}"))?;
+        let id = dp.participant_id();
+        let user_port = sockets::user_unicast_port(domain, id);
+        if !sockets::new_udp_ports(&before)?
+            .iter()
+            .any(|&p| u32::from(p) == user_port)
+        {
+            tracing::warn!(
+                "DDS participant id {id} on domain {domain}: another process holds its \
+                 user-traffic port {user_port}; taking the next id"
+            );
+            drop(dp);
+            // If this fails, someone else holds the port, which moves RustDDS on as well.
+            if let Ok(port) = u16::try_from(sockets::discovery_unicast_port(domain, id))
+                && let Ok(s) = std::net::UdpSocket::bind((std::net::Ipv4Addr::UNSPECIFIED, port))
+            {
+                held.push(s);
+            }
+            continue;
+        }
+        if let Some(device) = &device {
+            // On an error `dp` is dropped here, closing its sockets.
+            let n = sockets::bind_new(&before, device)?;
+            tracing::info!(
+                "DDS sockets restricted to interface {device} ({n} sockets, domain {domain})"
+            );
+        }
+        return Context::from_domain_participant(dp).map_err(|e| anyhow!("ROS 2 context: {e:?}"));
     }
-    let dp = b
-        .build()
-        .map_err(|e| anyhow!("DDS participant on domain {domain}: {e:?}"))?;
-    if let Some(device) = device {
-        // On an error `dp` is dropped here, closing its sockets.
-        let n = sockets::bind_new(&before, &device)?;
-        tracing::info!(
-            "DDS sockets restricted to interface {device} ({n} sockets, domain {domain})"
-        );
-    }
-    Context::from_domain_participant(dp).map_err(|e| anyhow!("ROS 2 context: {e:?}"))
+    Err(anyhow!(
+        "DDS participant on domain {domain}: the user-traffic ports of {} participant ids in a \
+         row are held by other processes",
+        TAKEN_IDS_MAX + 1
+    ))
 }
 
 enum Event {
@@ -940,4 +976,41 @@ impl Gate<'_> {
 /// A goal id as 32 hex digits.
 pub fn uuid_hex(id: &GoalId) -> String {
     id.uuid.simple().to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use std::net::UdpSocket;
+
+    use super::*;
+    use crate::sockets::{discovery_unicast_port, user_unicast_port};
+
+    fn bind(port: u32) -> std::io::Result<UdpSocket> {
+        UdpSocket::bind(("0.0.0.0", u16::try_from(port).unwrap()))
+    }
+
+    #[test]
+    fn a_participant_whose_user_port_is_taken_is_built_on_the_next_id() {
+        // No other test of the project uses domain 231.
+        let domain = 231;
+        // The id RustDDS would take: the first whose discovery port is free.
+        let first = (0..20)
+            .find(|&id| bind(discovery_unicast_port(domain, id)).is_ok())
+            .expect("a free participant id on domain 231");
+        // Another process's participant on that id's user-traffic port.
+        let _other = bind(user_unicast_port(domain, first)).unwrap();
+        let before = sockets::sockets().unwrap();
+        let ctx = context(domain, &[]).unwrap();
+        let id = ctx.domain_participant().participant_id();
+        assert!(id > first, "participant id {id}, the taken one {first}");
+        let ports = sockets::new_udp_ports(&before).unwrap();
+        assert!(
+            ports
+                .iter()
+                .any(|&p| u32::from(p) == user_unicast_port(domain, id)),
+            "id {id} listens on its user-traffic port: {ports:?}"
+        );
+        // The taken id's discovery port was held only while building.
+        assert!(bind(discovery_unicast_port(domain, first)).is_ok());
+    }
 }

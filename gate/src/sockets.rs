@@ -14,6 +14,11 @@
 //! before: RustDDS makes all of them before `build()` returns (its listeners in `build()`
 //! itself, its sender in the event loop, which `build()` waits for). The gate builds its
 //! participants one after the other, and nothing else in it makes IP sockets.
+//!
+//! The same listing checks that a participant got its user-traffic port ([`new_udp_ports`],
+//! used by `node::context`): RustDDS 0.15 announces its writers (SEDP) on the user-traffic
+//! port of its participant id (`DiscoveredWriterData::new`) even when another process held
+//! that port and its listener fell back to an ephemeral one.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::ffi::OsString;
@@ -142,20 +147,19 @@ pub fn sockets() -> Result<BTreeMap<RawFd, u64>, RestrictError> {
 
 /// Binds every UDP socket the process holds now and did not hold at `before` (a
 /// [`sockets`] snapshot), if bound to an unspecified address (0.0.0.0, ::), to `device`;
-/// returns how many it bound. Errors if it finds no new UDP socket at all.
+/// returns how many it bound. Errors if it finds no new UDP socket at all. The caller holds
+/// the participant that made them (see [`borrow`]).
 pub fn bind_new(before: &BTreeMap<RawFd, u64>, device: &str) -> Result<usize, RestrictError> {
-    let old: BTreeSet<u64> = before.values().copied().collect();
     let name = OsString::from(device);
-    let (mut udp, mut bound) = (0, 0);
-    for (fd, inode) in sockets()? {
-        if old.contains(&inode) {
-            continue;
-        }
-        let Some((local, wildcard)) = udp_local(fd) else {
-            continue;
-        };
-        udp += 1;
-        if wildcard {
+    let udp = new_udp(before)?;
+    if udp.is_empty() {
+        return Err(RestrictError::NoSockets {
+            device: device.to_owned(),
+        });
+    }
+    let mut bound = 0;
+    for (fd, local) in udp {
+        if local.ip().is_unspecified() {
             bind_to_device(fd, &name).map_err(|source| RestrictError::Bind {
                 local,
                 device: device.to_owned(),
@@ -166,20 +170,45 @@ pub fn bind_new(before: &BTreeMap<RawFd, u64>, device: &str) -> Result<usize, Re
             tracing::debug!("DDS socket on {local} left as it is (bound to an address)");
         }
     }
-    if udp == 0 {
-        return Err(RestrictError::NoSockets {
-            device: device.to_owned(),
-        });
-    }
     Ok(bound)
 }
 
-/// `fd`'s local address and whether its IP is unspecified, if it is an IPv4 or IPv6 UDP
-/// socket.
-fn udp_local(fd: RawFd) -> Option<(SocketAddr, bool)> {
+/// The local ports of the UDP sockets the process holds now and did not hold at `before`.
+/// The caller holds the participant that made them (see [`borrow`]).
+pub fn new_udp_ports(before: &BTreeMap<RawFd, u64>) -> Result<BTreeSet<u16>, RestrictError> {
+    Ok(new_udp(before)?
+        .into_iter()
+        .map(|(_, l)| l.port())
+        .collect())
+}
+
+/// The UDP sockets (fd, local address) the process holds now and did not hold at `before`.
+fn new_udp(before: &BTreeMap<RawFd, u64>) -> Result<Vec<(RawFd, SocketAddr)>, RestrictError> {
+    let old: BTreeSet<u64> = before.values().copied().collect();
+    Ok(sockets()?
+        .into_iter()
+        .filter(|(_, inode)| !old.contains(inode))
+        .filter_map(|(fd, _)| udp_local(fd).map(|local| (fd, local)))
+        .collect())
+}
+
+/// RTPS's well-known ports (RTPS 2.5, 9.6.2.3, the defaults PB 7400, DG 250, PG 2, d1 10,
+/// d3 11, as RustDDS uses them): a participant's discovery (SPDP/SEDP) unicast port.
+pub fn discovery_unicast_port(domain: u16, participant_id: u16) -> u32 {
+    7400 + 250 * u32::from(domain) + 10 + 2 * u32::from(participant_id)
+}
+
+/// A participant's user-traffic unicast port (RTPS 2.5, 9.6.2.3; see
+/// [`discovery_unicast_port`]).
+pub fn user_unicast_port(domain: u16, participant_id: u16) -> u32 {
+    7400 + 250 * u32::from(domain) + 11 + 2 * u32::from(participant_id)
+}
+
+/// `fd`'s local address, if it is an IPv4 or IPv6 UDP socket.
+fn udp_local(fd: RawFd) -> Option<SocketAddr> {
     let local = socket_addr_of(&getsockname::<SockaddrStorage>(fd).ok()?)?;
     let kind = getsockopt(&borrow(fd), sockopt::SockType).ok()?;
-    (kind == SockType::Datagram).then_some((local, local.ip().is_unspecified()))
+    (kind == SockType::Datagram).then_some(local)
 }
 
 fn bind_to_device(fd: RawFd, device: &OsString) -> nix::Result<()> {
@@ -189,10 +218,10 @@ fn bind_to_device(fd: RawFd, device: &OsString) -> nix::Result<()> {
 /// The socket `fd` of the participant just built, borrowed for a socket option.
 #[allow(unsafe_code)]
 fn borrow<'a>(fd: RawFd) -> BorrowedFd<'a> {
-    // SAFETY: only called from `bind_new` on fds it found in /proc/self/fd a moment ago as
-    // sockets that did not exist before the participant was built, i.e. the participant's.
-    // The caller holds the participant, and RustDDS closes its sockets only when it is
-    // dropped, so the fd stays open while borrowed. The borrow is used for getsockopt and
+    // SAFETY: only called (through `new_udp`, for `bind_new` and `new_udp_ports`) on fds
+    // found in /proc/self/fd a moment ago as sockets that did not exist before the
+    // participant was built, i.e. the participant's. The callers hold the participant, and
+    // RustDDS closes its sockets only when it is dropped, so the fd stays open while borrowed. The borrow is used for getsockopt and
     // setsockopt only and never outlives the call; nothing takes ownership or closes it.
     // (std has no safe way to reach a socket a library holds by its number, and
     // `pidfd_getfd`, which could dup it safely, is in the unit's denied `@debug` syscalls
