@@ -79,9 +79,10 @@ fn guardian(
             let b = &batches[step % batches.len()];
             let t0 = Instant::now();
             let mut t_loss = 0.0;
-            learner.step(&b.x, LR, |e| {
+            learner.step(&b.x, LR, |e, _| {
                 let t = Instant::now();
-                let (l, _, _) = batch_loss(e, &b.labels, LossKind::BatchAll, MARGIN, &mut rng)?;
+                let (l, _, _) =
+                    batch_loss(e, &b.labels, LossKind::BatchAll, MARGIN, None, &mut rng)?;
                 t_loss = t.elapsed().as_secs_f64();
                 Ok((l, ()))
             })?;
@@ -123,7 +124,7 @@ fn candle_autograd(
             let b = &batches[step % batches.len()];
             let t0 = Instant::now();
             let e = net.forward(&b.x)?;
-            let (l, _, _) = batch_loss(&e, &b.labels, LossKind::BatchAll, MARGIN, &mut rng)?;
+            let (l, _, _) = batch_loss(&e, &b.labels, LossKind::BatchAll, MARGIN, None, &mut rng)?;
             let _grads = l.backward()?;
             if step >= 1 {
                 secs += t0.elapsed().as_secs_f64();

@@ -90,7 +90,7 @@ fn train_60_steps(learner: &mut Learner, set: &Prepared) -> Trained {
     let loss_on_fixed = |net: &FastNet, rng: &mut StdRng| -> f32 {
         let e = train::embed(net, &ex).expect("embed");
         let (l, _, _) =
-            train::batch_loss(&e, &elabels, LossKind::BatchAll, 0.2, rng).expect("loss");
+            train::batch_loss(&e, &elabels, LossKind::BatchAll, 0.2, None, rng).expect("loss");
         l.to_scalar::<f32>().expect("scalar")
     };
     let before = loss_on_fixed(learner.net(), &mut rng);
@@ -102,8 +102,9 @@ fn train_60_steps(learner: &mut Learner, set: &Prepared) -> Trained {
         let (idx, labels) = set.sample_pk(8, 4, &mut rng);
         let x = set.batch(&idx, Some(&mut rng)).expect("batch");
         learner
-            .step(&x, 3e-3, |e| {
-                let (l, _, _) = train::batch_loss(e, &labels, LossKind::BatchAll, 0.2, &mut rng)?;
+            .step(&x, 3e-3, |e, _| {
+                let (l, _, _) =
+                    train::batch_loss(e, &labels, LossKind::BatchAll, 0.2, None, &mut rng)?;
                 Ok((l, ()))
             })
             .expect("step");
@@ -258,6 +259,54 @@ fn a_one_cycle_run_trains_without_validation_and_ships_the_last_model() {
     cfg.schedule = train::Schedule::Plateau;
     let other = tempfile::tempdir().expect("tempdir");
     assert!(train::train(data, &cfg, None, other.path(), false, true).is_err());
+}
+
+/// A normalised-softmax run trains one proxy per training class beside the network,
+/// checkpoints them with their moments and resumes from them; the proxies stay out of the
+/// model file. It refuses validation alphabets (their classes have no proxies) and a resume
+/// without its proxies.
+#[test]
+fn a_norm_softmax_run_checkpoints_its_class_proxies_and_resumes_from_them() {
+    let data = small_dataset();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut cfg = tiny_config();
+    cfg.loss = train::LossKind::NormSoftmax;
+    cfg.margin = 0.1;
+    assert!(
+        train::train(data, &cfg, None, dir.path(), false, true).is_err(),
+        "validation alphabets are refused"
+    );
+    cfg.val_alphabets.clear();
+    cfg.schedule = train::Schedule::OneCycle;
+    train::train(data, &cfg, None, dir.path(), false, true).expect("train");
+    let proxies = dir.path().join("proxies.safetensors");
+    let read = || {
+        let map =
+            candle_core::safetensors::load(&proxies, &candle_core::Device::Cpu).expect("proxies");
+        map["w"].to_vec2::<f32>().expect("w")
+    };
+    let after_2 = read();
+    assert_eq!(metrics(dir.path()).len(), 2);
+    // One proxy per training class (the small data set has 8 of Latin), of the embedding's size.
+    assert_eq!((after_2.len(), after_2[0].len()), (8, cfg.net.embed_dim));
+    for r in metrics(dir.path()) {
+        let l = r["train_loss"].as_f64().expect("loss");
+        assert!(l.is_finite() && l > 0.0, "{r}");
+    }
+    cfg.max_epochs = 3;
+    let s = train::train(data, &cfg, None, dir.path(), true, true).expect("resume");
+    assert_eq!(s.epochs, 3);
+    assert_ne!(
+        read(),
+        after_2,
+        "the resumed run trained the saved proxies on"
+    );
+    let model = Embedder::load(&dir.path().join("model.safetensors")).expect("model");
+    assert_eq!(model.nets().len(), 1);
+    // A checkpoint without its proxies cannot resume.
+    std::fs::remove_file(&proxies).expect("rm");
+    cfg.max_epochs = 4;
+    assert!(train::train(data, &cfg, None, dir.path(), true, true).is_err());
 }
 
 #[test]
@@ -422,8 +471,9 @@ fn fault_negatives_are_solved_corruptions_and_training_pushes_them_away() {
             let x = set.batch_items(&items, Some(&mut rng)).expect("batch");
             let sources = set.sources(&items);
             learner
-                .step(&x, 3e-3, |e| {
-                    let (l, _, _, _) = train::objective(e, &labels, &sources, &cfg, &mut rng)?;
+                .step(&x, 3e-3, |e, _| {
+                    let (l, _, _, _) =
+                        train::objective(e, &labels, &sources, None, &cfg, &mut rng)?;
                     Ok((l, ()))
                 })
                 .expect("step");
@@ -503,15 +553,15 @@ fn training_gradients_match_candle_autograd_on_real_batches() {
                 let e = net.forward(&x).expect("forward");
                 let mut dummy = StdRng::seed_from_u64(0);
                 let (want_loss, _, _, _) =
-                    train::objective(&e, &labels, &sources, &cfg, &mut dummy).expect("loss");
+                    train::objective(&e, &labels, &sources, None, &cfg, &mut dummy).expect("loss");
                 let store = want_loss.backward().expect("backward");
                 let want_loss = want_loss.to_scalar::<f32>().expect("scalar");
                 // The training path.
                 let mut learner = Learner::new(fast.clone(), 0.0);
                 let (grads, got_loss, _) = learner
-                    .gradients(&x, |e| {
+                    .gradients(&x, |e, _| {
                         let (l, _, _, _) =
-                            train::objective(e, &labels, &sources, &cfg, &mut dummy)?;
+                            train::objective(e, &labels, &sources, None, &cfg, &mut dummy)?;
                         Ok((l, ()))
                     })
                     .expect("gradients");

@@ -218,6 +218,39 @@ pub fn supcon_loss(
     Ok(((log_prob * w)?.sum_all()?.neg()?, anchors))
 }
 
+/// Normalised softmax over proxies (Zhai & Wu, 2019, "Classification is a strong baseline
+/// for deep metric learning"): one learned proxy per training class, `proxies [C, E]`; each
+/// item of L2-normalised `e [B, E]` whose label is a class (`< C`; corrupted plans' labels
+/// are not) scores `−log softmax_c(cos(e_i, w_c) / temperature)` at its own class, against
+/// every class, not only those in the batch. The loss is the mean over those items (0
+/// without any). Returns `(loss, items scored)`.
+pub fn norm_softmax_loss(
+    e: &Tensor,
+    labels: &[u32],
+    proxies: &Tensor,
+    temperature: f64,
+) -> candle_core::Result<(Tensor, usize)> {
+    let (classes, _) = proxies.dims2()?;
+    let rows: Vec<u32> = (0..labels.len() as u32)
+        .filter(|&i| (labels[i as usize] as usize) < classes)
+        .collect();
+    let n = rows.len();
+    if n == 0 {
+        return Ok((Tensor::zeros((), e.dtype(), e.device())?, 0));
+    }
+    let e = e.index_select(&Tensor::from_vec(rows.clone(), n, e.device())?, 0)?;
+    let norm = (proxies.sqr()?.sum_keepdim(1)? + 1e-12)?.sqrt()?;
+    let w = proxies.broadcast_div(&norm)?;
+    let logits = (e.matmul(&w.t()?)? / temperature)?;
+    let max = logits.max_keepdim(1)?.detach();
+    let shifted = logits.broadcast_sub(&max)?;
+    let log_prob = shifted.broadcast_sub(&shifted.exp()?.sum_keepdim(1)?.log()?)?;
+    let target: Vec<u32> = rows.iter().map(|&i| labels[i as usize]).collect();
+    let target = Tensor::from_vec(target, (n, 1), e.device())?;
+    let picked = log_prob.gather(&target, 1)?;
+    Ok(((picked.sum_all()? / n as f64)?.neg()?, n))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -248,6 +281,35 @@ mod tests {
         let sep = t(&[[0.0, 0.0], [0.0, 0.0], [5.0, 0.0], [5.0, 0.0]]);
         let l = contrastive_loss(&sep, &[0, 0, 1, 1], 1.0)?.to_scalar::<f32>()?;
         assert!(l.abs() < 1e-3, "{l}");
+        Ok(())
+    }
+
+    /// Normalised softmax: the proxy's length does not matter, an item at its own proxy
+    /// scores less than one at another's, corrupted plans are not scored, and the gradient
+    /// reaches the proxies.
+    #[test]
+    fn norm_softmax_scores_items_against_every_proxy() -> candle_core::Result<()> {
+        let e = t(&[[1.0, 0.0], [0.0, 1.0], [0.6, 0.8]]);
+        let p = t(&[[2.0, 0.0], [0.0, 0.5], [-1.0, 0.0]]);
+        let (at_own, n) = norm_softmax_loss(&e, &[0, 1, u32::MAX], &p, 0.1)?;
+        assert_eq!(n, 2);
+        let (swapped, _) = norm_softmax_loss(&e, &[1, 0, u32::MAX], &p, 0.1)?;
+        let (a, b) = (at_own.to_scalar::<f32>()?, swapped.to_scalar::<f32>()?);
+        assert!(a < 1e-3 && b > 5.0, "{a} {b}");
+        // By hand for item 0 at class 0: cosines 1, 0, −1 at T 0.1.
+        let (l, _) = norm_softmax_loss(&e.narrow(0, 0, 1)?, &[0], &p, 0.1)?;
+        let want = -(10f64.exp() / (10f64.exp() + 1.0 + (-10f64).exp())).ln();
+        assert!((f64::from(l.to_scalar::<f32>()?) - want).abs() < 1e-5);
+        let (none, n) = norm_softmax_loss(&e, &[u32::MAX; 3], &p, 0.1)?;
+        assert_eq!((none.to_scalar::<f32>()?, n), (0.0, 0));
+        let v = candle_core::Var::from_tensor(&p)?;
+        let (l, _) = norm_softmax_loss(&e, &[1, 1, 1], v.as_tensor(), 0.1)?;
+        let g = l
+            .backward()?
+            .get(v.as_tensor())
+            .expect("a gradient")
+            .to_vec2::<f32>()?;
+        assert!(g.iter().flatten().any(|x| x.abs() > 1e-3), "{g:?}");
         Ok(())
     }
 

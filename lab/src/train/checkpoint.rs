@@ -8,7 +8,7 @@ use std::path::Path;
 use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
-use crate::train::optim::AdamW;
+use crate::train::optim::{AdamW, Proxies};
 use crate::train::{TrainError, io_err};
 
 /// The resumable state (`state.json`).
@@ -102,6 +102,52 @@ pub fn save_opt(path: &Path, opt: &AdamW) -> Result<(), TrainError> {
     std::fs::rename(&tmp, path).map_err(io_err(path))
 }
 
+/// Write the class proxies of a normalised-softmax run (`w [classes, dim]`) with their
+/// optimiser's moments (`m0`, `v0`), atomically.
+pub fn save_proxies(path: &Path, proxies: &Proxies) -> Result<(), TrainError> {
+    let (ms, vs) = proxies.optimizer().moments();
+    let mut map = HashMap::new();
+    map.insert(
+        "w".to_string(),
+        Tensor::from_slice(proxies.weights(), proxies.shape(), &Device::Cpu)?,
+    );
+    for (k, x) in [("m0", &ms[0]), ("v0", &vs[0])] {
+        map.insert(k.to_string(), Tensor::from_slice(x, x.len(), &Device::Cpu)?);
+    }
+    let tmp = path.with_extension("tmp");
+    candle_core::safetensors::save(&map, &tmp)?;
+    std::fs::rename(&tmp, path).map_err(io_err(path))
+}
+
+/// Read what [`save_proxies`] wrote: the proxies with their moments restored at `step`
+/// updates; refused unless they are `[classes, dim]`.
+pub fn load_proxies(
+    path: &Path,
+    classes: usize,
+    dim: usize,
+    step: usize,
+) -> Result<Proxies, TrainError> {
+    let bytes = std::fs::read(path).map_err(io_err(path))?;
+    let map = candle_core::safetensors::load_buffer(&bytes, &Device::Cpu)?;
+    let get = |k: &str| -> Result<&Tensor, TrainError> {
+        map.get(k)
+            .ok_or_else(|| TrainError::Setup(format!("{}: missing {k}", path.display())))
+    };
+    let w = get("w")?;
+    if w.dims() != [classes, dim] {
+        return Err(TrainError::Setup(format!(
+            "{}: proxies {:?}, this run has {classes} classes of {dim}",
+            path.display(),
+            w.dims()
+        )));
+    }
+    let mut p = Proxies::from_weights(w.flatten_all()?.to_vec1::<f32>()?, classes, dim);
+    let m = get("m0")?.to_vec1::<f32>()?;
+    let v = get("v0")?.to_vec1::<f32>()?;
+    p.optimizer_mut().restore(vec![m], vec![v], step)?;
+    Ok(p)
+}
+
 /// AdamW's first and second moments, per parameter tensor.
 pub type Moments = (Vec<Vec<f32>>, Vec<Vec<f32>>);
 
@@ -148,6 +194,23 @@ mod tests {
         state.best_val_loss = 0.125;
         write_json(&path, &state).expect("write");
         assert_eq!(read_json::<State>(&path).expect("read"), state);
+    }
+
+    #[test]
+    fn proxies_round_trip_with_their_moments_and_another_shape_is_refused() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("proxies.safetensors");
+        let mut p = Proxies::random(5, 3, 7);
+        let lens = [15];
+        p.optimizer_mut()
+            .restore(vec![vec![0.5; lens[0]]], vec![vec![0.25; lens[0]]], 4)
+            .expect("moments");
+        save_proxies(&path, &p).expect("save");
+        let q = load_proxies(&path, 5, 3, 4).expect("load");
+        assert_eq!(q.weights(), p.weights());
+        assert_eq!(q.optimizer().moments(), p.optimizer().moments());
+        assert_eq!(q.optimizer().steps(), 4);
+        assert!(load_proxies(&path, 6, 3, 4).is_err());
     }
 
     #[test]

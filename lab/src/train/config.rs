@@ -25,6 +25,9 @@ pub enum LossKind {
     /// Supervised contrastive loss (a softmax over the batch's cosine similarities; its
     /// temperature is `--margin`).
     Supcon,
+    /// Normalised softmax over one learned proxy per training class, every class a
+    /// negative of every item (`loss::norm_softmax_loss`; its temperature is `--margin`).
+    NormSoftmax,
 }
 
 /// Feature choice on the command line.
@@ -83,7 +86,7 @@ pub struct TrainConfig {
     pub net: NetConfig,
     /// Loss.
     pub loss: LossKind,
-    /// Triplet / contrastive margin (the temperature of `supcon`).
+    /// Triplet / contrastive margin (the temperature of `supcon` and `norm-softmax`).
     pub margin: f64,
     /// Training alphabets.
     pub train_alphabets: Vec<String>,
@@ -170,6 +173,14 @@ impl TrainConfig {
                     .into(),
             ));
         }
+        if self.loss == LossKind::NormSoftmax && !self.val_alphabets.is_empty() {
+            return Err(TrainError::Setup(
+                "norm-softmax scores items against the training classes' proxies, which a \
+                 validation alphabet's classes have none of: train without --val-alphabets \
+                 (--schedule one-cycle) and measure on held-out alphabets"
+                    .into(),
+            ));
+        }
         for a in &self.val_alphabets {
             if self.train_alphabets.contains(a) {
                 return Err(TrainError::Setup(format!(
@@ -219,7 +230,7 @@ pub struct Args {
     /// Loss (`contrastive` trains the Siamese baseline).
     #[arg(long, value_enum, default_value = "batch-all")]
     pub loss: LossKind,
-    /// Margin of the loss (for `supcon`, its temperature).
+    /// Margin of the loss (for `supcon` and `norm-softmax`, its temperature).
     #[arg(long, default_value_t = 0.2)]
     pub margin: f64,
     /// Convolution channels per layer, comma-separated.

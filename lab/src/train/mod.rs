@@ -35,7 +35,7 @@ pub mod trainer;
 pub use batches::{Item, Prepared};
 pub use config::{Args, FeatureArg, LossKind, Schedule, TRAIN_FAULTS, TrainConfig};
 pub use objective::{batch_loss, objective};
-pub use optim::{AdamW, Learner};
+pub use optim::{AdamW, Learner, Proxies};
 pub use schedule::one_cycle_lr;
 pub use trainer::{EpochMetrics, TrainSummary, embed, embed_all, run, train};
 

@@ -1,6 +1,7 @@
 //! The training objective: the main loss of a batch of embeddings (batch-all triplets, the
 //! paper's random triplets, the Siamese baseline's contrastive pairs, or supervised
-//! contrastive) plus the weighted fault-negative term, and the validation-comparable loss.
+//! contrastive, or a normalised softmax over class proxies) plus the weighted fault-negative
+//! term, and the validation-comparable loss.
 
 use candle_core::{Device, Tensor};
 use guardian_models::loss;
@@ -14,15 +15,17 @@ use crate::train::config::{LossKind, TrainConfig};
 /// plans. Returns `(loss to optimise, validation-comparable loss, active fraction, mined
 /// triplets)`; the validation-comparable loss takes batch-all's mean over all valid
 /// triplets rather than over the active ones (which stays flat as fewer triplets stay
-/// active), for both terms.
+/// active), for both terms. `proxies [classes, embed_dim]` are the class proxies of
+/// [`LossKind::NormSoftmax`] (ignored by the other losses).
 pub fn objective(
     e: &Tensor,
     labels: &[u32],
     sources: &[Option<u32>],
+    proxies: Option<&Tensor>,
     cfg: &TrainConfig,
     rng: &mut StdRng,
 ) -> candle_core::Result<(Tensor, f64, f32, usize)> {
-    let (l, active, n) = batch_loss(e, labels, cfg.loss, cfg.margin, rng)?;
+    let (l, active, n) = batch_loss(e, labels, cfg.loss, cfg.margin, proxies, rng)?;
     let lv = f64::from(l.to_scalar::<f32>()?);
     let mut comparable = if cfg.loss == LossKind::BatchAll {
         lv * f64::from(active)
@@ -38,13 +41,14 @@ pub fn objective(
     Ok((total, comparable, active, n))
 }
 
-/// The loss of one batch of embeddings `e [B, embed_dim]`. Returns `(loss, active
-/// fraction, mined triplets)`.
+/// The loss of one batch of embeddings `e [B, embed_dim]` (`proxies`: see [`objective`]).
+/// Returns `(loss, active fraction, mined triplets)`.
 pub fn batch_loss(
     e: &Tensor,
     labels: &[u32],
     kind: LossKind,
     margin: f64,
+    proxies: Option<&Tensor>,
     rng: &mut StdRng,
 ) -> candle_core::Result<(Tensor, f32, usize)> {
     match kind {
@@ -100,6 +104,13 @@ pub fn batch_loss(
             let (l, anchors) = loss::supcon_loss(e, labels, margin)?;
             Ok((l, anchors as f32 / labels.len().max(1) as f32, anchors))
         }
+        LossKind::NormSoftmax => {
+            let proxies = proxies.ok_or_else(|| {
+                candle_core::Error::Msg("norm-softmax needs the class proxies".into())
+            })?;
+            let (l, scored) = loss::norm_softmax_loss(e, labels, proxies, margin)?;
+            Ok((l, scored as f32 / labels.len().max(1) as f32, scored))
+        }
     }
 }
 
@@ -135,7 +146,7 @@ mod tests {
         cfg.margin = 1.0;
         let mut rng = StdRng::seed_from_u64(0);
         let (l, comparable, active, n) =
-            objective(&e, &labels[..4], &[None; 4], &cfg, &mut rng).unwrap();
+            objective(&e, &labels[..4], &[None; 4], None, &cfg, &mut rng).unwrap();
         // Each of 4 anchors has 1 positive and 2 negatives.
         assert_eq!(n, 8);
         let lv = f64::from(l.to_scalar::<f32>().unwrap());
@@ -154,9 +165,9 @@ mod tests {
         cfg.fault_margin = 0.4;
         let mut rng = StdRng::seed_from_u64(0);
         cfg.fault_weight = 0.0;
-        let (without, ..) = objective(&e, &labels, &sources, &cfg, &mut rng).unwrap();
+        let (without, ..) = objective(&e, &labels, &sources, None, &cfg, &mut rng).unwrap();
         cfg.fault_weight = 2.0;
-        let (with, ..) = objective(&e, &labels, &sources, &cfg, &mut rng).unwrap();
+        let (with, ..) = objective(&e, &labels, &sources, None, &cfg, &mut rng).unwrap();
         let (lf, _, _) = loss::fault_triplet_loss(&e, &labels, &sources, 0.4).unwrap();
         let (a, b, f) = (
             without.to_scalar::<f32>().unwrap(),
@@ -166,7 +177,7 @@ mod tests {
         assert!(f > 0.0, "the corrupted plan sits inside the margin");
         assert!((b - (a + 2.0 * f)).abs() < 1e-5, "{b} vs {a} + 2 x {f}");
         // No corrupted plan in the batch: the weight changes nothing.
-        let (plain, ..) = objective(&e, &labels, &[None; 5], &cfg, &mut rng).unwrap();
+        let (plain, ..) = objective(&e, &labels, &[None; 5], None, &cfg, &mut rng).unwrap();
         assert_eq!(plain.to_scalar::<f32>().unwrap(), a);
     }
 
@@ -175,13 +186,16 @@ mod tests {
         let (e5, labels, _) = batch();
         let e = e5.narrow(0, 0, 4).unwrap();
         let mut rng = StdRng::seed_from_u64(2);
-        let (_, frac, n) = batch_loss(&e, &labels[..4], LossKind::Triplet, 0.2, &mut rng).unwrap();
+        let (_, frac, n) =
+            batch_loss(&e, &labels[..4], LossKind::Triplet, 0.2, None, &mut rng).unwrap();
         assert_eq!(n, 4);
         assert!((0.0..=1.0).contains(&frac));
         // A margin no triplet can meet makes every one active.
-        let (_, frac, _) = batch_loss(&e, &labels[..4], LossKind::Triplet, 10.0, &mut rng).unwrap();
+        let (_, frac, _) =
+            batch_loss(&e, &labels[..4], LossKind::Triplet, 10.0, None, &mut rng).unwrap();
         assert_eq!(frac, 1.0);
-        let (_, _, n) = batch_loss(&e5, &labels, LossKind::Contrastive, 1.0, &mut rng).unwrap();
+        let (_, _, n) =
+            batch_loss(&e5, &labels, LossKind::Contrastive, 1.0, None, &mut rng).unwrap();
         assert_eq!(n, 10);
     }
 }

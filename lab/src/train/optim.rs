@@ -21,7 +21,13 @@ pub struct AdamW {
 impl AdamW {
     /// Fresh optimiser for the parameters of `net`.
     pub fn new(net: &FastNet, weight_decay: f64) -> Self {
-        let m: Vec<Vec<f32>> = net.params().iter().map(|p| vec![0.0; p.len()]).collect();
+        let lens: Vec<usize> = net.params().iter().map(|p| p.len()).collect();
+        Self::for_lens(&lens, weight_decay)
+    }
+
+    /// Fresh optimiser for parameter tensors of `lens` elements.
+    pub fn for_lens(lens: &[usize], weight_decay: f64) -> Self {
+        let m: Vec<Vec<f32>> = lens.iter().map(|&n| vec![0.0; n]).collect();
         Self {
             v: m.clone(),
             m,
@@ -89,6 +95,63 @@ impl AdamW {
     }
 }
 
+/// The class proxies of a [`LossKind::NormSoftmax`] run, `[classes, dim]` row-major, with
+/// an AdamW of their own (no weight decay: the loss normalises them), stepped with the
+/// network at its learning rate. They exist only in training: the model file holds the
+/// network alone.
+///
+/// [`LossKind::NormSoftmax`]: crate::train::config::LossKind::NormSoftmax
+pub struct Proxies {
+    w: Vec<f32>,
+    classes: usize,
+    dim: usize,
+    opt: AdamW,
+    grad: Vec<f32>,
+}
+
+impl Proxies {
+    /// Proxies in random directions (uniform in [−1, 1) per coordinate), from `seed`.
+    pub fn random(classes: usize, dim: usize, seed: u64) -> Self {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let w = (0..classes * dim)
+            .map(|_| rng.random_range(-1.0f32..1.0))
+            .collect();
+        Self::from_weights(w, classes, dim)
+    }
+
+    /// Saved proxies (a fresh optimiser: [`Proxies::optimizer_mut`] restores its moments).
+    pub fn from_weights(w: Vec<f32>, classes: usize, dim: usize) -> Self {
+        Self {
+            w,
+            classes,
+            dim,
+            opt: AdamW::for_lens(&[classes * dim], 0.0),
+            grad: vec![0.0; classes * dim],
+        }
+    }
+
+    /// The weights, `[classes, dim]` row-major.
+    pub fn weights(&self) -> &[f32] {
+        &self.w
+    }
+
+    /// `(classes, dim)`.
+    pub fn shape(&self) -> (usize, usize) {
+        (self.classes, self.dim)
+    }
+
+    /// Their optimiser.
+    pub fn optimizer(&self) -> &AdamW {
+        &self.opt
+    }
+
+    /// Their optimiser, to restore its moments.
+    pub fn optimizer_mut(&mut self) -> &mut AdamW {
+        &mut self.opt
+    }
+}
+
 /// A network in training: the fast path's weights with a workspace per thread
 /// ([`Trainable`]) and its optimiser. One [`Learner::step`] embeds a batch, takes the loss of
 /// the embeddings with candle's autograd, backpropagates through the network by hand and
@@ -97,6 +160,7 @@ pub struct Learner {
     model: Trainable,
     opt: AdamW,
     emb: Vec<f32>,
+    proxies: Option<Proxies>,
 }
 
 impl Learner {
@@ -106,7 +170,24 @@ impl Learner {
             opt: AdamW::new(&net, weight_decay),
             model: Trainable::new(net),
             emb: Vec::new(),
+            proxies: None,
         }
+    }
+
+    /// Train class proxies beside the network (the loss gets them).
+    pub fn with_proxies(mut self, proxies: Proxies) -> Self {
+        self.proxies = Some(proxies);
+        self
+    }
+
+    /// The class proxies, if trained.
+    pub fn proxies(&self) -> Option<&Proxies> {
+        self.proxies.as_ref()
+    }
+
+    /// The class proxies, to restore their optimiser.
+    pub fn proxies_mut(&mut self) -> Option<&mut Proxies> {
+        self.proxies.as_mut()
     }
 
     /// The network with its current weights.
@@ -124,12 +205,13 @@ impl Learner {
         &mut self.opt
     }
 
-    /// The gradients of `loss` on the embeddings of `x [B, STEPS, F]`, without updating
-    /// anything. Returns the gradients, the loss and what `loss` returned besides it.
+    /// The gradients of `loss` on the embeddings of `x [B, STEPS, F]` (and on the class
+    /// proxies, which `loss` gets when there are some), without updating anything. Returns
+    /// the network's gradients, the loss and what `loss` returned besides it.
     pub fn gradients<R>(
         &mut self,
         x: &Tensor,
-        loss: impl FnOnce(&Tensor) -> candle_core::Result<(Tensor, R)>,
+        loss: impl FnOnce(&Tensor, Option<&Tensor>) -> candle_core::Result<(Tensor, R)>,
     ) -> Result<(&Grads, f32, R), TrainError> {
         let (b, l, _) = x.dims3()?;
         let flat = x.flatten_all()?.to_vec1::<f32>()?;
@@ -137,8 +219,18 @@ impl Learner {
         self.emb.resize(b * e, 0.0);
         self.model.forward(&flat, b, l, &mut self.emb)?;
         let emb = Var::from_slice(&self.emb, (b, e), &Device::Cpu)?;
-        let (value, extra) = loss(emb.as_tensor())?;
+        let proxies = match &self.proxies {
+            Some(p) => Some(Var::from_slice(&p.w, (p.classes, p.dim), &Device::Cpu)?),
+            None => None,
+        };
+        let (value, extra) = loss(emb.as_tensor(), proxies.as_ref().map(Var::as_tensor))?;
         let store = value.backward()?;
+        if let (Some(p), Some(v)) = (self.proxies.as_mut(), &proxies) {
+            match store.get(v.as_tensor()) {
+                Some(g) => p.grad = g.flatten_all()?.to_vec1::<f32>()?,
+                None => p.grad.iter_mut().for_each(|g| *g = 0.0),
+            }
+        }
         let d_out = match store.get(emb.as_tensor()) {
             Some(g) => g.flatten_all()?.to_vec1::<f32>()?,
             // The loss does not depend on the embeddings (no valid triplet): zero gradient.
@@ -154,11 +246,15 @@ impl Learner {
         &mut self,
         x: &Tensor,
         lr: f64,
-        loss: impl FnOnce(&Tensor) -> candle_core::Result<(Tensor, R)>,
+        loss: impl FnOnce(&Tensor, Option<&Tensor>) -> candle_core::Result<(Tensor, R)>,
     ) -> Result<(f32, R), TrainError> {
         let (_, value, extra) = self.gradients(x, loss)?;
         let (params, grads) = self.model.params_and_grads();
         self.opt.step(params, grads.params(), lr);
+        if let Some(p) = self.proxies.as_mut() {
+            p.opt
+                .step(vec![p.w.as_mut_slice()], std::slice::from_ref(&p.grad), lr);
+        }
         Ok((value, extra))
     }
 }

@@ -16,12 +16,13 @@ use serde::{Deserialize, Serialize};
 
 use crate::eval::{self, EpisodeSpec};
 use crate::train::batches::{Item, Prepared};
-use crate::train::checkpoint::{State, load_opt, read_json, save_opt, write_json};
+use crate::train::checkpoint::{
+    State, load_opt, load_proxies, read_json, save_opt, save_proxies, write_json,
+};
 use crate::train::classaug::SymmetryRule;
-use crate::train::config::Schedule;
-use crate::train::config::{Args, TrainConfig};
+use crate::train::config::{Args, LossKind, Schedule, TrainConfig};
 use crate::train::objective::objective;
-use crate::train::optim::Learner;
+use crate::train::optim::{Learner, Proxies};
 use crate::train::schedule::{EpochEnd, end_epoch, one_cycle_lr};
 use crate::train::{TrainError, io_err};
 use guardian_omniglot::dataset::Dataset;
@@ -215,8 +216,19 @@ pub fn train(
         });
     }
     let mut learner = Learner::new(net, cfg.weight_decay);
+    let resumed = opt_state.is_some();
     if let Some((m, v)) = opt_state {
         learner.optimizer_mut().restore(m, v, state.adam_step)?;
+    }
+    let proxies_path = out.join("proxies.safetensors");
+    if cfg.loss == LossKind::NormSoftmax {
+        let (classes, dim) = (train_set.classes(), cfg.net.embed_dim);
+        let proxies = if resumed {
+            load_proxies(&proxies_path, classes, dim, state.adam_step)?
+        } else {
+            Proxies::random(classes, dim, cfg.seed ^ 0x9e37_79b9_7f4a_7c15)
+        };
+        learner = learner.with_proxies(proxies);
     }
 
     // Fixed validation batches and episodes.
@@ -275,8 +287,8 @@ pub fn train(
             let (items, labels) = train_set.with_faults(&idx, &labels, cfg.fault_share, &mut rng);
             let x = train_set.batch_items(&items, cfg.augment.then_some(&mut rng))?;
             let sources = train_set.sources(&items);
-            let (l, (active, n_trip)) = learner.step(&x, state.lr, |e| {
-                let (l, _, active, n) = objective(e, &labels, &sources, cfg, &mut rng)?;
+            let (l, (active, n_trip)) = learner.step(&x, state.lr, |e, proxies| {
+                let (l, _, active, n) = objective(e, &labels, &sources, proxies, cfg, &mut rng)?;
                 Ok((l, (active, n)))
             })?;
             loss_sum += f64::from(l);
@@ -297,7 +309,7 @@ pub fn train(
                 let x = val_set.batch_items(items, None)?;
                 let sources = val_set.sources(items);
                 let e = embed(learner.net(), &x)?;
-                val_loss += objective(&e, labels, &sources, cfg, &mut dummy)?.1;
+                val_loss += objective(&e, labels, &sources, None, cfg, &mut dummy)?.1;
             }
             val_loss /= val_batches.len() as f64;
             let embs = embed_all(learner.net(), &val_set)?;
@@ -345,6 +357,9 @@ pub fn train(
         state.finished = stop || state.epoch >= cfg.max_epochs;
         current.save(&last_path)?;
         save_opt(&opt_path, learner.optimizer())?;
+        if let Some(p) = learner.proxies() {
+            save_proxies(&proxies_path, p)?;
+        }
         write_json(&state_path, &state)?;
         if stop {
             break;
