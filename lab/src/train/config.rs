@@ -151,6 +151,9 @@ pub struct TrainConfig {
     /// The split-half quantile of `classaug::SymmetryRule` (with `class_augment`).
     #[serde(default)]
     pub symmetry_quantile: f64,
+    /// The class proxies' learning rate over the network's ([`LossKind::NormSoftmax`]).
+    #[serde(default = "one")]
+    pub proxy_lr_scale: f64,
 }
 
 impl TrainConfig {
@@ -202,6 +205,10 @@ impl TrainConfig {
 
 fn yes() -> bool {
     true
+}
+
+fn one() -> f64 {
+    1.0
 }
 
 /// `guardian-lab train`: train the embedding network.
@@ -323,6 +330,10 @@ pub struct Args {
     /// template is as similar to it as this quantile of the split-half similarities.
     #[arg(long, default_value_t = 0.1)]
     pub symmetry_quantile: f64,
+    /// With `--loss norm-softmax`: the class proxies' learning rate as a multiple of the
+    /// network's.
+    #[arg(long, default_value_t = 1.0)]
+    pub proxy_lr_scale: f64,
 }
 
 impl Args {
@@ -373,6 +384,11 @@ impl Args {
             } else {
                 0.0
             },
+            proxy_lr_scale: if self.loss == LossKind::NormSoftmax {
+                self.proxy_lr_scale
+            } else {
+                1.0
+            },
         }
     }
 }
@@ -422,6 +438,22 @@ pub(crate) mod tests {
         ];
         argv.extend_from_slice(extra);
         Cli::try_parse_from(argv).expect("parse").args
+    }
+
+    #[test]
+    fn the_proxy_learning_rate_is_recorded_for_norm_softmax_only_and_it_refuses_validation() {
+        let cfg = parse(&["--proxy-lr-scale", "100"]).config();
+        assert_eq!(cfg.proxy_lr_scale, 1.0, "no proxies without norm-softmax");
+        let cfg = parse(&["--loss", "norm-softmax", "--proxy-lr-scale", "100"]).config();
+        assert_eq!(cfg.proxy_lr_scale, 100.0);
+        assert!(cfg.check().is_err(), "validation alphabets have no proxies");
+        // A run recorded before the option existed reads back at 1.
+        let mut json = serde_json::to_value(&cfg).expect("json");
+        json.as_object_mut()
+            .expect("object")
+            .remove("proxy-lr-scale");
+        let old: TrainConfig = serde_json::from_value(json).expect("old config");
+        assert_eq!(old.proxy_lr_scale, 1.0);
     }
 
     #[test]

@@ -97,8 +97,8 @@ impl AdamW {
 
 /// The class proxies of a [`LossKind::NormSoftmax`] run, `[classes, dim]` row-major, with
 /// an AdamW of their own (no weight decay: the loss normalises them), stepped with the
-/// network at its learning rate. They exist only in training: the model file holds the
-/// network alone.
+/// network at a multiple of its learning rate ([`Proxies::with_lr_scale`]). They exist
+/// only in training: the model file holds the network alone.
 ///
 /// [`LossKind::NormSoftmax`]: crate::train::config::LossKind::NormSoftmax
 pub struct Proxies {
@@ -107,6 +107,7 @@ pub struct Proxies {
     dim: usize,
     opt: AdamW,
     grad: Vec<f32>,
+    lr_scale: f64,
 }
 
 impl Proxies {
@@ -128,7 +129,14 @@ impl Proxies {
             dim,
             opt: AdamW::for_lens(&[classes * dim], 0.0),
             grad: vec![0.0; classes * dim],
+            lr_scale: 1.0,
         }
+    }
+
+    /// Step them at `scale` times the network's learning rate (1 unless set).
+    pub fn with_lr_scale(mut self, scale: f64) -> Self {
+        self.lr_scale = scale;
+        self
     }
 
     /// The weights, `[classes, dim]` row-major.
@@ -252,6 +260,7 @@ impl Learner {
         let (params, grads) = self.model.params_and_grads();
         self.opt.step(params, grads.params(), lr);
         if let Some(p) = self.proxies.as_mut() {
+            let lr = lr * p.lr_scale;
             p.opt
                 .step(vec![p.w.as_mut_slice()], std::slice::from_ref(&p.grad), lr);
         }

@@ -228,7 +228,7 @@ pub fn train(
         } else {
             Proxies::random(classes, dim, cfg.seed ^ 0x9e37_79b9_7f4a_7c15)
         };
-        learner = learner.with_proxies(proxies);
+        learner = learner.with_proxies(proxies.with_lr_scale(cfg.proxy_lr_scale));
     }
 
     // Fixed validation batches and episodes.

@@ -48,6 +48,7 @@ pub fn tiny_config() -> TrainConfig {
         fault_kinds: Vec::new(),
         class_augment: false,
         symmetry_quantile: 0.0,
+        proxy_lr_scale: 1.0,
     }
 }
 
