@@ -193,11 +193,6 @@ impl Learner {
         self.proxies.as_ref()
     }
 
-    /// The class proxies, to restore their optimiser.
-    pub fn proxies_mut(&mut self) -> Option<&mut Proxies> {
-        self.proxies.as_mut()
-    }
-
     /// The network with its current weights.
     pub fn net(&self) -> &FastNet {
         self.model.net()
