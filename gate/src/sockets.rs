@@ -192,16 +192,20 @@ fn new_udp(before: &BTreeMap<RawFd, u64>) -> Result<Vec<(RawFd, SocketAddr)>, Re
         .collect())
 }
 
-/// RTPS's well-known ports (RTPS 2.5, 9.6.2.3, the defaults PB 7400, DG 250, PG 2, d1 10,
-/// d3 11, as RustDDS uses them): a participant's discovery (SPDP/SEDP) unicast port.
+/// A participant's discovery (SPDP/SEDP) unicast port ([`unicast_port`], d1 = 10).
 pub fn discovery_unicast_port(domain: u16, participant_id: u16) -> u32 {
-    7400 + 250 * u32::from(domain) + 10 + 2 * u32::from(participant_id)
+    unicast_port(domain, participant_id, 10)
 }
 
-/// A participant's user-traffic unicast port (RTPS 2.5, 9.6.2.3; see
-/// [`discovery_unicast_port`]).
+/// A participant's user-traffic unicast port ([`unicast_port`], d3 = 11).
 pub fn user_unicast_port(domain: u16, participant_id: u16) -> u32 {
-    7400 + 250 * u32::from(domain) + 11 + 2 * u32::from(participant_id)
+    unicast_port(domain, participant_id, 11)
+}
+
+/// RTPS's well-known unicast port with offset `d` (RTPS 2.5, 9.6.2.3, with the defaults
+/// PB 7400, DG 250, PG 2, as RustDDS uses them).
+fn unicast_port(domain: u16, participant_id: u16, d: u32) -> u32 {
+    7400 + 250 * u32::from(domain) + d + 2 * u32::from(participant_id)
 }
 
 /// `fd`'s local address, if it is an IPv4 or IPv6 UDP socket.
@@ -221,8 +225,9 @@ fn borrow<'a>(fd: RawFd) -> BorrowedFd<'a> {
     // SAFETY: only called (through `new_udp`, for `bind_new` and `new_udp_ports`) on fds
     // found in /proc/self/fd a moment ago as sockets that did not exist before the
     // participant was built, i.e. the participant's. The callers hold the participant, and
-    // RustDDS closes its sockets only when it is dropped, so the fd stays open while borrowed. The borrow is used for getsockopt and
-    // setsockopt only and never outlives the call; nothing takes ownership or closes it.
+    // RustDDS closes its sockets only when it is dropped, so the fd stays open while
+    // borrowed. The borrow is used for getsockopt and setsockopt only and never outlives
+    // the call; nothing takes ownership or closes it.
     // (std has no safe way to reach a socket a library holds by its number, and
     // `pidfd_getfd`, which could dup it safely, is in the unit's denied `@debug` syscalls
     // and in Docker's default seccomp profile.)

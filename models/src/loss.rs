@@ -179,6 +179,13 @@ pub fn contrastive_loss(e: &Tensor, labels: &[u32], margin: f64) -> candle_core:
     pull + push
 }
 
+/// Log-softmax of each row of `logits [N, C]`, stabilised by the (constant) row maximum.
+fn log_softmax_rows(logits: &Tensor) -> candle_core::Result<Tensor> {
+    let max = logits.max_keepdim(1)?.detach();
+    let shifted = logits.broadcast_sub(&max)?;
+    shifted.broadcast_sub(&shifted.exp()?.sum_keepdim(1)?.log()?)
+}
+
 /// Supervised contrastive loss (Khosla et al., 2020, `L_out`) on L2-normalised embeddings
 /// `e [B, E]`: with `s = e eᵀ / temperature`, each anchor `i` that has a positive scores
 /// `−mean over positives p of log(exp(s_ip) / Σ_{j≠i} exp(s_ij))`; the loss is the mean over
@@ -196,11 +203,7 @@ pub fn supcon_loss(
         diag[i * b + i] = -1e4;
     }
     let diag = Tensor::from_vec(diag, (b, b), e.device())?.to_dtype(e.dtype())?;
-    let logits = (s + diag)?;
-    // log-softmax per row, stabilised by the (constant) row maximum.
-    let max = logits.max_keepdim(1)?.detach();
-    let shifted = logits.broadcast_sub(&max)?;
-    let log_prob = shifted.broadcast_sub(&shifted.exp()?.sum_keepdim(1)?.log()?)?;
+    let log_prob = log_softmax_rows(&(s + diag)?)?;
     // Weights: 1 / (|P(i)| · anchors) on each positive pair.
     let mut w = vec![0.0f32; b * b];
     let counts: Vec<usize> = (0..b)
@@ -241,10 +244,7 @@ pub fn norm_softmax_loss(
     let e = e.index_select(&Tensor::from_vec(rows.clone(), n, e.device())?, 0)?;
     let norm = (proxies.sqr()?.sum_keepdim(1)? + 1e-12)?.sqrt()?;
     let w = proxies.broadcast_div(&norm)?;
-    let logits = (e.matmul(&w.t()?)? / temperature)?;
-    let max = logits.max_keepdim(1)?.detach();
-    let shifted = logits.broadcast_sub(&max)?;
-    let log_prob = shifted.broadcast_sub(&shifted.exp()?.sum_keepdim(1)?.log()?)?;
+    let log_prob = log_softmax_rows(&(e.matmul(&w.t()?)? / temperature)?)?;
     let target: Vec<u32> = rows.iter().map(|&i| labels[i as usize]).collect();
     let target = Tensor::from_vec(target, (n, 1), e.device())?;
     let picked = log_prob.gather(&target, 1)?;

@@ -201,9 +201,8 @@ mod tests {
         let dir = tempfile::tempdir().expect("tempdir");
         let path = dir.path().join("proxies.safetensors");
         let mut p = Proxies::random(5, 3, 7);
-        let lens = [15];
         p.optimizer_mut()
-            .restore(vec![vec![0.5; lens[0]]], vec![vec![0.25; lens[0]]], 4)
+            .restore(vec![vec![0.5; 15]], vec![vec![0.25; 15]], 4)
             .expect("moments");
         save_proxies(&path, &p).expect("save");
         let q = load_proxies(&path, 5, 3, 4).expect("load");
