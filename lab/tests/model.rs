@@ -156,6 +156,7 @@ fn the_picture_network_learns_real_characters() {
         embed_dim: guardian_models::embedder::EMBED_DIM,
         l2_normalize: true,
         reverse_average: false,
+        test_views: Vec::new(),
     };
     let mut learner = Learner::new(FastNet::random(config, 11).expect("net"), 1e-4);
     let x = set.batch(&[0], None).expect("batch");

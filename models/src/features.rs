@@ -96,6 +96,21 @@ impl Default for Augment {
     }
 }
 
+impl Augment {
+    /// The augmentation of a test-time view (see [`crate::net::TestView`]), optionally
+    /// time-reversed.
+    pub fn of_view(view: &crate::net::TestView, reverse: bool) -> Self {
+        let stretch = f32::from(view.stretch) * 1e-3;
+        Self {
+            rotation: f32::from(view.rotation) * 1e-3,
+            shear: f32::from(view.shear) * 1e-3,
+            scale_x: 1.0 + stretch,
+            scale_y: 1.0 - stretch,
+            reverse,
+        }
+    }
+}
+
 /// Write the features of the Panda trajectory `x` for `kind` into `out`
 /// (`STEPS * kind.channels()`, row-major by time step).
 pub fn compute(kind: FeatureKind, x: &Resampled, out: &mut [f32]) {

@@ -36,6 +36,61 @@ pub struct NetConfig {
     /// Pen features only; ignored for joint features.
     #[serde(default)]
     pub reverse_average: bool,
+    /// Inference only: test-time augmentation. Besides the plan's own pen path, the network
+    /// also embeds these geometric views of it; every view's embedding (and, with
+    /// `reverse_average`, every view's reverse) is averaged and re-normalised. Pen features
+    /// only (sequence or picture); empty (the default) embeds the plan's own path alone.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub test_views: Vec<TestView>,
+}
+
+/// One geometric view of a pen path for test-time augmentation ([`NetConfig::test_views`]),
+/// in integer thousandths so a config stays exact (and `Eq`): rotated about the drawing's
+/// centre by `rotation` mrad, sheared (x += shear/1000 * y), and stretched (x scaled by
+/// 1 + stretch/1000, y by 1 - stretch/1000).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct TestView {
+    /// Rotation (mrad).
+    #[serde(default)]
+    pub rotation: i16,
+    /// Horizontal shear (thousandths).
+    #[serde(default)]
+    pub shear: i16,
+    /// Stretch of x against y (thousandths).
+    #[serde(default)]
+    pub stretch: i16,
+}
+
+/// Most test views a network may have (each costs one more forward pass per plan).
+pub const MAX_TEST_VIEWS: usize = 8;
+
+impl std::str::FromStr for TestView {
+    type Err = String;
+
+    /// `r<mrad>`, `s<thousandths>`, `x<thousandths>`, joined by `+` (e.g. `r100`,
+    /// `r-50+x100`).
+    fn from_str(spec: &str) -> Result<Self, String> {
+        let mut view = TestView::default();
+        for part in spec.split('+') {
+            let part = part.trim();
+            let (key, value) = part.split_at(part.len().min(1));
+            let value: i16 = value
+                .parse()
+                .map_err(|e| format!("test view {spec:?}: {part:?}: {e}"))?;
+            match key {
+                "r" => view.rotation = value,
+                "s" => view.shear = value,
+                "x" => view.stretch = value,
+                _ => {
+                    return Err(format!(
+                        "test view {spec:?}: {part:?} is not r<mrad>, s<shear> or x<stretch> (thousandths)"
+                    ));
+                }
+            }
+        }
+        Ok(view)
+    }
 }
 
 impl Default for NetConfig {
@@ -47,6 +102,7 @@ impl Default for NetConfig {
             embed_dim: EMBED_DIM,
             l2_normalize: true,
             reverse_average: false,
+            test_views: Vec::new(),
         }
     }
 }
@@ -63,7 +119,17 @@ impl NetConfig {
             embed_dim: 6,
             l2_normalize: true,
             reverse_average: false,
+            test_views: Vec::new(),
         }
+    }
+
+    /// Sequences the network reads per plan at inference: one per view (the plan's own path
+    /// and each test view), twice with reverse averaging.
+    pub fn copies(&self) -> usize {
+        if self.features == FeatureKind::Joints {
+            return 1;
+        }
+        (1 + self.test_views.len()) * if self.reverse_average { 2 } else { 1 }
     }
 
     /// Input feature channels.
@@ -119,6 +185,18 @@ impl NetConfig {
         }
         if self.embed_dim == 0 {
             return Err("embed-dim must be positive".into());
+        }
+        if !self.test_views.is_empty() && self.features == FeatureKind::Joints {
+            return Err("test views need pen features (sequence or picture)".into());
+        }
+        if self.test_views.len() > MAX_TEST_VIEWS {
+            return Err(format!(
+                "at most {MAX_TEST_VIEWS} test views, got {}",
+                self.test_views.len()
+            ));
+        }
+        if self.test_views.iter().any(|v| v.stretch.abs() >= 500) {
+            return Err("a test view's stretch must lie within (-500, 500) thousandths".into());
         }
         if self.features.is_picture() {
             // Every layer is followed by a 2 x 2 max pool.

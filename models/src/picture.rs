@@ -322,6 +322,7 @@ mod tests {
             embed_dim,
             l2_normalize: true,
             reverse_average: false,
+            test_views: Vec::new(),
         }
     }
 

@@ -385,6 +385,11 @@ pub struct Args {
     /// Force test-time reverse averaging off.
     #[arg(long, conflicts_with = "reverse_average")]
     pub no_reverse_average: bool,
+    /// Test-time views averaged with the plan's own (see `NetConfig::test_views`),
+    /// comma-separated, each `r<mrad>`, `s<shear>`, `x<stretch>` (thousandths), joined by `+`:
+    /// e.g. `r100,r-100`. Replaces the model's own.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub test_views: Option<Vec<guardian_models::net::TestView>>,
     /// Print one JSON object (otherwise a short text summary).
     #[arg(long)]
     pub json: bool,
@@ -478,6 +483,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         .filter(|_| args.reverse_average || args.no_reverse_average)
     {
         m.set_reverse_average(args.reverse_average);
+    }
+    if let (Some(m), Some(views)) = (model.as_mut(), &args.test_views) {
+        m.set_test_views(views)?;
     }
     let spec = args.episodes.spec();
     let report = evaluate(&pool, args.baseline, model.as_ref(), &spec)?;

@@ -348,6 +348,7 @@ impl Args {
                 embed_dim: self.embed_dim,
                 l2_normalize: !self.no_l2,
                 reverse_average: self.reverse_average,
+                test_views: Vec::new(),
             },
             loss: self.loss,
             margin: self.margin,

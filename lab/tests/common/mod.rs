@@ -15,6 +15,7 @@ pub fn tiny_net() -> NetConfig {
         embed_dim: guardian_models::embedder::EMBED_DIM,
         l2_normalize: true,
         reverse_average: false,
+        test_views: Vec::new(),
     }
 }
 

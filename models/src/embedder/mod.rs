@@ -80,6 +80,9 @@ pub enum EmbedError {
         /// The robot asked for.
         robot: String,
     },
+    /// An inference option would make a network's config unusable.
+    #[error("model config: {0}")]
+    Config(String),
     /// The network produced a non-finite embedding.
     #[error("embedding {index} is non-finite")]
     NonFiniteOutput {
@@ -356,20 +359,7 @@ impl Embedder {
             )?;
             for (o, r) in out.iter_mut().zip(raw.chunks_exact(copies * d)) {
                 let o = &mut o[offset..offset + d];
-                if copies == 2 {
-                    let (a, b) = r.split_at(d);
-                    for ((v, x), y) in o.iter_mut().zip(a).zip(b) {
-                        *v = (x + y) / 2.0;
-                    }
-                    if config.l2_normalize {
-                        let norm = (o.iter().map(|v| v * v).sum::<f32>() + 1e-12).sqrt();
-                        for v in o.iter_mut() {
-                            *v /= norm;
-                        }
-                    }
-                } else {
-                    o.copy_from_slice(r);
-                }
+                average_copies(r, d, config.l2_normalize, o);
                 if let Some(scale) = scale {
                     for v in o.iter_mut() {
                         *v *= scale;
@@ -415,8 +405,8 @@ impl Embedder {
                 &Device::Cpu,
             )?;
             let mut e = net.to_net()?.forward(&input)?;
-            if copies == 2 {
-                e = e.reshape((xs.len(), 2, d))?.mean(1)?;
+            if copies > 1 {
+                e = e.reshape((xs.len(), copies, d))?.mean(1)?;
                 if config.l2_normalize {
                     let norm = (e.sqr()?.sum_keepdim(1)? + 1e-12)?.sqrt()?;
                     e = e.broadcast_div(&norm)?;
@@ -447,19 +437,14 @@ impl Embedder {
         self.nets.iter().map(FastNet::config).collect()
     }
 
-    /// Floating-point operations of the networks for one plan (both directions of a
-    /// reverse-averaged network).
+    /// Floating-point operations of the networks for one plan (every copy a network reads:
+    /// both directions of a reverse-averaged network, its test views).
     pub fn flops(&self) -> u64 {
         self.nets
             .iter()
             .map(|n| {
                 let c = n.config();
-                let copies = if c.reverse_average && c.features != FeatureKind::Joints {
-                    2
-                } else {
-                    1
-                };
-                copies * n.flops(c.features.steps())
+                c.copies() as u64 * n.flops(c.features.steps())
             })
             .sum()
     }
@@ -482,6 +467,24 @@ impl Embedder {
         }
     }
 
+    /// Set the test-time views of every network on the pen features (see
+    /// [`NetConfig::test_views`]; at most [`crate::net::MAX_TEST_VIEWS`]); the weights and
+    /// the version are unchanged.
+    pub fn set_test_views(&mut self, views: &[crate::net::TestView]) -> Result<(), EmbedError> {
+        let pen = |net: &&FastNet| net.config().features != FeatureKind::Joints;
+        for net in self.nets.iter().filter(pen) {
+            let mut config = net.config().clone();
+            config.test_views = views.to_vec();
+            config.check().map_err(EmbedError::Config)?;
+        }
+        for net in Arc::make_mut(&mut self.nets) {
+            if net.config().features != FeatureKind::Joints {
+                net.set_test_views(views);
+            }
+        }
+        Ok(())
+    }
+
     /// The weights of a single-network model as a candle network (for training and analysis;
     /// feature `train`). `None` for a fused model.
     #[cfg(feature = "train")]
@@ -500,9 +503,9 @@ fn branch_scale(branches: usize) -> Option<f32> {
 }
 
 /// Write the input of a network with `config` for `xs` into `feats` (grown as needed): per
-/// trajectory one feature sequence (from its pen path in `paths`, or from its joints), or two
-/// (forwards, then time-reversed) with reverse averaging. Returns the number of sequences per
-/// trajectory.
+/// trajectory [`NetConfig::copies`] feature sequences (from its pen path in `paths`, or one
+/// from its joints): the plan's own path, then each test view, each followed by its reverse
+/// with reverse averaging. Returns the number of sequences per trajectory.
 fn features_into(
     config: &NetConfig,
     xs: &[Resampled],
@@ -511,29 +514,56 @@ fn features_into(
 ) -> usize {
     let kind = config.features;
     let v = kind.values();
-    let both = config.reverse_average && kind != FeatureKind::Joints;
-    let copies = if both { 2 } else { 1 };
+    let copies = config.copies();
     let n = copies * xs.len() * v;
     if feats.len() < n {
         feats.resize(n, 0.0);
     }
     let feats = &mut feats[..n];
-    let reverse = Augment {
-        reverse: true,
-        ..Augment::default()
+    let directions: &[bool] = if config.reverse_average {
+        &[false, true]
+    } else {
+        &[false]
     };
+    let own = crate::net::TestView::default();
     for ((x, path), out) in xs.iter().zip(paths).zip(feats.chunks_exact_mut(copies * v)) {
         if kind == FeatureKind::Joints {
             crate::features::compute(kind, x, out);
             continue;
         }
-        let (fwd, bwd) = out.split_at_mut(v);
-        crate::features::path_features(kind, path, &Augment::default(), fwd);
-        if both {
-            crate::features::path_features(kind, path, &reverse, bwd);
+        let augments = std::iter::once(&own)
+            .chain(&config.test_views)
+            .flat_map(|view| directions.iter().map(|&r| Augment::of_view(view, r)));
+        for (aug, out) in augments.zip(out.chunks_exact_mut(v)) {
+            crate::features::path_features(kind, path, &aug, out);
         }
     }
     copies
+}
+
+/// The mean of a plan's `copies` raw embeddings (rows of `raw`, `d` wide) into `out`,
+/// re-normalised when the network normalises.
+fn average_copies(raw: &[f32], d: usize, l2_normalize: bool, out: &mut [f32]) {
+    let copies = raw.len() / d;
+    if copies == 1 {
+        out.copy_from_slice(raw);
+        return;
+    }
+    out.fill(0.0);
+    for r in raw.chunks_exact(d) {
+        for (v, x) in out.iter_mut().zip(r) {
+            *v += x;
+        }
+    }
+    for v in out.iter_mut() {
+        *v /= copies as f32;
+    }
+    if l2_normalize {
+        let norm = (out.iter().map(|v| v * v).sum::<f32>() + 1e-12).sqrt();
+        for v in out.iter_mut() {
+            *v /= norm;
+        }
+    }
 }
 
 fn check_finite(xs: &[Resampled]) -> Result<(), EmbedError> {

@@ -77,6 +77,12 @@ fn embedder_fast_path_matches_candle_reference() {
     )
     .unwrap();
     embedders.push(Embedder::fuse(&[seq, pic]).unwrap());
+    // Test-time views on both branches, the sequence's reversed too.
+    let mut viewed = embedders.last().unwrap().clone();
+    viewed
+        .set_test_views(&["r100".parse().unwrap(), "s-80+x60".parse().unwrap()])
+        .unwrap();
+    embedders.push(viewed);
     let xs = trajectories(5, 2);
     for (i, e) in embedders.iter().enumerate() {
         let want = e

@@ -1,6 +1,7 @@
 //! The embedder's tests: file format, fusion, embedding.
 
 use super::*;
+use crate::net::TestView;
 
 fn sample(phase: f32) -> Resampled {
     let mut x = [[0.0f32; guardian_shared::trajectory::SLOTS]; STEPS];
@@ -80,6 +81,83 @@ fn reverse_averaging_makes_drawing_direction_irrelevant() {
             .unwrap(),
         avg[0]
     );
+}
+
+#[test]
+fn test_views_average_the_plans_views_and_survive_a_round_trip() {
+    let panda = guardian_robot::kinematics::default_panda();
+    let mut e = Embedder::fuse(&[
+        branch(FeatureKind::Pen, 21),
+        branch(FeatureKind::Picture, 22),
+    ])
+    .unwrap();
+    let xs = [sample(0.3), sample(1.1)];
+    let plain = e.embed_batch(panda, &xs).unwrap();
+    let flops = e.flops();
+    // A view that changes nothing averages to the plan's own embedding.
+    e.set_test_views(&[TestView::default()]).unwrap();
+    let same = e.embed_batch(panda, &xs).unwrap();
+    for (a, b) in plain.iter().zip(&same) {
+        assert!(sq_dist(a, b) < 1e-10, "{}", sq_dist(a, b));
+    }
+    assert_eq!(e.flops(), 2 * flops);
+    // Rotated and stretched views move it, and it stays a unit vector.
+    let views: Vec<TestView> = ["r150", "r-150", "s100+x-80"]
+        .iter()
+        .map(|v| v.parse().unwrap())
+        .collect();
+    let version = e.version().to_string();
+    e.set_test_views(&views).unwrap();
+    assert_eq!(e.version(), version);
+    assert_eq!(e.flops(), 4 * flops);
+    let viewed = e.embed_batch(panda, &xs).unwrap();
+    for (a, b) in plain.iter().zip(&viewed) {
+        assert!(sq_dist(a, b) > 1e-6);
+        let norm: f32 = b.iter().map(|v| v * v).sum();
+        assert!((norm - 1.0).abs() < 1e-4, "{norm}");
+    }
+    let back = Embedder::from_bytes(&e.to_bytes().unwrap()).unwrap();
+    assert!(back.configs().iter().all(|c| c.test_views == views));
+    assert_eq!(back.embed_batch(panda, &xs).unwrap(), viewed);
+    // Without views the file's config says nothing of them (files written before them
+    // read the same).
+    e.set_test_views(&[]).unwrap();
+    assert!(
+        !e.config_json().contains("test-views"),
+        "{}",
+        e.config_json()
+    );
+    assert_eq!(e.embed_batch(panda, &xs).unwrap(), plain);
+}
+
+#[test]
+fn unusable_test_views_are_refused() {
+    let mut e = branch(FeatureKind::Picture, 23);
+    let too_many = vec![TestView::default(); crate::net::MAX_TEST_VIEWS + 1];
+    assert!(matches!(
+        e.set_test_views(&too_many),
+        Err(EmbedError::Config(_))
+    ));
+    let flat = TestView {
+        stretch: 500,
+        ..TestView::default()
+    };
+    assert!(matches!(
+        e.set_test_views(&[flat]),
+        Err(EmbedError::Config(_))
+    ));
+    assert!(e.configs()[0].test_views.is_empty());
+    assert_eq!(
+        "r-50+x100".parse::<TestView>().unwrap(),
+        TestView {
+            rotation: -50,
+            shear: 0,
+            stretch: 100
+        }
+    );
+    for bad in ["q5", "r", "r99999", "r10+", ""] {
+        assert!(bad.parse::<TestView>().is_err(), "{bad}");
+    }
 }
 
 /// A model file with one bit of its last weight flipped is refused by its checksum.

@@ -441,6 +441,7 @@ mod tests {
                 embed_dim: 4,
                 l2_normalize: true,
                 reverse_average: false,
+                test_views: Vec::new(),
             },
             NetConfig {
                 features: FeatureKind::Pen,
@@ -449,6 +450,7 @@ mod tests {
                 embed_dim: 3,
                 l2_normalize: false,
                 reverse_average: false,
+                test_views: Vec::new(),
             },
         ]
     }

@@ -232,6 +232,12 @@ impl<T: Real> FastNet<T> {
         self.config.reverse_average = on;
     }
 
+    /// Set the test-time views (see [`NetConfig::test_views`]): an inference option that
+    /// changes no weight.
+    pub fn set_test_views(&mut self, views: &[crate::net::TestView]) {
+        self.config.test_views = views.to_vec();
+    }
+
     /// The parameters, in [`NetConfig::param_shapes`] order.
     pub fn params(&self) -> Vec<&[T]> {
         let mut out = Vec::with_capacity(2 * self.convs.len() + 2);
@@ -656,6 +662,7 @@ pub(crate) mod tests {
                 embed_dim: 128,
                 l2_normalize: false,
                 reverse_average: false,
+                test_views: Vec::new(),
             },
             NetConfig {
                 features: FeatureKind::Pen,
@@ -664,6 +671,7 @@ pub(crate) mod tests {
                 embed_dim: 20,
                 l2_normalize: true,
                 reverse_average: false,
+                test_views: Vec::new(),
             },
         ];
         for (i, config) in configs.into_iter().enumerate() {
