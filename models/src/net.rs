@@ -65,6 +65,15 @@ pub struct TestView {
 /// Most test views a network may have (each costs one more forward pass per plan).
 pub const MAX_TEST_VIEWS: usize = 8;
 
+/// Test views from their specs (see [`TestView`]'s `FromStr`); `none` stands for no view.
+pub fn parse_test_views(specs: &[String]) -> Result<Vec<TestView>, String> {
+    specs
+        .iter()
+        .filter(|v| v.as_str() != "none")
+        .map(|v| v.parse())
+        .collect()
+}
+
 impl std::str::FromStr for TestView {
     type Err = String;
 

@@ -387,9 +387,9 @@ pub struct Args {
     pub no_reverse_average: bool,
     /// Test-time views averaged with the plan's own (see `NetConfig::test_views`),
     /// comma-separated, each `r<mrad>`, `s<shear>`, `x<stretch>` (thousandths), joined by `+`:
-    /// e.g. `r100,r-100`. Replaces the model's own.
+    /// e.g. `r100,r-100`; `none` for none. Replaces the model's own.
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
-    pub test_views: Option<Vec<guardian_models::net::TestView>>,
+    pub test_views: Option<Vec<String>>,
     /// Print one JSON object (otherwise a short text summary).
     #[arg(long)]
     pub json: bool,
@@ -485,7 +485,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         m.set_reverse_average(args.reverse_average);
     }
     if let (Some(m), Some(views)) = (model.as_mut(), &args.test_views) {
-        m.set_test_views(views)?;
+        m.set_test_views(
+            &guardian_models::net::parse_test_views(views).map_err(anyhow::Error::msg)?,
+        )?;
     }
     let spec = args.episodes.spec();
     let report = evaluate(&pool, args.baseline, model.as_ref(), &spec)?;

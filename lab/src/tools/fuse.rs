@@ -1,17 +1,19 @@
 //! `guardian-lab fuse`: one model file of several trained networks (the branches of a fused
 //! model, [`Embedder::fuse`]): e.g. a sequence network and a picture network of 64
-//! dimensions each, whose embeddings the served model concatenates.
+//! dimensions each, whose embeddings the served model concatenates; or one model file
+//! written again with other inference options (`--test-views`).
 
 use std::path::PathBuf;
 
 use guardian_models::embedder::Embedder;
+use guardian_models::net::parse_test_views;
 
 /// Arguments of `fuse`.
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// The branch models, in embedding order (at least two; their embedding dimensions sum
-    /// to at most 128).
-    #[arg(required = true, num_args = 2..)]
+    /// The branch models, in embedding order (their embedding dimensions sum to at most
+    /// 128; a fused model's branches count one by one).
+    #[arg(required = true, num_args = 1..)]
     pub models: Vec<PathBuf>,
     /// The fused model file to write.
     #[arg(long)]
@@ -20,6 +22,10 @@ pub struct Args {
     /// what its file says otherwise).
     #[arg(long)]
     pub no_reverse_average: bool,
+    /// Test-time views of every pen-feature branch (see `guardian-lab eval --test-views`;
+    /// `none` for none); without it a branch keeps what its file says.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub test_views: Option<Vec<String>>,
 }
 
 /// Load the branches, fuse them, write the model; print its version and architecture.
@@ -32,7 +38,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     if args.no_reverse_average {
         parts.iter_mut().for_each(|p| p.set_reverse_average(false));
     }
-    let fused = Embedder::fuse(&parts)?;
+    let mut fused = Embedder::fuse(&parts)?;
+    if let Some(views) = &args.test_views {
+        fused.set_test_views(&parse_test_views(views).map_err(anyhow::Error::msg)?)?;
+    }
     fused.save(&args.out)?;
     println!(
         "{} {} ({} networks: {}): {}",

@@ -152,13 +152,13 @@ impl Embedder {
         Ok(Self::from_nets(nets))
     }
 
-    /// The embedder of checked networks; the version is the checksum of their tensors under
-    /// their names in the file.
+    /// The embedder of checked networks; the checksum is that of their tensors under their
+    /// names in the file (see [`Embedder::version`]).
     fn from_nets(nets: Vec<FastNet>) -> Self {
         let sum = checksum(Self::named(&nets).iter());
         Self {
+            version: version_of(&nets, &sum),
             nets: Arc::new(nets),
-            version: sum[..16].to_string(),
             checksum: sum,
         }
     }
@@ -449,7 +449,11 @@ impl Embedder {
             .sum()
     }
 
-    /// Stable id: the first 16 hex characters of the SHA-256 over the weights.
+    /// Stable id: the first 16 hex characters of the SHA-256 over the weights ([`checksum`]);
+    /// a model with test-time views ([`NetConfig::test_views`]) has its own, hashed from the
+    /// checksum and the views, since its embeddings differ.
+    ///
+    /// [`checksum`]: Embedder::checksum
     pub fn version(&self) -> &str {
         &self.version
     }
@@ -468,8 +472,9 @@ impl Embedder {
     }
 
     /// Set the test-time views of every network on the pen features (see
-    /// [`NetConfig::test_views`]; at most [`crate::net::MAX_TEST_VIEWS`]); the weights and
-    /// the version are unchanged.
+    /// [`NetConfig::test_views`]; at most [`crate::net::MAX_TEST_VIEWS`]). The weights are
+    /// unchanged; the version is that of the weights with these views (see
+    /// [`Embedder::version`]).
     pub fn set_test_views(&mut self, views: &[crate::net::TestView]) -> Result<(), EmbedError> {
         let pen = |net: &&FastNet| net.config().features != FeatureKind::Joints;
         for net in self.nets.iter().filter(pen) {
@@ -482,6 +487,7 @@ impl Embedder {
                 net.set_test_views(views);
             }
         }
+        self.version = version_of(&self.nets, &self.checksum);
         Ok(())
     }
 
@@ -494,6 +500,31 @@ impl Embedder {
             _ => None,
         }
     }
+}
+
+/// The version of `nets` whose tensors hash to `checksum`: its first 16 hex characters, or,
+/// when a network has test-time views (which change every embedding, so a bank enrolled
+/// without them must not pass for one enrolled with them), those of the SHA-256 over the
+/// checksum and every network's views.
+fn version_of(nets: &[FastNet], checksum: &str) -> String {
+    if nets.iter().all(|n| n.config().test_views.is_empty()) {
+        return checksum[..16].to_string();
+    }
+    let mut h = Sha256::new();
+    h.update(checksum.as_bytes());
+    for net in nets {
+        let views = &net.config().test_views;
+        h.update((views.len() as u64).to_le_bytes());
+        for v in views {
+            for x in [v.rotation, v.shear, v.stretch] {
+                h.update(x.to_le_bytes());
+            }
+        }
+    }
+    h.finalize()[..8]
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
 }
 
 /// What each branch's embedding is multiplied by: `1/√branches` for a fused model (so the

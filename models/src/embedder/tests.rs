@@ -93,7 +93,7 @@ fn test_views_average_the_plans_views_and_survive_a_round_trip() {
     .unwrap();
     let xs = [sample(0.3), sample(1.1)];
     let plain = e.embed_batch(panda, &xs).unwrap();
-    let flops = e.flops();
+    let (flops, version, sum) = (e.flops(), e.version().to_string(), e.checksum().to_string());
     // A view that changes nothing averages to the plan's own embedding.
     e.set_test_views(&[TestView::default()]).unwrap();
     let same = e.embed_batch(panda, &xs).unwrap();
@@ -106,9 +106,16 @@ fn test_views_average_the_plans_views_and_survive_a_round_trip() {
         .iter()
         .map(|v| v.parse().unwrap())
         .collect();
-    let version = e.version().to_string();
+    // Its own version (a bank enrolled without the views is not one enrolled with them);
+    // the weights' checksum is unchanged.
+    let identity_version = e.version().to_string();
     e.set_test_views(&views).unwrap();
-    assert_eq!(e.version(), version);
+    assert_ne!(e.version(), version);
+    assert_ne!(e.version(), identity_version);
+    assert_eq!(e.checksum(), sum);
+    let mut other = e.clone();
+    other.set_test_views(&views[..2]).unwrap();
+    assert_ne!(other.version(), e.version());
     assert_eq!(e.flops(), 4 * flops);
     let viewed = e.embed_batch(panda, &xs).unwrap();
     for (a, b) in plain.iter().zip(&viewed) {
@@ -118,10 +125,12 @@ fn test_views_average_the_plans_views_and_survive_a_round_trip() {
     }
     let back = Embedder::from_bytes(&e.to_bytes().unwrap()).unwrap();
     assert!(back.configs().iter().all(|c| c.test_views == views));
+    assert_eq!(back.version(), e.version());
     assert_eq!(back.embed_batch(panda, &xs).unwrap(), viewed);
     // Without views the file's config says nothing of them (files written before them
     // read the same).
     e.set_test_views(&[]).unwrap();
+    assert_eq!(e.version(), version);
     assert!(
         !e.config_json().contains("test-views"),
         "{}",
