@@ -57,3 +57,49 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     );
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use guardian_models::net::TestView;
+
+    fn fuse_one(model: PathBuf, out: PathBuf, views: &[&str]) -> anyhow::Result<Embedder> {
+        run(&Args {
+            models: vec![model],
+            out: out.clone(),
+            no_reverse_average: false,
+            test_views: Some(views.iter().map(|v| v.to_string()).collect()),
+        })?;
+        Ok(Embedder::load(&out)?)
+    }
+
+    #[test]
+    fn one_model_is_written_again_with_test_views_and_without() {
+        let dir = tempfile::tempdir().unwrap();
+        let plain = dir.path().join("plain.safetensors");
+        let model = Embedder::random(7);
+        model.save(&plain).unwrap();
+        let viewed = fuse_one(
+            plain.clone(),
+            dir.path().join("v.safetensors"),
+            &["r200+x100", "r-200+x-100"],
+        )
+        .unwrap();
+        let want: Vec<TestView> =
+            vec!["r200+x100".parse().unwrap(), "r-200+x-100".parse().unwrap()];
+        assert_eq!(viewed.configs()[0].test_views, want);
+        assert_eq!(viewed.checksum(), model.checksum());
+        assert_ne!(viewed.version(), model.version());
+        let back = fuse_one(
+            dir.path().join("v.safetensors"),
+            dir.path().join("b.safetensors"),
+            &["none"],
+        )
+        .unwrap();
+        assert!(back.configs()[0].test_views.is_empty());
+        assert_eq!(back.version(), model.version());
+        let err = fuse_one(plain, dir.path().join("bad.safetensors"), &["y5"]).unwrap_err();
+        assert!(err.to_string().contains("y5"), "{err}");
+        assert!(!dir.path().join("bad.safetensors").exists());
+    }
+}
