@@ -83,14 +83,14 @@ impl std::str::FromStr for TestView {
         let mut view = TestView::default();
         for part in spec.split('+') {
             let part = part.trim();
-            let (key, value) = part.split_at(part.len().min(1));
-            let value: i16 = value
+            let key = part.chars().next().unwrap_or(' ');
+            let value: i16 = part[key.len_utf8().min(part.len())..]
                 .parse()
                 .map_err(|e| format!("test view {spec:?}: {part:?}: {e}"))?;
             match key {
-                "r" => view.rotation = value,
-                "s" => view.shear = value,
-                "x" => view.stretch = value,
+                'r' => view.rotation = value,
+                's' => view.shear = value,
+                'x' => view.stretch = value,
                 _ => {
                     return Err(format!(
                         "test view {spec:?}: {part:?} is not r<mrad>, s<shear> or x<stretch> (thousandths)"
@@ -204,7 +204,11 @@ impl NetConfig {
                 self.test_views.len()
             ));
         }
-        if self.test_views.iter().any(|v| v.stretch.abs() >= 500) {
+        if self
+            .test_views
+            .iter()
+            .any(|v| v.stretch.unsigned_abs() >= 500)
+        {
             return Err("a test view's stretch must lie within (-500, 500) thousandths".into());
         }
         if self.features.is_picture() {

@@ -155,6 +155,14 @@ fn unusable_test_views_are_refused() {
         e.set_test_views(&[flat]),
         Err(EmbedError::Config(_))
     ));
+    let flattest = TestView {
+        stretch: i16::MIN,
+        ..TestView::default()
+    };
+    assert!(matches!(
+        e.set_test_views(&[flattest]),
+        Err(EmbedError::Config(_))
+    ));
     assert!(e.configs()[0].test_views.is_empty());
     assert_eq!(
         "r-50+x100".parse::<TestView>().unwrap(),
@@ -164,7 +172,7 @@ fn unusable_test_views_are_refused() {
             stretch: 100
         }
     );
-    for bad in ["q5", "r", "r99999", "r10+", ""] {
+    for bad in ["q5", "r", "r99999", "r10+", "", "é5", "5"] {
         assert!(bad.parse::<TestView>().is_err(), "{bad}");
     }
 }
