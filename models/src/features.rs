@@ -69,7 +69,8 @@ pub const PICTURE_SIDE: usize = 32;
 /// Channels of [`FeatureKind::Pen`].
 pub const PEN_CHANNELS: usize = 7;
 
-/// A geometric augmentation applied to the pen path before normalisation (training only).
+/// A geometric augmentation applied to the pen path before normalisation (training, and a
+/// model's test-time views: [`Augment::of_view`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Augment {
     /// Rotation about the drawing's centre (rad).
