@@ -476,17 +476,13 @@ impl Embedder {
     /// unchanged; the version is that of the weights with these views (see
     /// [`Embedder::version`]).
     pub fn set_test_views(&mut self, views: &[crate::net::TestView]) -> Result<(), EmbedError> {
-        let pen = |net: &&FastNet| net.config().features != FeatureKind::Joints;
-        for net in self.nets.iter().filter(pen) {
-            let mut config = net.config().clone();
-            config.test_views = views.to_vec();
-            config.check().map_err(EmbedError::Config)?;
+        let pen = |net: &&mut FastNet| net.config().features != FeatureKind::Joints;
+        let mut nets = self.nets.as_ref().clone();
+        for net in nets.iter_mut().filter(pen) {
+            net.set_test_views(views);
+            net.config().check().map_err(EmbedError::Config)?;
         }
-        for net in Arc::make_mut(&mut self.nets) {
-            if net.config().features != FeatureKind::Joints {
-                net.set_test_views(views);
-            }
-        }
+        self.nets = Arc::new(nets);
         self.version = version_of(&self.nets, &self.checksum);
         Ok(())
     }
