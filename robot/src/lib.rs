@@ -7,6 +7,8 @@
 //!   resampling to the model's steps; [`preprocess`] is the same with the rules off.
 //! - [`geometry`]: the plan geometry (position, size, strokes, direction) the screen compares
 //!   with a class's enrolled examples.
+//! - [`ink`]: where a plan's pen draws, point by point, and how far that is from an
+//!   example's drawing (what a plan stopped early or drawn mirrored leaves out).
 //! - [`place`]: where a plan happens (its tool path in the base frame), for cells whose tasks
 //!   are anchored to their place; [`cell`]: a cell's rules (allowed and keep-out boxes).
 //! - [`variant`]: near misses of a plan (stopped early, drawn mirrored) the screen compares
@@ -17,6 +19,7 @@
 
 pub mod cell;
 pub mod geometry;
+pub mod ink;
 pub mod kinematics;
 pub mod pen;
 pub mod place;

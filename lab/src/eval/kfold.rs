@@ -472,6 +472,11 @@ fn outlier_row(
         near_miss_share: 0.25,
         near_miss_from_geometry: false,
         near_miss_form: crate::eval::outliers::NearMissForm::Margin,
+        ink: false,
+        ink_share: 0.25,
+        ink_quantile: 0.9,
+        ink_centred: false,
+        ink_from_embedding: false,
         out: None,
         json: false,
     })?;

@@ -34,6 +34,13 @@
 //!   budget from the embedding's share (or the geometry's, `--near-miss-from-geometry`):
 //!   what the embedding and geometry rules leave of the budget, on the calibration plans
 //!   they accept, so the genuine false-reject target is the same as `guardian`'s;
+//! - `guardian-ink` (with `--ink`): the full decision and an ink step. Every enrolled
+//!   example's ink (its pen-down path, bounding boxes centred with `--ink-centred`) is kept;
+//!   a plan whose ink distance to the nearest example (`guardian_robot::ink`: the larger of
+//!   what it leaves undrawn and what it draws beyond, as a `--ink-quantile` of point-to-ink
+//!   distances) exceeds a tolerance is a no-go. The tolerance takes `--ink-share` of the
+//!   budget from the geometry's share (or the embedding's, `--ink-from-embedding`), on the
+//!   calibration plans the other rules accept, as for the near-miss step;
 //! - `guardian-embedding`: the shipped embedder alone, calibrated for the whole target
 //!   (the decision before the workcell and geometry checks existed), for comparison;
 //! - `siamese`, `knn`: the baselines.
@@ -50,6 +57,7 @@ use anyhow::Context as _;
 use guardian_bank::{self as bank, Calibration, ClassBank, GenuineScore, GeometryCalibration};
 use guardian_models::embedder::Embedder;
 use guardian_robot::geometry::{self, PlanGeometry};
+use guardian_robot::ink::{self, Ink};
 use guardian_robot::workcell;
 use guardian_screen::check::{self, Embedded};
 use guardian_shared::trajectory::Resampled;
@@ -82,6 +90,9 @@ pub enum Method {
     /// (the enrolled examples stopped early or mirrored, `--near-misses`) than to the class
     /// by more than a calibrated tolerance is a no-go.
     GuardianNearMiss,
+    /// The full decision and the ink step (`--ink`): a plan whose ink is farther from every
+    /// enrolled example's than a calibrated tolerance (`guardian_robot::ink`) is a no-go.
+    GuardianInk,
     /// The Siamese baseline network, prototypes, calibrated the same way.
     Siamese,
     /// 1-NN on standardised raw trajectories (smallest L2 to a class's enrolled drawings),
@@ -113,6 +124,8 @@ struct Enrolled {
     /// Per class, the prototype of each near miss of its support (empty without near
     /// misses, or where no example had that near miss).
     near: Vec<Vec<Vec<f32>>>,
+    /// Per class, the ink of each enrolled example (empty without `--ink`).
+    ink: Vec<Vec<Ink>>,
 }
 
 /// Mean of `rows` (empty for none).
@@ -163,6 +176,7 @@ impl Space<'_> {
     fn enroll(&self, support: &[Vec<usize>], geo: Option<&[Option<PlanGeometry>]>) -> Enrolled {
         let mut e = Enrolled {
             near: Vec::new(),
+            ink: Vec::new(),
             geometry: support
                 .iter()
                 .map(|idx| {
@@ -246,6 +260,27 @@ impl Enrolled {
         })
     }
 
+    /// Enroll the ink of every support plan (`inks[i]`: plan `i`'s ink).
+    fn with_ink(mut self, support: &[Vec<usize>], inks: Option<&[Option<Ink>]>) -> Self {
+        if let Some(inks) = inks {
+            self.ink = support
+                .iter()
+                .map(|idx| idx.iter().filter_map(|&i| inks[i].clone()).collect())
+                .collect();
+        }
+        self
+    }
+
+    /// The ink score of a plan claiming class `c` (`None` without ink).
+    fn ink_score(&self, plan: Option<&Ink>, c: usize, q: f32) -> Option<f32> {
+        let examples = self.ink.get(c).filter(|e| !e.is_empty())?;
+        match plan {
+            Some(p) => ink::score(p, examples, q),
+            // A plan that draws nothing against a class that draws.
+            None => Some(f32::INFINITY),
+        }
+    }
+
     /// Raw geometry score of `g` against class `c` (`None` without descriptors).
     fn geometry_score(
         &self,
@@ -270,6 +305,11 @@ fn full_score(
         _ => 0.0,
     };
     emb.max(g).max(workcell)
+}
+
+/// An ink score over its tolerance, > 1 exactly when the ink step says no-go (NaN: +inf).
+fn ink_normalised(score: f32, tolerance: f32) -> f32 {
+    geometry::normalised_geometry_score(score, tolerance.max(f32::MIN_POSITIVE))
 }
 
 /// Arguments of `guardian-lab outliers`.
@@ -323,6 +363,21 @@ pub struct Args {
     /// ratio).
     #[arg(long, value_enum, default_value_t = NearMissForm::Margin)]
     pub near_miss_form: NearMissForm,
+    /// Measure the `guardian-ink` method: the full decision and the ink step.
+    #[arg(long)]
+    pub ink: bool,
+    /// Share of the false-reject budget given to the ink step (taken from the geometry's).
+    #[arg(long, default_value_t = 0.25)]
+    pub ink_share: f32,
+    /// Quantile of the point-to-ink distances the ink distance takes.
+    #[arg(long, default_value_t = 0.9)]
+    pub ink_quantile: f32,
+    /// Compare inks with their bounding boxes centred (position left to the geometry).
+    #[arg(long)]
+    pub ink_centred: bool,
+    /// Take the ink share from the embedding's share instead of the geometry's.
+    #[arg(long)]
+    pub ink_from_embedding: bool,
     /// Directory for ROC curves and score histograms (PNG) and the raw scores (JSON).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -572,6 +627,9 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
     if !args.near_misses.is_empty() {
         methods.push((Method::GuardianNearMiss, gc.clone(), gt.clone(), gf.clone()));
     }
+    if args.ink {
+        methods.push((Method::GuardianInk, gc.clone(), gt.clone(), gf.clone()));
+    }
     methods.push((Method::GuardianEmbedding, gc, gt, gf));
     // The near misses of every calibration and test plan, embedded: [kind][plan].
     let near_of = |xs: &[Resampled]| -> anyhow::Result<Vec<NearVectors>> {
@@ -612,6 +670,12 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
             .collect()
     };
     let (cgeo, tgeo, fgeo) = (geo_of(&ec), geo_of(&et), geo_of(&ef));
+    let ink_of = |es: &[Embedded]| -> Vec<Option<Ink>> {
+        es.iter()
+            .map(|e| Ink::of_path(&e.path).map(|i| if args.ink_centred { i.centred() } else { i }))
+            .collect()
+    };
+    let (cink, tink, fink) = (ink_of(&ec), ink_of(&et), ink_of(&ef));
     let (twc, fwc) = (wc_of(&pool.xs), wc_of(&fxs));
     let scales = {
         let groups: Vec<Vec<PlanGeometry>> = crate::eval::calibration::by_class(&cpool.labels)
@@ -652,11 +716,23 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
     let mut reports = Vec::new();
     let mut raw: BTreeMap<String, Scores> = BTreeMap::new();
     for (method, cv, tv, fv) in &methods {
-        let full = matches!(method, Method::Guardian | Method::GuardianNearMiss);
+        let full = matches!(
+            method,
+            Method::Guardian | Method::GuardianNearMiss | Method::GuardianInk
+        );
         let nm = *method == Method::GuardianNearMiss;
-        let nm_share = if nm { args.near_miss_share } else { 0.0 };
+        let ik = *method == Method::GuardianInk;
+        let nm_share = if nm {
+            args.near_miss_share
+        } else if ik {
+            args.ink_share
+        } else {
+            0.0
+        };
         let space_method = match method {
-            Method::GuardianEmbedding | Method::GuardianNearMiss => Method::Guardian,
+            Method::GuardianEmbedding | Method::GuardianNearMiss | Method::GuardianInk => {
+                Method::Guardian
+            }
             m => *m,
         };
         // Calibration.
@@ -670,25 +746,32 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
         let mut gnear = Vec::new();
         for _ in 0..args.calib_reps {
             let (support, queries) = split(&cpool.labels, args.screen.shots, &mut crng);
-            let e = cspace.enroll_near(
-                &support,
-                full.then_some(cgeo.as_slice()),
-                nm.then_some(cnear.as_slice()),
-            );
+            let e = cspace
+                .enroll_near(
+                    &support,
+                    full.then_some(cgeo.as_slice()),
+                    nm.then_some(cnear.as_slice()),
+                )
+                .with_ink(&support, ik.then_some(cink.as_slice()));
             for q in queries {
                 let d = e.distances(space_method, &cv[q]);
                 let c = cpool.labels[q] as usize;
                 gs.push(e.genuine(&d, c));
                 ggeo.push(e.geometry_score(cgeo[q].as_ref(), c, &scales));
-                gnear.push(e.near_miss_margin(&cv[q], c, args.near_miss_form));
+                gnear.push(if ik {
+                    e.ink_score(cink[q].as_ref(), c, args.ink_quantile)
+                } else {
+                    e.near_miss_margin(&cv[q], c, args.near_miss_form)
+                });
             }
         }
         let emb_target = if full {
-            let from_emb = if args.near_miss_from_geometry {
-                0.0
-            } else {
-                nm_share
-            };
+            let from_emb =
+                if (nm && args.near_miss_from_geometry) || (ik && !args.ink_from_embedding) {
+                    0.0
+                } else {
+                    nm_share
+                };
             args.screen.target_frr * (1.0 - args.screen.geometry_share - from_emb)
         } else {
             args.screen.target_frr
@@ -707,8 +790,13 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
             }
             _ => None,
         };
-        if let (Some(t), Method::Guardian | Method::GuardianEmbedding | Method::GuardianNearMiss) =
-            (args.wrong_task_tolerance, method)
+        if let (
+            Some(t),
+            Method::Guardian
+            | Method::GuardianEmbedding
+            | Method::GuardianNearMiss
+            | Method::GuardianInk,
+        ) = (args.wrong_task_tolerance, method)
         {
             cal.wrong_task_tolerance = Some(t);
         }
@@ -732,7 +820,7 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
         let gcal = gcal.as_ref();
         // The near-miss tolerance: what the embedding and geometry rules leave of the whole
         // budget goes to the near-miss margin, on the plans they accept.
-        let near_tol = if nm {
+        let near_tol = if nm || ik {
             let budget = (f64::from(args.screen.target_frr) * gs.len() as f64).floor() as usize;
             let mut used = 0;
             let mut kept = Vec::new();
@@ -758,18 +846,29 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
         // the bank's with `--calibration-from`).
         let tscales = gcal.map_or(scales, |g| g.scales);
         // The method's score of a plan claiming class c.
-        let plan_score =
-            |e: &Enrolled, q: &[f32], d: &[f32], c: usize, g: Option<&PlanGeometry>, wc: f32| {
-                let s = score(&e.genuine(d, c), &cal);
-                if !full {
-                    return s;
-                }
-                let f = full_score(s, e.geometry_score(g, c, &tscales), gcal, wc);
-                match (near_tol, e.near_miss_margin(q, c, args.near_miss_form)) {
-                    (Some(t), Some(m)) => f.max(1.0 + (m - t)),
+        let plan_score = |e: &Enrolled,
+                          q: &[f32],
+                          d: &[f32],
+                          c: usize,
+                          g: Option<&PlanGeometry>,
+                          ink: Option<&Ink>,
+                          wc: f32| {
+            let s = score(&e.genuine(d, c), &cal);
+            if !full {
+                return s;
+            }
+            let f = full_score(s, e.geometry_score(g, c, &tscales), gcal, wc);
+            if ik {
+                return match (near_tol, e.ink_score(ink, c, args.ink_quantile)) {
+                    (Some(t), Some(m)) => f.max(ink_normalised(m, t)),
                     _ => f,
-                }
-            };
+                };
+            }
+            match (near_tol, e.near_miss_margin(q, c, args.near_miss_form)) {
+                (Some(t), Some(m)) => f.max(1.0 + (m - t)),
+                _ => f,
+            }
+        };
         // Test rounds.
         let tspace = Space {
             method: space_method,
@@ -785,11 +884,13 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
             for &u in &unknown {
                 support[u].clear();
             }
-            let e = tspace.enroll_near(
-                &support,
-                full.then_some(tgeo.as_slice()),
-                nm.then_some(tnear.as_slice()),
-            );
+            let e = tspace
+                .enroll_near(
+                    &support,
+                    full.then_some(tgeo.as_slice()),
+                    nm.then_some(tnear.as_slice()),
+                )
+                .with_ink(&support, ik.then_some(tink.as_slice()));
             let enrolled: Vec<usize> = (0..nclass).filter(|c| !support[*c].is_empty()).collect();
             // Nearest enrolled prototype of each class (in this method's space), by the
             // mean of all its drawings for never-enrolled classes.
@@ -829,18 +930,18 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
             for &q in &queries {
                 let c = pool.labels[q] as usize;
                 let d = e.distances(space_method, &tv[q]);
-                let (g, wc) = (tgeo[q].as_ref(), twc[q]);
+                let (g, ink, wc) = (tgeo[q].as_ref(), tink[q].as_ref(), twc[q]);
                 if unknown.contains(&c) {
                     for sev in [25u32, 50, 100] {
                         let claim = pick(c, sev, &mut trng);
                         sc.faulty
                             .entry(format!("unknown-task@{sev}"))
                             .or_default()
-                            .push(plan_score(&e, &tv[q], &d, claim, g, wc));
+                            .push(plan_score(&e, &tv[q], &d, claim, g, ink, wc));
                     }
                     continue;
                 }
-                sc.genuine.push(plan_score(&e, &tv[q], &d, c, g, wc));
+                sc.genuine.push(plan_score(&e, &tv[q], &d, c, g, ink, wc));
                 for sev in [25u32, 50, 100] {
                     let claim = pick(c, sev, &mut trng);
                     if claim == c {
@@ -849,7 +950,7 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
                     sc.faulty
                         .entry(format!("wrong-task@{sev}"))
                         .or_default()
-                        .push(plan_score(&e, &tv[q], &d, claim, g, wc));
+                        .push(plan_score(&e, &tv[q], &d, claim, g, ink, wc));
                 }
             }
             for (k, (p, key, _)) in faulty.iter().enumerate() {
@@ -861,7 +962,15 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
                 sc.faulty
                     .entry(format!("{}@{}", key.0, key.1))
                     .or_default()
-                    .push(plan_score(&e, &fv[k], &d, c, fgeo[k].as_ref(), fwc[k]));
+                    .push(plan_score(
+                        &e,
+                        &fv[k],
+                        &d,
+                        c,
+                        fgeo[k].as_ref(),
+                        fink[k].as_ref(),
+                        fwc[k],
+                    ));
             }
         }
         let mut figs = Vec::new();
@@ -976,6 +1085,7 @@ mod tests {
             support: vec![vec![vec![1.0, 0.0]]],
             spread: vec![Some(0.5)],
             near: vec![vec![vec![0.0, 1.0], vec![0.0, -1.0]]],
+            ink: Vec::new(),
         };
         let near_class = [0.9f32, 0.1];
         let near_miss = [0.1f32, 0.9];
@@ -1001,6 +1111,36 @@ mod tests {
             bare.near_miss_margin(&near_miss, 0, NearMissForm::Margin),
             None
         );
+    }
+
+    /// The ink step scores a plan against the nearest enrolled example's ink; a plan that
+    /// draws nothing against a class that draws is infinitely far, and a class without ink
+    /// has no ink score; over the tolerance exactly when the score exceeds it.
+    #[test]
+    fn the_ink_step_takes_the_nearest_example_and_never_passes_no_ink() {
+        let ink = |pts: &[[f32; 2]]| {
+            let path: Vec<[f32; 3]> = pts.iter().map(|p| [p[0], p[1], 1.0]).collect();
+            Ink::of_path(&path).unwrap()
+        };
+        let horizontal = ink(&[[0.0, 0.0], [0.04, 0.0]]);
+        let vertical = ink(&[[0.0, 0.0], [0.0, 0.04]]);
+        let e = Enrolled {
+            geometry: vec![Vec::new(), Vec::new()],
+            protos: vec![Vec::new(), Vec::new()],
+            support: vec![Vec::new(), Vec::new()],
+            spread: vec![None, None],
+            near: Vec::new(),
+            ink: vec![vec![horizontal.clone(), vertical], Vec::new()],
+        };
+        let shorter = ink(&[[0.0, 0.0], [0.03, 0.0]]);
+        let s = e.ink_score(Some(&shorter), 0, 1.0).unwrap();
+        assert!((s - 0.01).abs() < 1e-6, "{s}");
+        assert_eq!(e.ink_score(Some(&horizontal), 0, 1.0), Some(0.0));
+        assert_eq!(e.ink_score(None, 0, 1.0), Some(f32::INFINITY));
+        assert_eq!(e.ink_score(Some(&shorter), 1, 1.0), None);
+        assert!(ink_normalised(0.011, 0.01) > 1.0);
+        assert!(ink_normalised(0.01, 0.01) <= 1.0);
+        assert!(ink_normalised(f32::NAN, 0.01) > 1.0);
     }
 
     #[test]
