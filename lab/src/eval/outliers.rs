@@ -366,7 +366,8 @@ pub struct Args {
     /// Measure the `guardian-ink` method: the full decision and the ink step.
     #[arg(long)]
     pub ink: bool,
-    /// Share of the false-reject budget given to the ink step (taken from the geometry's).
+    /// Share of the false-reject budget given to the ink step (taken from the geometry's,
+    /// or the embedding's with `--ink-from-embedding`).
     #[arg(long, default_value_t = 0.25)]
     pub ink_share: f32,
     /// Quantile of the point-to-ink distances the ink distance takes.
@@ -818,8 +819,9 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
             None
         };
         let gcal = gcal.as_ref();
-        // The near-miss tolerance: what the embedding and geometry rules leave of the whole
-        // budget goes to the near-miss margin, on the plans they accept.
+        // The near-miss (or ink) tolerance: what the embedding and geometry rules leave of
+        // the whole budget goes to the near-miss margin (or the ink score), on the plans they
+        // accept.
         let near_tol = if nm || ik {
             let budget = (f64::from(args.screen.target_frr) * gs.len() as f64).floor() as usize;
             let mut used = 0;
@@ -835,7 +837,8 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
             let t =
                 bank::threshold_allowing(&kept, budget.saturating_sub(used)).unwrap_or(f32::MAX);
             eprintln!(
-                "near-miss tolerance {t:.4} ({used} of {} genuine plans rejected before it, budget {budget})",
+                "{} tolerance {t:.4} ({used} of {} genuine plans rejected before it, budget {budget})",
+                if ik { "ink" } else { "near-miss" },
                 gs.len()
             );
             Some(t)
