@@ -671,9 +671,13 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
             .collect()
     };
     let (cgeo, tgeo, fgeo) = (geo_of(&ec), geo_of(&et), geo_of(&ef));
+    // The ink of every plan, only for the ink step (one `None` per plan otherwise).
     let ink_of = |es: &[Embedded]| -> Vec<Option<Ink>> {
         es.iter()
-            .map(|e| Ink::of_path(&e.path).map(|i| if args.ink_centred { i.centred() } else { i }))
+            .map(|e| {
+                let ink = args.ink.then(|| Ink::of_path(&e.path)).flatten()?;
+                Some(if args.ink_centred { ink.centred() } else { ink })
+            })
             .collect()
     };
     let (cink, tink, fink) = (ink_of(&ec), ink_of(&et), ink_of(&ef));
@@ -744,6 +748,8 @@ pub fn measure(args: &Args) -> anyhow::Result<OutliersReport> {
         let mut crng = StdRng::seed_from_u64(args.screen.seed);
         let mut gs = Vec::new();
         let mut ggeo = Vec::new();
+        // The extra step's score of every calibration plan: the near-miss margin, or the
+        // ink score for the ink step.
         let mut gnear = Vec::new();
         for _ in 0..args.calib_reps {
             let (support, queries) = split(&cpool.labels, args.screen.shots, &mut crng);
