@@ -390,6 +390,10 @@ pub struct Args {
     /// e.g. `r100,r-100`; `none` for none. Replaces the model's own.
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub test_views: Option<Vec<String>>,
+    /// Also report every class as the query's class: its accuracy and the class it was
+    /// most often taken for (e.g. to see which characters an alphabet confuses).
+    #[arg(long)]
+    pub per_class: bool,
     /// Print one JSON object (otherwise a short text summary).
     #[arg(long)]
     pub json: bool,
@@ -411,6 +415,64 @@ pub struct EvalReport {
     /// The result.
     #[serde(flatten)]
     pub result: EpisodeResult,
+    /// Every class that was a query's class (`--per-class`), worst first.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub per_class: Vec<ClassResult>,
+}
+
+/// The episodes whose query was of one class.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ClassResult {
+    /// The class's name.
+    pub class: String,
+    /// Episodes whose query was of this class.
+    pub queries: usize,
+    /// The fraction of them answered with this class.
+    pub accuracy: f64,
+    /// The class most often answered instead, and in how many of these episodes (none if
+    /// every answer was right).
+    pub confused_with: Option<(String, usize)>,
+}
+
+/// Per query class: accuracy and the most frequent wrong answer, worst class first (ties by
+/// name). `predictions` are `(true, predicted)` dense labels, `names` their class names.
+pub fn per_class(predictions: &[(u32, u32)], names: &[String]) -> Vec<ClassResult> {
+    let mut counts: std::collections::BTreeMap<u32, std::collections::BTreeMap<u32, usize>> =
+        Default::default();
+    for &(t, p) in predictions {
+        *counts.entry(t).or_default().entry(p).or_default() += 1;
+    }
+    let name = |l: u32| {
+        names
+            .get(l as usize)
+            .cloned()
+            .unwrap_or_else(|| l.to_string())
+    };
+    let mut out: Vec<ClassResult> = counts
+        .into_iter()
+        .map(|(t, answers)| {
+            let queries = answers.values().sum::<usize>();
+            let right = answers.get(&t).copied().unwrap_or(0);
+            let confused_with = answers
+                .iter()
+                .filter(|&(&p, _)| p != t)
+                // The most frequent wrong answer; the smallest label among equals.
+                .max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))
+                .map(|(&p, &n)| (name(p), n));
+            ClassResult {
+                class: name(t),
+                queries,
+                accuracy: right as f64 / queries as f64,
+                confused_with,
+            }
+        })
+        .collect();
+    out.sort_by(|a, b| {
+        a.accuracy
+            .total_cmp(&b.accuracy)
+            .then(a.class.cmp(&b.class))
+    });
+    out
 }
 
 /// Evaluate one method on a pool.
@@ -456,6 +518,7 @@ pub fn evaluate(
         classes: pool.class_names.len(),
         seed: spec.seed,
         result,
+        per_class: Vec::new(),
     })
 }
 
@@ -490,7 +553,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         )?;
     }
     let spec = args.episodes.spec();
-    let report = evaluate(&pool, args.baseline, model.as_ref(), &spec)?;
+    let mut report = evaluate(&pool, args.baseline, model.as_ref(), &spec)?;
+    if args.per_class {
+        report.per_class = per_class(&report.result.predictions, &pool.class_names);
+    }
     if args.json {
         println!("{}", serde_json::to_string(&report)?);
     } else {
@@ -511,6 +577,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 .map(|c| (c * 1e4).round() / 1e4)
                 .collect::<Vec<_>>()
         );
+        for c in &report.per_class {
+            let with = c.confused_with.as_ref().map_or(String::new(), |(n, k)| {
+                format!(", most often taken for {n} ({k})")
+            });
+            println!("  {}: {:.3} of {}{with}", c.class, c.accuracy, c.queries);
+        }
     }
     Ok(())
 }
@@ -558,5 +630,48 @@ mod tests {
         ));
         // Shot larger than a class allows.
         assert!(run_episodes(&labels, &spec(5, 2, 10), &mut Scorer::Random).is_err());
+    }
+
+    #[test]
+    fn per_class_counts_each_query_class_and_its_most_frequent_confusion() {
+        let names: Vec<String> = ["a", "b", "c"].iter().map(|s| s.to_string()).collect();
+        // a: 3 of 4 right, once taken for c; b: 1 of 4, taken for a twice and c once;
+        // c: 2 of 2. The worst class comes first.
+        let p = [
+            (0, 0),
+            (0, 0),
+            (0, 2),
+            (0, 0),
+            (1, 0),
+            (1, 1),
+            (1, 2),
+            (1, 0),
+            (2, 2),
+            (2, 2),
+        ];
+        let r = per_class(&p, &names);
+        let got: Vec<(&str, usize, f64, Option<(&str, usize)>)> = r
+            .iter()
+            .map(|c| {
+                let with = c.confused_with.as_ref().map(|(n, k)| (n.as_str(), *k));
+                (c.class.as_str(), c.queries, c.accuracy, with)
+            })
+            .collect();
+        assert_eq!(
+            got,
+            [
+                ("b", 4, 0.25, Some(("a", 2))),
+                ("a", 4, 0.75, Some(("c", 1))),
+                ("c", 2, 1.0, None),
+            ]
+        );
+        // Real episodes: every episode is counted once, under its query's class.
+        let labels: Vec<u32> = (0..60).map(|i| i / 3).collect();
+        let r = run_episodes(&labels, &spec(5, 1, 500), &mut Scorer::Random).unwrap();
+        let names: Vec<String> = (0..20).map(|c| format!("c{c}")).collect();
+        let pc = per_class(&r.predictions, &names);
+        assert_eq!(pc.iter().map(|c| c.queries).sum::<usize>(), 500);
+        let right: f64 = pc.iter().map(|c| c.accuracy * c.queries as f64).sum();
+        assert!((right / 500.0 - r.accuracy).abs() < 1e-9);
     }
 }
