@@ -649,20 +649,18 @@ mod tests {
             (2, 2),
             (2, 2),
         ];
-        let r = per_class(&p, &names);
-        let got: Vec<(&str, usize, f64, Option<(&str, usize)>)> = r
-            .iter()
-            .map(|c| {
-                let with = c.confused_with.as_ref().map(|(n, k)| (n.as_str(), *k));
-                (c.class.as_str(), c.queries, c.accuracy, with)
-            })
-            .collect();
+        let class = |c: &str, queries, accuracy, with: Option<(&str, usize)>| ClassResult {
+            class: c.into(),
+            queries,
+            accuracy,
+            confused_with: with.map(|(n, k)| (n.into(), k)),
+        };
         assert_eq!(
-            got,
+            per_class(&p, &names),
             [
-                ("b", 4, 0.25, Some(("a", 2))),
-                ("a", 4, 0.75, Some(("c", 1))),
-                ("c", 2, 1.0, None),
+                class("b", 4, 0.25, Some(("a", 2))),
+                class("a", 4, 0.75, Some(("c", 1))),
+                class("c", 2, 1.0, None),
             ]
         );
         // Real episodes: every episode is counted once, under its query's class.
