@@ -391,7 +391,8 @@ pub struct Args {
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub test_views: Option<Vec<String>>,
     /// Also report every class as the query's class: its accuracy and the class it was
-    /// most often taken for (e.g. to see which characters an alphabet confuses).
+    /// wrong answers, most frequent first (e.g. to see which characters an alphabet
+    /// confuses).
     #[arg(long)]
     pub per_class: bool,
     /// Print one JSON object (otherwise a short text summary).
@@ -429,12 +430,12 @@ pub struct ClassResult {
     pub queries: usize,
     /// The fraction of them answered with this class.
     pub accuracy: f64,
-    /// The class most often answered instead, and in how many of these episodes (none if
-    /// every answer was right).
-    pub confused_with: Option<(String, usize)>,
+    /// Every class answered instead, with the number of these episodes, most frequent
+    /// first (ties by name; empty if every answer was right).
+    pub confused_with: Vec<(String, usize)>,
 }
 
-/// Per query class: accuracy and the most frequent wrong answer, worst class first (ties by
+/// Per query class: accuracy and the wrong answers, worst class first (ties by
 /// name). `predictions` are `(true, predicted)` dense labels, `names` their class names.
 pub fn per_class(predictions: &[(u32, u32)], names: &[String]) -> Vec<ClassResult> {
     let mut counts: std::collections::BTreeMap<u32, std::collections::BTreeMap<u32, usize>> =
@@ -453,12 +454,12 @@ pub fn per_class(predictions: &[(u32, u32)], names: &[String]) -> Vec<ClassResul
         .map(|(t, answers)| {
             let queries = answers.values().sum::<usize>();
             let right = answers.get(&t).copied().unwrap_or(0);
-            let confused_with = answers
+            let mut confused_with: Vec<(String, usize)> = answers
                 .iter()
                 .filter(|&(&p, _)| p != t)
-                // The most frequent wrong answer; the smallest label among equals.
-                .max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))
-                .map(|(&p, &n)| (name(p), n));
+                .map(|(&p, &n)| (name(p), n))
+                .collect();
+            confused_with.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
             ClassResult {
                 class: name(t),
                 queries,
@@ -578,7 +579,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 .collect::<Vec<_>>()
         );
         for c in &report.per_class {
-            let with = c.confused_with.as_ref().map_or(String::new(), |(n, k)| {
+            let with = c.confused_with.first().map_or(String::new(), |(n, k)| {
                 format!(", most often taken for {n} ({k})")
             });
             println!("  {}: {:.3} of {}{with}", c.class, c.accuracy, c.queries);
@@ -633,7 +634,7 @@ mod tests {
     }
 
     #[test]
-    fn per_class_counts_each_query_class_and_its_most_frequent_confusion() {
+    fn per_class_counts_each_query_class_and_its_confusions() {
         let names: Vec<String> = ["a", "b", "c"].iter().map(|s| s.to_string()).collect();
         // a: 3 of 4 right, once taken for c; b: 1 of 4, taken for a twice and c once;
         // c: 2 of 2. The worst class comes first.
@@ -649,18 +650,18 @@ mod tests {
             (2, 2),
             (2, 2),
         ];
-        let class = |c: &str, queries, accuracy, with: Option<(&str, usize)>| ClassResult {
+        let class = |c: &str, queries, accuracy, with: &[(&str, usize)]| ClassResult {
             class: c.into(),
             queries,
             accuracy,
-            confused_with: with.map(|(n, k)| (n.into(), k)),
+            confused_with: with.iter().map(|&(n, k)| (n.into(), k)).collect(),
         };
         assert_eq!(
             per_class(&p, &names),
             [
-                class("b", 4, 0.25, Some(("a", 2))),
-                class("a", 4, 0.75, Some(("c", 1))),
-                class("c", 2, 1.0, None),
+                class("b", 4, 0.25, &[("a", 2), ("c", 1)]),
+                class("a", 4, 0.75, &[("c", 1)]),
+                class("c", 2, 1.0, &[]),
             ]
         );
         // Real episodes: every episode is counted once, under its query's class.
