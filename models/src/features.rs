@@ -98,9 +98,9 @@ impl Default for Augment {
 }
 
 impl Augment {
-    /// The augmentation of a test-time view (see [`crate::net::TestView`]), optionally
+    /// The augmentation of a test-time view (see [`TestView`]), optionally
     /// time-reversed.
-    pub fn of_view(view: &crate::net::TestView, reverse: bool) -> Self {
+    pub fn of_view(view: &TestView, reverse: bool) -> Self {
         let stretch = f32::from(view.stretch) * 1e-3;
         Self {
             rotation: f32::from(view.rotation) * 1e-3,
@@ -243,6 +243,64 @@ pub fn pen_features(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
         row[4] = 2.0 * ux * uy;
         row[5] = ux;
         row[6] = uy;
+    }
+}
+
+/// One geometric view of a pen path for test-time augmentation ([`crate::net::NetConfig::test_views`]),
+/// in integer thousandths so a config stays exact (and `Eq`): rotated about the drawing's
+/// centre by `rotation` mrad, sheared (x += shear/1000 * y), and stretched (x scaled by
+/// 1 + stretch/1000, y by 1 - stretch/1000).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "kebab-case")]
+pub struct TestView {
+    /// Rotation (mrad).
+    #[serde(default)]
+    pub rotation: i16,
+    /// Horizontal shear (thousandths).
+    #[serde(default)]
+    pub shear: i16,
+    /// Stretch of x against y (thousandths).
+    #[serde(default)]
+    pub stretch: i16,
+}
+
+/// Most test views a network may have (each costs one more forward pass per plan).
+pub const MAX_TEST_VIEWS: usize = 8;
+
+/// Test views from their specs (see [`TestView`]'s `FromStr`); `none` stands for no view.
+pub fn parse_test_views(specs: &[String]) -> Result<Vec<TestView>, String> {
+    specs
+        .iter()
+        .filter(|v| v.as_str() != "none")
+        .map(|v| v.parse())
+        .collect()
+}
+
+impl std::str::FromStr for TestView {
+    type Err = String;
+
+    /// `r<mrad>`, `s<thousandths>`, `x<thousandths>`, joined by `+` (e.g. `r100`,
+    /// `r-50+x100`).
+    fn from_str(spec: &str) -> Result<Self, String> {
+        let mut view = TestView::default();
+        for part in spec.split('+') {
+            let part = part.trim();
+            let key = part.chars().next().unwrap_or(' ');
+            let value: i16 = part[key.len_utf8().min(part.len())..]
+                .parse()
+                .map_err(|e| format!("test view {spec:?}: {part:?}: {e}"))?;
+            match key {
+                'r' => view.rotation = value,
+                's' => view.shear = value,
+                'x' => view.stretch = value,
+                _ => {
+                    return Err(format!(
+                        "test view {spec:?}: {part:?} is not r<mrad>, s<shear> or x<stretch> (thousandths)"
+                    ));
+                }
+            }
+        }
+        Ok(view)
     }
 }
 

@@ -12,6 +12,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::features::FeatureKind;
+pub use crate::features::{MAX_TEST_VIEWS, TestView, parse_test_views};
 
 /// Embedding dimension of an [`crate::embedder::Embedder`].
 pub const EMBED_DIM: usize = 128;
@@ -42,64 +43,6 @@ pub struct NetConfig {
     /// only (sequence or picture); empty (the default) embeds the plan's own path alone.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub test_views: Vec<TestView>,
-}
-
-/// One geometric view of a pen path for test-time augmentation ([`NetConfig::test_views`]),
-/// in integer thousandths so a config stays exact (and `Eq`): rotated about the drawing's
-/// centre by `rotation` mrad, sheared (x += shear/1000 * y), and stretched (x scaled by
-/// 1 + stretch/1000, y by 1 - stretch/1000).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, rename_all = "kebab-case")]
-pub struct TestView {
-    /// Rotation (mrad).
-    #[serde(default)]
-    pub rotation: i16,
-    /// Horizontal shear (thousandths).
-    #[serde(default)]
-    pub shear: i16,
-    /// Stretch of x against y (thousandths).
-    #[serde(default)]
-    pub stretch: i16,
-}
-
-/// Most test views a network may have (each costs one more forward pass per plan).
-pub const MAX_TEST_VIEWS: usize = 8;
-
-/// Test views from their specs (see [`TestView`]'s `FromStr`); `none` stands for no view.
-pub fn parse_test_views(specs: &[String]) -> Result<Vec<TestView>, String> {
-    specs
-        .iter()
-        .filter(|v| v.as_str() != "none")
-        .map(|v| v.parse())
-        .collect()
-}
-
-impl std::str::FromStr for TestView {
-    type Err = String;
-
-    /// `r<mrad>`, `s<thousandths>`, `x<thousandths>`, joined by `+` (e.g. `r100`,
-    /// `r-50+x100`).
-    fn from_str(spec: &str) -> Result<Self, String> {
-        let mut view = TestView::default();
-        for part in spec.split('+') {
-            let part = part.trim();
-            let key = part.chars().next().unwrap_or(' ');
-            let value: i16 = part[key.len_utf8().min(part.len())..]
-                .parse()
-                .map_err(|e| format!("test view {spec:?}: {part:?}: {e}"))?;
-            match key {
-                'r' => view.rotation = value,
-                's' => view.shear = value,
-                'x' => view.stretch = value,
-                _ => {
-                    return Err(format!(
-                        "test view {spec:?}: {part:?} is not r<mrad>, s<shear> or x<stretch> (thousandths)"
-                    ));
-                }
-            }
-        }
-        Ok(view)
-    }
 }
 
 impl Default for NetConfig {
