@@ -246,10 +246,11 @@ pub fn pen_features(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
     }
 }
 
-/// One geometric view of a pen path for test-time augmentation ([`crate::net::NetConfig::test_views`]),
-/// in integer thousandths so a config stays exact (and `Eq`): rotated about the drawing's
-/// centre by `rotation` mrad, sheared (x += shear/1000 * y), and stretched (x scaled by
-/// 1 + stretch/1000, y by 1 - stretch/1000).
+/// One geometric view of a pen path for test-time augmentation
+/// ([`crate::net::NetConfig::test_views`]), in integer thousandths so a config stays exact
+/// (and `Eq`): rotated about the drawing's centre by `rotation` mrad, sheared
+/// (x += shear/1000 * y), and stretched (x scaled by 1 + stretch/1000, y by
+/// 1 - stretch/1000).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, rename_all = "kebab-case")]
 pub struct TestView {

@@ -390,9 +390,8 @@ pub struct Args {
     /// e.g. `r100,r-100`; `none` for none. Replaces the model's own.
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub test_views: Option<Vec<String>>,
-    /// Also report every class as the query's class: its accuracy and the class it was
-    /// wrong answers, most frequent first (e.g. to see which characters an alphabet
-    /// confuses).
+    /// Also report every class as the query's class: its accuracy and the classes it was
+    /// taken for, most frequent first (e.g. to see which characters an alphabet confuses).
     #[arg(long)]
     pub per_class: bool,
     /// Print one JSON object (otherwise a short text summary).
