@@ -138,4 +138,13 @@ fn kfold_trains_measures_and_reports_every_held_out_alphabet_once() {
         std::fs::metadata(&model).unwrap().modified().unwrap(),
         before
     );
+
+    // A fold model kept without its training runs (e.g. from another machine) is measured
+    // as it is: its branches are not trained again.
+    for branch in ["seq", "pic"] {
+        std::fs::remove_dir_all(out.join(format!("fold-1/{branch}"))).expect("remove branch");
+    }
+    kfold::run(&cli.args).expect("kfold runs with fused fold models only");
+    assert_eq!(rows(&out), first);
+    assert!(!out.join("fold-1/seq").exists() && !out.join("fold-1/pic").exists());
 }

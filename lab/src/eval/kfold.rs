@@ -12,7 +12,7 @@
 //!   it never saw, so neither the fold's model nor its calibration saw the alphabet.
 //!
 //! Every step is skipped when its output is already there (a finished branch, a fused
-//! model, an evaluated alphabet), and a branch that stopped half-way is resumed from its
+//! model, which also skips its branches' training, an evaluated alphabet), and a branch that stopped half-way is resumed from its
 //! checkpoint: the command can be stopped and run again. It writes `results.jsonl` (one
 //! row per alphabet and measurement) and `REPORT.md` (per alphabet, the dense alphabets
 //! apart, per-fold means and their spread) in `--out`.
@@ -589,8 +589,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             .filter(|a| !folds[k].contains(a))
             .cloned()
             .collect();
-        train_branch(args, &train, RECIPE_SEQUENCE, &dir.join("seq"))?;
-        train_branch(args, &train, RECIPE_PICTURE, &dir.join("pic"))?;
+        // A fused model is both branches' product: with it there, nothing is trained (a
+        // fold model kept without its training runs is measured as it is).
+        if !dir.join("model.safetensors").exists() {
+            train_branch(args, &train, RECIPE_SEQUENCE, &dir.join("seq"))?;
+            train_branch(args, &train, RECIPE_PICTURE, &dir.join("pic"))?;
+        }
         let model = crate::dataset::model_for(&data, &fuse(&dir)?)?;
         for a in &folds[k] {
             let base = Row::blank(k, a, args.dense.contains(a), "fold", "episodes");
