@@ -73,11 +73,15 @@ pub const RECIPE_SEQUENCE: &[Setting] = &[
     ("p_classes", |a| a.p_classes = 64),
 ];
 
-/// The picture branch of the shipped recipe.
+/// The picture branch of the shipped recipe: the same loss and batches as the sequence
+/// branch.
 pub const RECIPE_PICTURE: &[Setting] = &[
     ("features", |a| a.features = FeatureArg::Picture),
     ("channels", |a| a.channels = vec![16, 32, 64, 128]),
     ("kernel", |a| a.kernel = 3),
+    ("loss", |a| a.loss = LossKind::Supcon),
+    ("margin", |a| a.margin = 0.1),
+    ("p_classes", |a| a.p_classes = 64),
 ];
 
 /// The episodes measured on every held-out alphabet: (way, shot).
@@ -987,7 +991,7 @@ mod tests {
         assert_eq!(
             format!("{pic:?}"),
             documented(
-                "--features picture --channels 16,32,64,128 --kernel 3",
+                "--features picture --channels 16,32,64,128 --kernel 3 --loss supcon --margin 0.1 --p-classes 64",
                 "o/pic"
             )
         );
