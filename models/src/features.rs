@@ -275,20 +275,21 @@ pub fn stroke_features(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32])
     let c = STROKE_CHANNELS;
     let p = augmented(path, aug);
     pen_rows(&p, c, out);
-    let mut runs: Vec<(usize, usize)> = Vec::new();
+    // The strokes, as (first, last) step; no allocation (this runs on the serving path).
+    let mut runs = [(0usize, 0usize); STEPS];
+    let mut n = 0;
     for t in 0..STEPS {
+        out[t * c + PEN_CHANNELS..(t + 1) * c].fill(0.0);
         if p[t][2] > 0.5 {
-            match runs.last_mut() {
-                Some(run) if run.1 + 1 == t => run.1 = t,
-                _ => runs.push((t, t)),
+            if n > 0 && runs[n - 1].1 + 1 == t {
+                runs[n - 1].1 = t;
+            } else {
+                runs[n] = (t, t);
+                n += 1;
             }
         }
     }
-    let n = runs.len();
-    for t in 0..STEPS {
-        out[t * c + PEN_CHANNELS..(t + 1) * c].fill(0.0);
-    }
-    for (k, &(a, b)) in runs.iter().enumerate() {
+    for (k, &(a, b)) in runs[..n].iter().enumerate() {
         let order = if n > 1 {
             2.0 * k as f32 / (n - 1) as f32 - 1.0
         } else {
