@@ -10,10 +10,6 @@
 //!   What varies between drawers of one character (where and how large they drew it, speed)
 //!   is removed here; what joint angles hide (the pen path is their forward kinematics) is
 //!   made explicit.
-//! * [`FeatureKind::Strokes`] — the pen features, and per step the stroke it belongs to as a
-//!   unit: where that stroke starts and ends, its place in the stroke order, how far along
-//!   it the step is, and how many strokes the drawing has (issue 49's "sequence view that
-//!   sees strokes as units"; [`stroke_features`]).
 
 use guardian_shared::trajectory::{Resampled, STEPS, TOOL};
 
@@ -30,8 +26,6 @@ pub enum FeatureKind {
     Joints,
     /// Normalised pen-tip path features from forward kinematics (7 channels).
     Pen,
-    /// The pen features and six channels of each step's stroke ([`STROKE_CHANNELS`]).
-    Strokes,
     /// A picture of the pen-down path: the segments whose both ends are pen down, splatted
     /// bilinearly into a [`PICTURE_SIDE`] x [`PICTURE_SIDE`] image after the pen features'
     /// bounding-box normalisation (see [`picture`]). Blind to stroke order and direction by
@@ -46,7 +40,6 @@ impl FeatureKind {
         match self {
             Self::Joints => 8,
             Self::Pen => PEN_CHANNELS,
-            Self::Strokes => STROKE_CHANNELS,
             Self::Picture => 1,
         }
     }
@@ -75,9 +68,6 @@ pub const PICTURE_SIDE: usize = 32;
 
 /// Channels of [`FeatureKind::Pen`].
 pub const PEN_CHANNELS: usize = 7;
-
-/// Channels of [`FeatureKind::Strokes`]: the pen channels, then six of the step's stroke.
-pub const STROKE_CHANNELS: usize = PEN_CHANNELS + 6;
 
 /// A geometric augmentation applied to the pen path before normalisation (training, and a
 /// model's test-time views: [`Augment::of_view`]).
@@ -128,7 +118,6 @@ pub fn compute(kind: FeatureKind, x: &Resampled, out: &mut [f32]) {
     match kind {
         FeatureKind::Joints => joint_features(x, out),
         FeatureKind::Pen => pen_features(&pen_path(x), &Augment::default(), out),
-        FeatureKind::Strokes => stroke_features(&pen_path(x), &Augment::default(), out),
         FeatureKind::Picture => picture(&pen_path(x), &Augment::default(), out),
     }
 }
@@ -138,7 +127,6 @@ pub fn compute(kind: FeatureKind, x: &Resampled, out: &mut [f32]) {
 pub fn path_features(kind: FeatureKind, path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
     match kind {
         FeatureKind::Pen => pen_features(path, aug, out),
-        FeatureKind::Strokes => stroke_features(path, aug, out),
         FeatureKind::Picture => picture(path, aug, out),
         FeatureKind::Joints => out.fill(0.0),
     }
@@ -231,14 +219,10 @@ fn joint_features(x: &Resampled, out: &mut [f32]) {
 
 /// Pen features of a pen path after an augmentation (see the module docs).
 pub fn pen_features(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
-    pen_rows(&augmented(path, aug), PEN_CHANNELS, out);
-}
-
-/// The pen channels of an augmented path into the first [`PEN_CHANNELS`] of every row of
-/// `c` values.
-fn pen_rows(p: &[PenPoint; STEPS], c: usize, out: &mut [f32]) {
+    let c = PEN_CHANNELS;
+    let p = augmented(path, aug);
     // Normalise by the bounding box of the pen-down part (all points if never down).
-    let (lo, hi) = pen_down_box(p);
+    let (lo, hi) = pen_down_box(&p);
     let centre = [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])];
     let half = (0.5 * (hi[0] - lo[0]).max(hi[1] - lo[1])).max(2e-3);
     for t in 0..STEPS {
@@ -259,52 +243,6 @@ fn pen_rows(p: &[PenPoint; STEPS], c: usize, out: &mut [f32]) {
         row[4] = 2.0 * ux * uy;
         row[5] = ux;
         row[6] = uy;
-    }
-}
-
-/// Stroke features of a pen path after an augmentation ([`FeatureKind::Strokes`]): each
-/// row is the step's pen channels, then six channels of the stroke (a maximal run of
-/// pen-down steps) the step belongs to, in the pen channels' normalised frame:
-/// its start `x, y` and end `x, y`, its place in the stroke order (−1 first, 1 last, 0 for
-/// a single stroke) and how far along it the step is (−1 at its start, 1 at its end).
-/// Pen-up steps have zeros there. A 1D CNN sees every step's stroke as a unit, and the
-/// relations between strokes (where one ends against where the next starts), which the
-/// pen channels give only step by step. Time reversal (an augmentation) reverses the
-/// stroke order and each stroke's direction, as it should.
-pub fn stroke_features(path: &[PenPoint; STEPS], aug: &Augment, out: &mut [f32]) {
-    let c = STROKE_CHANNELS;
-    let p = augmented(path, aug);
-    pen_rows(&p, c, out);
-    // The strokes, as (first, last) step; no allocation (this runs on the serving path).
-    let mut runs = [(0usize, 0usize); STEPS];
-    let mut n = 0;
-    for t in 0..STEPS {
-        out[t * c + PEN_CHANNELS..(t + 1) * c].fill(0.0);
-        if p[t][2] > 0.5 {
-            if n > 0 && runs[n - 1].1 + 1 == t {
-                runs[n - 1].1 = t;
-            } else {
-                runs[n] = (t, t);
-                n += 1;
-            }
-        }
-    }
-    for (k, &(a, b)) in runs[..n].iter().enumerate() {
-        let order = if n > 1 {
-            2.0 * k as f32 / (n - 1) as f32 - 1.0
-        } else {
-            0.0
-        };
-        let (start, end) = ([out[a * c], out[a * c + 1]], [out[b * c], out[b * c + 1]]);
-        for t in a..=b {
-            let along = if b > a {
-                2.0 * (t - a) as f32 / (b - a) as f32 - 1.0
-            } else {
-                0.0
-            };
-            let row = &mut out[t * c + PEN_CHANNELS..(t + 1) * c];
-            row.copy_from_slice(&[start[0], start[1], end[0], end[1], order, along]);
-        }
     }
 }
 
@@ -457,56 +395,6 @@ mod tests {
             q[2] = 0.0;
         }
         assert!(render(&up).iter().all(|v| *v == 0.0));
-    }
-
-    #[test]
-    fn stroke_features_see_each_step_s_stroke_as_a_unit() {
-        // A horizontal bar (steps 0..60), travel (60..68), a vertical post (68..128).
-        let mut p = [[0.0f32; 3]; STEPS];
-        for (t, q) in p.iter_mut().enumerate() {
-            *q = match t {
-                0..60 => [t as f32 / 59.0, 0.5, 1.0],
-                60..68 => [0.5, 1.0, 0.0],
-                _ => [0.5, (t - 68) as f32 / 59.0, 1.0],
-            };
-            q[0] *= 0.04;
-            q[1] *= 0.04;
-        }
-        let (c, pc) = (STROKE_CHANNELS, PEN_CHANNELS);
-        let mut pen = vec![0.0; STEPS * pc];
-        pen_features(&p, &Augment::default(), &mut pen);
-        let mut out = vec![f32::NAN; STEPS * c];
-        stroke_features(&p, &Augment::default(), &mut out);
-        assert_eq!(out.len(), FeatureKind::Strokes.values());
-        let rows = |out: &[f32], t: usize| out[t * c..(t + 1) * c].to_vec();
-        let row = |t: usize| rows(&out, t);
-        for t in 0..STEPS {
-            assert_eq!(&row(t)[..pc], &pen[t * pc..(t + 1) * pc], "pen channels at {t}");
-        }
-        let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-5);
-        // The bar: from (-1, 0) to (1, 0) in the normalised frame, first of two strokes.
-        for t in [0, 30, 59] {
-            let along = 2.0 * t as f32 / 59.0 - 1.0;
-            assert!(close(&row(t)[pc..], &[-1.0, 0.0, 1.0, 0.0, -1.0, along]), "{:?}", row(t));
-        }
-        // Travel: no stroke.
-        assert!(row(64)[pc..].iter().all(|v| *v == 0.0));
-        // The post: from (0, -1) to (0, 1), the last stroke.
-        assert!(close(&row(68)[pc..], &[0.0, -1.0, 0.0, 1.0, 1.0, -1.0]), "{:?}", row(68));
-        assert!(close(&row(127)[pc..], &[0.0, -1.0, 0.0, 1.0, 1.0, 1.0]));
-        // Drawn backwards, the post comes first, from its top to its bottom.
-        let back = Augment {
-            reverse: true,
-            ..Augment::default()
-        };
-        stroke_features(&p, &back, &mut out);
-        let row = |t: usize| rows(&out, t);
-        assert!(close(&row(0)[pc..], &[0.0, 1.0, 0.0, -1.0, -1.0, -1.0]), "{:?}", row(0));
-        assert!(close(&row(127)[pc..], &[1.0, 0.0, -1.0, 0.0, 1.0, 1.0]), "{:?}", row(127));
-        // A path that never touches the canvas has no strokes.
-        p.iter_mut().for_each(|q| q[2] = 0.0);
-        stroke_features(&p, &Augment::default(), &mut out);
-        assert!((0..STEPS).all(|t| rows(&out, t)[pc..].iter().all(|v| *v == 0.0)));
     }
 
     #[test]

@@ -35,8 +35,6 @@ pub enum LossKind {
 pub enum FeatureArg {
     /// Normalised pen-tip path from forward kinematics.
     Pen,
-    /// The pen features and each step's stroke as a unit (start, end, order, progress).
-    Strokes,
     /// Scaled joint angles (the paper's input).
     Joints,
     /// A picture of the pen-down path, read by a 2D CNN.
@@ -47,7 +45,6 @@ impl From<FeatureArg> for FeatureKind {
     fn from(f: FeatureArg) -> Self {
         match f {
             FeatureArg::Pen => FeatureKind::Pen,
-            FeatureArg::Strokes => FeatureKind::Strokes,
             FeatureArg::Joints => FeatureKind::Joints,
             FeatureArg::Picture => FeatureKind::Picture,
         }

@@ -52,11 +52,6 @@ fn embedder_fast_path_matches_candle_reference() {
             features: FeatureKind::Pen,
             ..NetConfig::default()
         },
-        NetConfig {
-            features: FeatureKind::Strokes,
-            reverse_average: true,
-            ..NetConfig::default()
-        },
     ] {
         embedders.push(Embedder::random_with(config, 9).unwrap());
     }
