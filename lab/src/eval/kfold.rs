@@ -14,9 +14,9 @@
 //! Every step is skipped when its output is already there (a finished branch; a fused
 //! model, which also skips its branches' training; an evaluated alphabet), and a branch
 //! that stopped half-way is resumed from its checkpoint: the command can be stopped and
-//! run again. It writes `results.jsonl` (one
-//! row per alphabet and measurement) and `REPORT.md` (per alphabet, the dense alphabets
-//! apart, per-fold means and their spread) in `--out`.
+//! run again. It writes `results.jsonl` (one row per alphabet and measurement) and
+//! `REPORT.md` (per alphabet, the dense alphabets apart, per-fold means and their spread)
+//! in `--out`.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
