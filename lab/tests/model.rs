@@ -478,7 +478,7 @@ fn fault_negatives_are_solved_corruptions_and_training_pushes_them_away() {
             learner
                 .step(&x, 3e-3, |e, _| {
                     let (l, _, _, _) =
-                        train::objective(e, &labels, &sources, None, &cfg, &mut rng)?;
+                        train::objective(e, &labels, &sources, None, None, &cfg, &mut rng)?;
                     Ok((l, ()))
                 })
                 .expect("step");
@@ -558,7 +558,8 @@ fn training_gradients_match_candle_autograd_on_real_batches() {
                 let e = net.forward(&x).expect("forward");
                 let mut dummy = StdRng::seed_from_u64(0);
                 let (want_loss, _, _, _) =
-                    train::objective(&e, &labels, &sources, None, &cfg, &mut dummy).expect("loss");
+                    train::objective(&e, &labels, &sources, None, None, &cfg, &mut dummy)
+                        .expect("loss");
                 let store = want_loss.backward().expect("backward");
                 let want_loss = want_loss.to_scalar::<f32>().expect("scalar");
                 // The training path.
@@ -566,7 +567,7 @@ fn training_gradients_match_candle_autograd_on_real_batches() {
                 let (grads, got_loss, _) = learner
                     .gradients(&x, |e, _| {
                         let (l, _, _, _) =
-                            train::objective(e, &labels, &sources, None, &cfg, &mut dummy)?;
+                            train::objective(e, &labels, &sources, None, None, &cfg, &mut dummy)?;
                         Ok((l, ()))
                     })
                     .expect("gradients");

@@ -71,8 +71,9 @@ pub fn batch_all_triplet_loss(
     Ok((loss, active as f32 / valid.max(1) as f32))
 }
 
-/// `max(0, d[a, p] − d[a, n] + margin)` over the valid triplets (`pos[a, p] · neg[a, n]`
-/// = 1), averaged over the active ones (a positive loss). Returns `(loss, active triplets,
+/// `max(0, d[a, p] − d[a, n] + margin · neg[a, n])` over the valid triplets (`pos[a, p]`
+/// and `neg[a, n]` not 0; a mask of ones gives every triplet `margin`), averaged over the
+/// active ones (a positive loss). Returns `(loss, active triplets,
 /// valid triplets)`; the loss is 0 without an active triplet.
 ///
 /// The triplets are enumerated in plain Rust rather than as a `[B, B, B]` tensor (which
@@ -96,6 +97,8 @@ fn mean_over_active_triplets(
     let m = margin as f32;
     let mut w = vec![0.0f64; b * b];
     let (mut active, mut valid) = (0usize, 0usize);
+    // The margins of the active triplets, summed: the loss's constant term.
+    let mut margins = 0.0f64;
     let mut negs = Vec::with_capacity(b);
     for a in 0..b {
         let row = a * b;
@@ -106,8 +109,10 @@ fn mean_over_active_triplets(
             let dp = dv[row + p];
             let mut count = 0usize;
             for &n in &negs {
-                if dp - dv[row + n] + m > 1e-12 {
+                let mn = m * nv[row + n];
+                if dp - dv[row + n] + mn > 1e-12 {
                     count += 1;
+                    margins += f64::from(mn);
                     w[row + n] -= 1.0;
                 }
             }
@@ -119,26 +124,39 @@ fn mean_over_active_triplets(
     let w: Vec<f32> = w.iter().map(|v| (v * scale) as f32).collect();
     let w = Tensor::from_vec(w, (b, b), d.device())?.to_dtype(d.dtype())?;
     let loss = (d * w)?.sum_all()?;
-    let loss = if active > 0 { (loss + margin)? } else { loss };
+    let loss = if active > 0 {
+        (loss + margins * scale)?
+    } else {
+        loss
+    };
     Ok((loss, active, valid))
 }
 
 /// Fault-negative triplet loss: every `(a, p, f)` where `a != p` are genuine samples of one
 /// class `c` (`sources[a] == sources[p] == None`, `labels[a] == labels[p] == c`) and `f` is
 /// a corrupted plan made from a drawing of class `c` (`sources[f] == Some(c)`):
-/// `max(0, d(a, p) − d(a, f) + margin)`, averaged over the active triplets, so the loss
-/// keeps pushing while only a few corrupted plans are still too close. Returns `(loss,
-/// fraction of valid triplets that are active, valid triplets)`; a batch without a valid
-/// triplet has loss 0.
+/// `max(0, d(a, p) − d(a, f) + margins[f])`, averaged over the active triplets, so the
+/// loss keeps pushing while only a few corrupted plans are still too close (`margins`: one
+/// per item, read for corrupted plans only, each > 0). Returns `(loss, fraction of valid
+/// triplets that are active, valid triplets)`; a batch without a valid triplet has loss 0.
 pub fn fault_triplet_loss(
     e: &Tensor,
     labels: &[u32],
     sources: &[Option<u32>],
-    margin: f64,
+    margins: &[f64],
 ) -> candle_core::Result<(Tensor, f32, usize)> {
     let b = labels.len();
-    if sources.len() != b {
-        candle_core::bail!("{} sources for {b} labels", sources.len());
+    if sources.len() != b || margins.len() != b {
+        candle_core::bail!(
+            "{} sources and {} margins for {b} labels",
+            sources.len(),
+            margins.len()
+        );
+    }
+    for (s, &m) in sources.iter().zip(margins) {
+        if s.is_some() && (m.is_nan() || m <= 0.0) {
+            candle_core::bail!("a fault negative's margin must be > 0, not {m}");
+        }
     }
     let mut pos = vec![0.0f32; b * b];
     let mut fneg = vec![0.0f32; b * b];
@@ -151,7 +169,7 @@ pub fn fault_triplet_loss(
                 pos[a * b + j] = 1.0;
             }
             if sources[j] == Some(labels[a]) {
-                fneg[a * b + j] = 1.0;
+                fneg[a * b + j] = margins[j] as f32;
             }
         }
     }
@@ -159,7 +177,7 @@ pub fn fault_triplet_loss(
     let pos = Tensor::from_vec(pos, (b, b), dev)?.to_dtype(dt)?;
     let fneg = Tensor::from_vec(fneg, (b, b), dev)?.to_dtype(dt)?;
     let d = pairwise_sq_dist(e)?;
-    let (loss, active, n_valid) = mean_over_active_triplets(&d, &pos, &fneg, margin)?;
+    let (loss, active, n_valid) = mean_over_active_triplets(&d, &pos, &fneg, 1.0)?;
     Ok((loss, active as f32 / n_valid.max(1) as f32, n_valid))
 }
 
@@ -375,19 +393,26 @@ mod tests {
         let sources = [None, None, Some(0), None, Some(1)];
         // Triplets (0,1,2): 1 - 4 + m; (1,0,2): 1 - 5 + m. m = 3.5 -> 0.5 and 0 -> mean
         // over active = 0.5; m = 5 -> 2 and 1 -> 1.5.
-        let (l, active, n) = fault_triplet_loss(&e, &labels, &sources, 3.5)?;
+        let (l, active, n) = fault_triplet_loss(&e, &labels, &sources, &[3.5; 5])?;
         assert_eq!(n, 2);
         assert_eq!(active, 0.5);
         assert!((l.to_scalar::<f32>()? - 0.5).abs() < 1e-6);
-        let (l, active, _) = fault_triplet_loss(&e, &labels, &sources, 5.0)?;
+        let (l, active, _) = fault_triplet_loss(&e, &labels, &sources, &[5.0; 5])?;
         assert_eq!(active, 1.0);
         assert!((l.to_scalar::<f32>()? - 1.5).abs() < 1e-6);
+        // A margin per corrupted plan: only sample 2's counts here (genuine ones are not
+        // read, sample 4 has no triplet), so 3.5 on it is the first case again.
+        let (l, active, _) = fault_triplet_loss(&e, &labels, &sources, &[9.0, 9.0, 3.5, 9.0, 0.1])?;
+        assert_eq!(active, 0.5);
+        assert!((l.to_scalar::<f32>()? - 0.5).abs() < 1e-6);
         // Far enough: 0. No corrupted plans: no valid triplet, loss 0.
-        let (l, _, _) = fault_triplet_loss(&e, &labels, &sources, 0.5)?;
+        let (l, _, _) = fault_triplet_loss(&e, &labels, &sources, &[0.5; 5])?;
         assert_eq!(l.to_scalar::<f32>()?, 0.0);
-        let (l, _, n) = fault_triplet_loss(&e, &labels, &[None; 5], 3.5)?;
+        let (l, _, n) = fault_triplet_loss(&e, &labels, &[None; 5], &[3.5; 5])?;
         assert_eq!((l.to_scalar::<f32>()?, n), (0.0, 0));
-        assert!(fault_triplet_loss(&e, &labels, &[None; 4], 3.5).is_err());
+        assert!(fault_triplet_loss(&e, &labels, &[None; 4], &[3.5; 5]).is_err());
+        assert!(fault_triplet_loss(&e, &labels, &sources, &[3.5; 4]).is_err());
+        assert!(fault_triplet_loss(&e, &labels, &sources, &[3.5, 3.5, 0.0, 3.5, 3.5]).is_err());
         Ok(())
     }
 

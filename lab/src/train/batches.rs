@@ -48,6 +48,8 @@ pub struct Prepared {
     data_index: Vec<usize>,
     /// Pen paths of the corrupted plans of each sample (empty without fault negatives).
     faults: Vec<Vec<[PenPoint; STEPS]>>,
+    /// The fault of each of them (`faults[i][v]` was made with `fault_kinds[i][v]`).
+    fault_kinds: Vec<Vec<Fault>>,
     /// Time reversal among the augmentations.
     reverse_augment: bool,
 }
@@ -94,6 +96,7 @@ impl Prepared {
             Vec::new()
         };
         let faults = vec![Vec::new(); raw.len()];
+        let fault_kinds = vec![Vec::new(); raw.len()];
         Ok(Self {
             kind,
             pen,
@@ -102,6 +105,7 @@ impl Prepared {
             labels,
             data_index,
             faults,
+            fault_kinds,
             reverse_augment: true,
         })
     }
@@ -134,7 +138,7 @@ impl Prepared {
             .map_err(|e| TrainError::Setup(format!("fault negatives: {e}")))?;
         let solver = PathSolver::new(&data.geometry)
             .map_err(|e| TrainError::Setup(format!("fault negatives: {e}")))?;
-        let made: Vec<Vec<[PenPoint; STEPS]>> = self
+        let made: Vec<Vec<([PenPoint; STEPS], Fault)>> = self
             .data_index
             .par_iter()
             .map(|&i| {
@@ -149,13 +153,16 @@ impl Prepared {
                     let fault = kinds[rng.random_range(0..kinds.len())];
                     let severity = rng.random_range(0.25..=1.0);
                     if let Ok(x) = corrupt::corrupt(&solver, fault, severity, &st, &mut rng) {
-                        out.push(pen_path_with(solver.robot(), &x));
+                        out.push((pen_path_with(solver.robot(), &x), fault));
                     }
                 }
                 out
             })
             .collect();
-        self.faults = made;
+        (self.faults, self.fault_kinds) = made
+            .into_iter()
+            .map(|m| -> (Vec<_>, Vec<_>) { m.into_iter().unzip() })
+            .unzip();
         Ok(self.faults.iter().map(Vec::len).sum())
     }
 
@@ -187,6 +194,7 @@ impl Prepared {
                     self.pen.push(p);
                     self.raw.push(self.raw[i]);
                     self.faults.push(f);
+                    self.fault_kinds.push(self.fault_kinds[i].clone());
                     self.labels.push(label);
                     self.data_index.push(self.data_index[i]);
                 }
@@ -206,6 +214,15 @@ impl Prepared {
                 Item::Fault(i, _) => Some(self.labels[i]),
             })
             .collect()
+    }
+
+    /// The fault a corrupted plan was made with (`None` for a genuine sample, or a plan
+    /// not made by [`Prepared::make_faults`]).
+    pub fn fault_kind(&self, item: Item) -> Option<Fault> {
+        match item {
+            Item::Genuine(_) => None,
+            Item::Fault(i, v) => self.fault_kinds.get(i)?.get(v).copied(),
+        }
     }
 
     /// Number of corrupted plans of sample `i` (0 without fault negatives).
@@ -334,6 +351,7 @@ impl Prepared {
             labels,
             data_index: (0..n).collect(),
             faults: vec![Vec::new(); n],
+            fault_kinds: vec![Vec::new(); n],
             reverse_augment: true,
         }
     }

@@ -144,6 +144,9 @@ pub struct TrainConfig {
     /// The corruptions fault negatives are made with (empty: none).
     #[serde(default)]
     pub fault_kinds: Vec<Fault>,
+    /// The fault-negative margin of some kinds, instead of `fault_margin`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub fault_margin_for: Vec<(Fault, f64)>,
     /// Class augmentation: every training character rotated by 90°, 180°, 270° and
     /// mirrored becomes a class of its own (`classaug`), symmetric ones excepted.
     #[serde(default)]
@@ -157,9 +160,17 @@ pub struct TrainConfig {
 }
 
 impl TrainConfig {
+    /// The fault-negative margin of a corrupted plan of kind `kind` (`None`: a kind not
+    /// known, `fault_margin`).
+    pub fn fault_margin_of(&self, kind: Option<Fault>) -> f64 {
+        kind.and_then(|k| self.fault_margin_for.iter().find(|(f, _)| *f == k))
+            .map_or(self.fault_margin, |&(_, m)| m)
+    }
+
     /// Refuse a configuration that cannot train: an invalid network, batches without
     /// positives or negatives, an alphabet both trained and validated on, a fault share
-    /// outside [0, 1] or fault negatives without a variant.
+    /// outside [0, 1], fault negatives without a variant, or a fault margin that is not
+    /// positive or names a kind not trained with.
     pub fn check(&self) -> Result<(), TrainError> {
         self.net
             .check()
@@ -198,6 +209,14 @@ impl TrainConfig {
                 "fault share {} must be in [0, 1], with at least one variant",
                 self.fault_share
             )));
+        }
+        for &(kind, m) in &self.fault_margin_for {
+            if !(m > 0.0 && m.is_finite() && self.fault_kinds.contains(&kind)) {
+                return Err(TrainError::Setup(format!(
+                    "fault margin {m} for {}: it must be > 0, for a kind of --fault-kinds",
+                    kind.name()
+                )));
+            }
         }
         Ok(())
     }
@@ -318,6 +337,10 @@ pub struct Args {
     /// The corruptions fault negatives are made with (default: `TRAIN_FAULTS`).
     #[arg(long, value_enum, value_delimiter = ',')]
     pub fault_kinds: Vec<Fault>,
+    /// The fault-negative margin of some kinds instead of `--fault-margin`,
+    /// comma-separated `kind=margin` (e.g. `truncated=0.8,mirrored=0.8`).
+    #[arg(long, value_delimiter = ',', value_parser = parse_kind_margin)]
+    pub fault_margin_for: Vec<(Fault, f64)>,
     /// Omniglot stroke root the corrupted plans are made from (`--fault-share` only).
     #[command(flatten)]
     pub strokes: StrokesArgs,
@@ -379,6 +402,11 @@ impl Args {
                 (true, true) => TRAIN_FAULTS.to_vec(),
                 (true, false) => self.fault_kinds.clone(),
             },
+            fault_margin_for: if faults {
+                self.fault_margin_for.clone()
+            } else {
+                Vec::new()
+            },
             class_augment: self.class_augment,
             symmetry_quantile: if self.class_augment {
                 self.symmetry_quantile
@@ -392,6 +420,16 @@ impl Args {
             },
         }
     }
+}
+
+/// `kind=margin` of `--fault-margin-for`.
+fn parse_kind_margin(s: &str) -> Result<(Fault, f64), String> {
+    let (kind, margin) = s
+        .split_once('=')
+        .ok_or_else(|| format!("`{s}`: expected kind=margin, e.g. truncated=0.8"))?;
+    let kind = <Fault as clap::ValueEnum>::from_str(kind, false)?;
+    let margin: f64 = margin.parse().map_err(|e| format!("`{s}`: margin: {e}"))?;
+    Ok((kind, margin))
 }
 
 #[cfg(test)]
@@ -476,6 +514,54 @@ pub(crate) mod tests {
         assert_eq!(cfg.fault_kinds, [Fault::Mirrored]);
         assert_eq!(cfg.train_alphabets, ["Latin", "Korean"]);
         assert_eq!(cfg.net.features, FeatureKind::Pen);
+    }
+
+    #[test]
+    fn a_kind_can_have_its_own_fault_margin() {
+        let cfg = parse(&[
+            "--fault-share",
+            "1",
+            "--fault-margin-for",
+            "truncated=0.8,mirrored=1.2",
+        ])
+        .config();
+        cfg.check().expect("valid");
+        assert_eq!(cfg.fault_margin_of(Some(Fault::Truncated)), 0.8);
+        assert_eq!(cfg.fault_margin_of(Some(Fault::Mirrored)), 1.2);
+        assert_eq!(cfg.fault_margin_of(Some(Fault::Rotated)), 0.4);
+        assert_eq!(cfg.fault_margin_of(None), 0.4);
+        // Recorded, and read back.
+        let back: TrainConfig =
+            serde_json::from_str(&serde_json::to_string(&cfg).unwrap()).unwrap();
+        assert_eq!(back.fault_margin_for, cfg.fault_margin_for);
+        // A kind not trained with, a margin that is not positive, a malformed pair.
+        let bad = |args: &[&str]| {
+            let mut all = vec!["--fault-share", "1"];
+            all.extend_from_slice(args);
+            parse(&all).config().check().is_err()
+        };
+        assert!(bad(&[
+            "--fault-kinds",
+            "mirrored",
+            "--fault-margin-for",
+            "truncated=0.8"
+        ]));
+        assert!(bad(&["--fault-margin-for", "truncated=0"]));
+        for malformed in ["truncated:0.8", "sideways=0.8", "truncated=wide"] {
+            let argv = [
+                "t",
+                "--dataset",
+                "d",
+                "--out",
+                "o",
+                "--fault-margin-for",
+                malformed,
+            ];
+            assert!(Cli::try_parse_from(argv).is_err(), "{malformed}");
+        }
+        // Without fault negatives it is recorded as off.
+        let off = parse(&["--fault-margin-for", "truncated=0.8"]).config();
+        assert!(off.fault_margin_for.is_empty());
     }
 
     #[test]

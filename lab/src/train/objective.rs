@@ -16,11 +16,14 @@ use crate::train::config::{LossKind, TrainConfig};
 /// triplets)`; the validation-comparable loss takes batch-all's mean over all valid
 /// triplets rather than over the active ones (which stays flat as fewer triplets stay
 /// active), for both terms. `proxies [classes, embed_dim]` are the class proxies of
-/// [`LossKind::NormSoftmax`] (ignored by the other losses).
+/// [`LossKind::NormSoftmax`] (ignored by the other losses). `fault_margins` are the
+/// fault-negative margins of the items ([`TrainConfig::fault_margin_of`] their kinds;
+/// `None`: `cfg.fault_margin` for every one).
 pub fn objective(
     e: &Tensor,
     labels: &[u32],
     sources: &[Option<u32>],
+    fault_margins: Option<&[f64]>,
     proxies: Option<&Tensor>,
     cfg: &TrainConfig,
     rng: &mut StdRng,
@@ -34,7 +37,9 @@ pub fn objective(
     };
     let mut total = l;
     if cfg.fault_weight > 0.0 && sources.iter().any(Option::is_some) {
-        let (lf, af, _) = loss::fault_triplet_loss(e, labels, sources, cfg.fault_margin)?;
+        let uniform = vec![cfg.fault_margin; labels.len()];
+        let margins = fault_margins.unwrap_or(&uniform);
+        let (lf, af, _) = loss::fault_triplet_loss(e, labels, sources, margins)?;
         comparable += cfg.fault_weight * f64::from(lf.to_scalar::<f32>()?) * f64::from(af);
         total = (total + (lf * cfg.fault_weight)?)?;
     }
@@ -146,7 +151,7 @@ mod tests {
         cfg.margin = 1.0;
         let mut rng = StdRng::seed_from_u64(0);
         let (l, comparable, active, n) =
-            objective(&e, &labels[..4], &[None; 4], None, &cfg, &mut rng).unwrap();
+            objective(&e, &labels[..4], &[None; 4], None, None, &cfg, &mut rng).unwrap();
         // Each of 4 anchors has 1 positive and 2 negatives.
         assert_eq!(n, 8);
         let lv = f64::from(l.to_scalar::<f32>().unwrap());
@@ -165,10 +170,10 @@ mod tests {
         cfg.fault_margin = 0.4;
         let mut rng = StdRng::seed_from_u64(0);
         cfg.fault_weight = 0.0;
-        let (without, ..) = objective(&e, &labels, &sources, None, &cfg, &mut rng).unwrap();
+        let (without, ..) = objective(&e, &labels, &sources, None, None, &cfg, &mut rng).unwrap();
         cfg.fault_weight = 2.0;
-        let (with, ..) = objective(&e, &labels, &sources, None, &cfg, &mut rng).unwrap();
-        let (lf, _, _) = loss::fault_triplet_loss(&e, &labels, &sources, 0.4).unwrap();
+        let (with, ..) = objective(&e, &labels, &sources, None, None, &cfg, &mut rng).unwrap();
+        let (lf, _, _) = loss::fault_triplet_loss(&e, &labels, &sources, &[0.4; 5]).unwrap();
         let (a, b, f) = (
             without.to_scalar::<f32>().unwrap(),
             with.to_scalar::<f32>().unwrap(),
@@ -177,8 +182,19 @@ mod tests {
         assert!(f > 0.0, "the corrupted plan sits inside the margin");
         assert!((b - (a + 2.0 * f)).abs() < 1e-5, "{b} vs {a} + 2 x {f}");
         // No corrupted plan in the batch: the weight changes nothing.
-        let (plain, ..) = objective(&e, &labels, &[None; 5], None, &cfg, &mut rng).unwrap();
+        let (plain, ..) = objective(&e, &labels, &[None; 5], None, None, &cfg, &mut rng).unwrap();
         assert_eq!(plain.to_scalar::<f32>().unwrap(), a);
+        // Margins per item: the fault term of those margins.
+        let margins = [0.4, 0.4, 3.0, 0.4, 3.0];
+        let (wide, ..) =
+            objective(&e, &labels, &sources, Some(&margins), None, &cfg, &mut rng).unwrap();
+        let (lf, _, _) = loss::fault_triplet_loss(&e, &labels, &sources, &margins).unwrap();
+        let (w, f) = (
+            wide.to_scalar::<f32>().unwrap(),
+            lf.to_scalar::<f32>().unwrap(),
+        );
+        assert!((w - (a + 2.0 * f)).abs() < 1e-5, "{w} vs {a} + 2 x {f}");
+        assert!(w > b, "a wider margin pushes harder: {w} vs {b}");
     }
 
     #[test]

@@ -65,6 +65,15 @@ pub struct TrainSummary {
     pub stopped: String,
 }
 
+/// The fault-negative margin of every item of a batch of `set` (`cfg.fault_margin_of` its
+/// kind; a genuine item's is not read).
+fn fault_margins(set: &Prepared, items: &[Item], cfg: &TrainConfig) -> Vec<f64> {
+    items
+        .iter()
+        .map(|&it| cfg.fault_margin_of(set.fault_kind(it)))
+        .collect()
+}
+
 /// Embeddings `[B, embed_dim]` of a feature batch `x [B, STEPS, F]` (no gradient).
 pub fn embed(net: &FastNet, x: &Tensor) -> Result<Tensor, TrainError> {
     let (b, l, _) = x.dims3()?;
@@ -287,8 +296,10 @@ pub fn train(
             let (items, labels) = train_set.with_faults(&idx, &labels, cfg.fault_share, &mut rng);
             let x = train_set.batch_items(&items, cfg.augment.then_some(&mut rng))?;
             let sources = train_set.sources(&items);
+            let margins = fault_margins(&train_set, &items, cfg);
             let (l, (active, n_trip)) = learner.step(&x, state.lr, |e, proxies| {
-                let (l, _, active, n) = objective(e, &labels, &sources, proxies, cfg, &mut rng)?;
+                let (l, _, active, n) =
+                    objective(e, &labels, &sources, Some(&margins), proxies, cfg, &mut rng)?;
                 Ok((l, (active, n)))
             })?;
             loss_sum += f64::from(l);
@@ -308,8 +319,10 @@ pub fn train(
             for (items, labels) in &val_batches {
                 let x = val_set.batch_items(items, None)?;
                 let sources = val_set.sources(items);
+                let margins = fault_margins(&val_set, items, cfg);
                 let e = embed(learner.net(), &x)?;
-                val_loss += objective(&e, labels, &sources, None, cfg, &mut dummy)?.1;
+                val_loss +=
+                    objective(&e, labels, &sources, Some(&margins), None, cfg, &mut dummy)?.1;
             }
             val_loss /= val_batches.len() as f64;
             let embs = embed_all(learner.net(), &val_set)?;

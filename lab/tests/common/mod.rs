@@ -47,6 +47,7 @@ pub fn tiny_config() -> TrainConfig {
         fault_weight: 0.0,
         fault_margin: 0.0,
         fault_kinds: Vec::new(),
+        fault_margin_for: Vec::new(),
         class_augment: false,
         symmetry_quantile: 0.0,
         proxy_lr_scale: 1.0,
