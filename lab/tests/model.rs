@@ -435,6 +435,15 @@ fn fault_negatives_are_solved_corruptions_and_training_pushes_them_away() {
         .to_scalar()
         .unwrap();
     assert!(diff > 1.0, "corrupted plan equals the genuine one ({diff})");
+    // Each corrupted plan knows its fault (for a margin per kind), and every kind is made.
+    let kinds: std::collections::BTreeSet<&str> = (0..set.len())
+        .flat_map(|i| (0..set.faults_of(i)).map(move |v| Item::Fault(i, v)))
+        .map(|it| set.fault_kind(it).expect("a made plan's kind").name())
+        .collect();
+    let all: std::collections::BTreeSet<&str> =
+        train::TRAIN_FAULTS.iter().map(|f| f.name()).collect();
+    assert_eq!(kinds, all);
+    assert_eq!(set.fault_kind(Item::Genuine(0)), None);
 
     // Share 0: the batch is unchanged and the RNG untouched; share 1: one corrupted plan
     // per sample, each with a label of its own, never a class label.
