@@ -16,11 +16,11 @@
 //! (Dubuisson and Jain, 1994). The distances are to the polylines (segments between
 //! consecutive pen-down points), so a sparse sampling of a straight stroke costs nothing.
 //!
-//! Only the lab uses it, twice, and neither gain was enough to bring it into the daemon
-//! (`docs/report/log-2026-12-07.md`): as a step of the decision (`guardian-lab outliers
-//! --ink`) it caught +0.017 of the truncated and +0.013 of the mirrored plans on unseen
-//! alphabets; re-ranking the nearest classes of a one-shot episode (`guardian-lab eval
-//! --ink-weight`) it added +0.003 to the K-fold's 20-way 1-shot accuracy.
+//! Only the lab uses it (`guardian-lab outliers --ink`): as a step of the decision it caught
+//! +0.017 of the truncated and +0.013 of the mirrored plans on unseen alphabets, too little
+//! to bring it into the daemon (`docs/report/log-2026-12-07.md`). Re-ranking the nearest
+//! classes of a one-shot episode by ink added +0.003 to the K-fold's 20-way 1-shot
+//! accuracy; that option was measured at commit `430890d` and removed again (same log).
 
 use crate::pen::PenPoint;
 
@@ -80,30 +80,6 @@ impl Ink {
                 .map(|p| [p[0] - c[0], p[1] - c[1]])
                 .collect(),
             starts: self.starts.clone(),
-        }
-    }
-
-    /// The same ink centred (as [`Ink::centred`]) and scaled so that its bounding box's
-    /// larger side is 1 (unchanged scale for a single point).
-    pub fn normalised(&self) -> Self {
-        let c = self.centred();
-        let side = c
-            .points
-            .iter()
-            .flatten()
-            .fold(0.0f32, |m, v| m.max(v.abs()))
-            * 2.0;
-        if side > 0.0 {
-            Self {
-                points: c
-                    .points
-                    .iter()
-                    .map(|p| [p[0] / side, p[1] / side])
-                    .collect(),
-                starts: c.starts,
-            }
-        } else {
-            c
         }
     }
 
@@ -280,18 +256,6 @@ mod tests {
         let bad = Ink::of_path(&[[f32::NAN, 0.0, 1.0], [0.01, 0.0, 1.0]]).unwrap();
         assert!(distance(&a, &bad, 0.9).is_nan());
         assert!(score(&a, &[a.clone(), bad], 0.9).unwrap().is_nan());
-    }
-
-    #[test]
-    fn normalising_centres_and_scales_the_larger_side_to_one() {
-        let a = Ink::of_path(&path(&[&line([0.5, 0.2], [0.54, 0.22], 5)])).unwrap();
-        let n = a.normalised();
-        let (first, last) = (n.points()[0], n.points()[4]);
-        assert!((first[0] + 0.5).abs() < 1e-5 && (last[0] - 0.5).abs() < 1e-5);
-        assert!((first[1] + 0.25).abs() < 1e-5 && (last[1] - 0.25).abs() < 1e-5);
-        // Twice the size, elsewhere: the same normalised ink.
-        let b = Ink::of_path(&path(&[&line([0.1, 0.1], [0.18, 0.14], 5)])).unwrap();
-        assert!(distance(&n, &b.normalised(), 1.0) < 1e-5);
     }
 
     #[test]

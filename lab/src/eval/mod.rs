@@ -10,7 +10,6 @@
 //! trajectories; random scores are uniform. The rank of the true class (1 = best) gives
 //! accuracy (rank 1) and the CMC curve (rank <= r). The 95% interval is the normal
 //! approximation `1.96 * sqrt(p (1 - p) / episodes)` (episodes are independent).
-//! `--ink-weight` scores the nearest classes again with the drawings' ink ([`InkRerank`]).
 //!
 //! Beside the episodes: [`outliers`] (go / no-go on faulty plans), [`calibration`]
 //! (thresholds for a target false-reject rate), [`metrics`] (AUROC, TPR at an FPR) and
@@ -26,7 +25,6 @@ pub mod report;
 use std::path::PathBuf;
 
 use guardian_models::embedder::{EMBED_DIM, Embedder};
-use guardian_robot::ink::{self, Ink};
 use guardian_robot::kinematics::Robot;
 use guardian_shared::trajectory::{Resampled, STEPS, TOOL};
 use rand::rngs::StdRng;
@@ -115,77 +113,10 @@ pub enum Scorer<'a> {
     Nearest(&'a [Vec<f32>]),
     /// Uniform random scores.
     Random,
-    /// [`Scorer::Prototype`], then the nearest classes scored again with the ink (see
-    /// [`InkRerank`]).
-    Reranked(&'a [Vec<f32>], &'a InkRerank),
-}
-
-/// A second look at the nearest classes of an episode: a class's score becomes its
-/// prototype distance plus `weight` x the ink distance ([`guardian_robot::ink::distance`],
-/// quantile `quantile`) from the query to the nearest of its supports. Only the `top` nearest
-/// classes by prototype distance are scored again; the others keep their order behind them.
-/// A query or support without ink leaves the scores as they are.
-#[derive(Debug, Clone)]
-pub struct InkRerank {
-    /// The ink of every sample of the pool (centred, or normalised: see [`Pool::inks`]).
-    pub inks: Vec<Option<Ink>>,
-    /// What one unit of ink distance adds to a squared embedding distance.
-    pub weight: f32,
-    /// How many of the nearest classes are scored again.
-    pub top: usize,
-    /// The quantile of point-to-ink distances.
-    pub quantile: f32,
-}
-
-impl InkRerank {
-    fn rescore(&self, query: usize, supports: &[Vec<usize>], scores: &mut [f32]) {
-        let Some(q) = &self.inks[query] else {
-            return;
-        };
-        let mut order: Vec<usize> = (0..scores.len()).collect();
-        order.sort_by(|&a, &b| scores[a].total_cmp(&scores[b]));
-        let mut added = vec![0.0f32; scores.len()];
-        for &c in &order[..self.top.min(order.len())] {
-            let d = supports[c]
-                .iter()
-                .map(|&j| {
-                    self.inks[j]
-                        .as_ref()
-                        .map_or(f32::NAN, |e| ink::distance(q, e, self.quantile))
-                })
-                .fold(f32::INFINITY, f32::min);
-            if !d.is_finite() {
-                return;
-            }
-            added[c] = self.weight * d;
-        }
-        // Behind every class scored again, in their own order.
-        let behind = order[..self.top.min(order.len())]
-            .iter()
-            .map(|&c| scores[c] + added[c])
-            .fold(0.0f32, f32::max);
-        for &c in &order[self.top.min(order.len())..] {
-            added[c] = behind;
-        }
-        for (s, a) in scores.iter_mut().zip(added) {
-            *s += a;
-        }
-    }
 }
 
 fn sq(a: &[f32], b: &[f32]) -> f32 {
     a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum()
-}
-
-/// Squared distance from `q` to the mean of the embeddings `sup` of `e`.
-fn to_prototype(e: &[Vec<f32>], q: &[f32], sup: &[usize]) -> f32 {
-    let k = sup.len() as f32;
-    (0..q.len())
-        .map(|d| {
-            let p = sup.iter().map(|&j| e[j][d]).sum::<f32>() / k;
-            (q[d] - p) * (q[d] - p)
-        })
-        .sum()
 }
 
 /// Run episodes over a pool of samples with dense class labels `labels` (every class in the
@@ -248,15 +179,21 @@ pub fn run_episodes(
         for (s, sup) in scores.iter_mut().zip(&supports) {
             *s = match scorer {
                 Scorer::Random => rng.random::<f32>(),
-                Scorer::Prototype(e) | Scorer::Reranked(e, _) => to_prototype(e, &e[query], sup),
+                Scorer::Prototype(e) => {
+                    let q = &e[query];
+                    let k = sup.len() as f32;
+                    (0..q.len())
+                        .map(|d| {
+                            let p = sup.iter().map(|&j| e[j][d]).sum::<f32>() / k;
+                            (q[d] - p) * (q[d] - p)
+                        })
+                        .sum()
+                }
                 Scorer::Nearest(v) => sup
                     .iter()
                     .map(|&j| sq(&v[query], &v[j]))
                     .fold(f32::INFINITY, f32::min),
             };
-        }
-        if let Scorer::Reranked(_, r) = scorer {
-            r.rescore(query, &supports, &mut scores);
         }
         let t = scores[target];
         let better = scores.iter().filter(|&&s| s < t).count();
@@ -393,23 +330,6 @@ impl Pool {
         Ok(pool)
     }
 
-    /// The ink of every sample (`None` where the pen never touches the canvas), its box
-    /// centred on the origin, in metres, or `normalised` (its box's larger side 1).
-    pub fn inks(&self, normalised: bool) -> Vec<Option<Ink>> {
-        use rayon::prelude::*;
-        self.xs
-            .par_iter()
-            .map(|x| {
-                let ink = Ink::of_path(&guardian_robot::pen::pen_path_with(&self.robot, x))?;
-                Some(if normalised {
-                    ink.normalised()
-                } else {
-                    ink.centred()
-                })
-            })
-            .collect()
-    }
-
     /// Embeddings of every sample by `model`.
     pub fn embed(&self, model: &Embedder) -> Result<Vec<Vec<f32>>, EvalError> {
         let mut out = Vec::with_capacity(self.xs.len());
@@ -474,19 +394,6 @@ pub struct Args {
     /// taken for, most frequent first (e.g. to see which characters an alphabet confuses).
     #[arg(long)]
     pub per_class: bool,
-    /// Score the nearest classes of each episode again with the ink (`InkRerank`): what
-    /// one unit of ink distance adds to a squared embedding distance (0: off).
-    #[arg(long, default_value_t = 0.0)]
-    pub ink_weight: f32,
-    /// How many of the nearest classes the ink scores again.
-    #[arg(long, default_value_t = 5)]
-    pub ink_top: usize,
-    /// The quantile of point-to-ink distances in the ink distance.
-    #[arg(long, default_value_t = 0.5)]
-    pub ink_quantile: f32,
-    /// Inks scaled to a box whose larger side is 1 (otherwise centred, in metres).
-    #[arg(long)]
-    pub ink_normalised: bool,
     /// Print one JSON object (otherwise a short text summary).
     #[arg(long)]
     pub json: bool,
@@ -647,21 +554,6 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     }
     let spec = args.episodes.spec();
     let mut report = evaluate(&pool, args.baseline, model.as_ref(), &spec)?;
-    if args.ink_weight > 0.0 {
-        let model = model
-            .as_ref()
-            .filter(|_| args.baseline.is_none())
-            .ok_or_else(|| anyhow::anyhow!("--ink-weight needs --model and no baseline"))?;
-        let rerank = InkRerank {
-            inks: pool.inks(args.ink_normalised),
-            weight: args.ink_weight,
-            top: args.ink_top,
-            quantile: args.ink_quantile,
-        };
-        let e = pool.embed(model)?;
-        report.method = "triplet+ink".into();
-        report.result = run_episodes(&pool.labels, &spec, &mut Scorer::Reranked(&e, &rerank))?;
-    }
     if args.per_class {
         report.per_class = per_class(&report.result.predictions, &pool.class_names);
     }
@@ -738,55 +630,6 @@ mod tests {
         ));
         // Shot larger than a class allows.
         assert!(run_episodes(&labels, &spec(5, 2, 10), &mut Scorer::Random).is_err());
-    }
-
-    /// The ink of a horizontal line at height `y` (pen down), 5 points.
-    fn line_at(y: f32) -> Option<Ink> {
-        let path: Vec<[f32; 3]> = (0..5).map(|i| [0.01 * i as f32, y, 1.0]).collect();
-        Ink::of_path(&path)
-    }
-
-    #[test]
-    fn the_ink_tells_apart_what_the_embedding_cannot_and_only_among_the_nearest() {
-        // Two drawings per class, all embedded alike: prototypes are at chance. Each class
-        // draws a line at its own height, so the ink finds the class.
-        let labels: Vec<u32> = (0..40).map(|i| i / 2).collect();
-        let same: Vec<Vec<f32>> = labels.iter().map(|_| vec![0.0, 0.0]).collect();
-        let rerank = |top| InkRerank {
-            inks: labels.iter().map(|&l| line_at(0.01 * l as f32)).collect(),
-            weight: 1.0,
-            top,
-            quantile: 0.5,
-        };
-        let all = rerank(5);
-        let r = run_episodes(
-            &labels,
-            &spec(5, 1, 500),
-            &mut Scorer::Reranked(&same, &all),
-        );
-        assert_eq!(r.unwrap().accuracy, 1.0);
-        // The embedding first: classes it puts far stay behind, whatever their ink. Class
-        // l embedded at l: the query's class is the nearest only when it is the lowest.
-        let far: Vec<Vec<f32>> = labels.iter().map(|&l| vec![l as f32, 0.0]).collect();
-        let first = rerank(1);
-        let r = run_episodes(
-            &labels,
-            &spec(5, 1, 200),
-            &mut Scorer::Reranked(&far, &first),
-        );
-        let p = run_episodes(&labels, &spec(5, 1, 200), &mut Scorer::Prototype(&far));
-        assert_eq!(r.unwrap().cmc, p.unwrap().cmc);
-        // Without a query's ink nothing changes: chance, as the prototypes alone.
-        let blind = InkRerank {
-            inks: vec![None; labels.len()],
-            ..rerank(5)
-        };
-        let r = run_episodes(
-            &labels,
-            &spec(5, 1, 4000),
-            &mut Scorer::Reranked(&same, &blind),
-        );
-        assert!((r.unwrap().accuracy - 0.2).abs() < 0.03);
     }
 
     #[test]
