@@ -73,8 +73,8 @@ pub fn batch_all_triplet_loss(
 
 /// `max(0, d[a, p] − d[a, n] + margin · neg[a, n])` over the valid triplets (`pos[a, p]`
 /// and `neg[a, n]` not 0; a mask of ones gives every triplet `margin`), averaged over the
-/// active ones (a positive loss). Returns `(loss, active triplets,
-/// valid triplets)`; the loss is 0 without an active triplet.
+/// active ones (a positive loss). Returns `(loss, active triplets, valid triplets)`; the
+/// loss is 0 without an active triplet.
 ///
 /// The triplets are enumerated in plain Rust rather than as a `[B, B, B]` tensor (which
 /// cost ~100 ms per step of 128 samples in candle's broadcast ops): with the set of active
